@@ -1,0 +1,1 @@
+"""fgjax.render."""

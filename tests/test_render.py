@@ -1,0 +1,271 @@
+"""Tile rasterizer against the independent dense float64 reference (issue 2, section 3)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import shared_data
+
+import fgjax
+from fgjax.render.project import project_gaussians
+from fgjax.render.reference import project_reference, rasterize_dense
+
+W, H = 40, 30
+K64 = np.array([[40.0, 0, 20.0], [0, 38.0, 15.0], [0, 0, 1]])
+
+
+def random_scene(seed, n=120, C=3, spread=0.6, log_scale=(-3.2, -1.8)):
+    rng = np.random.default_rng(seed)
+    means = rng.normal(size=(n, 3)) * spread + [0.0, 0.0, 3.0]
+    quats = rng.normal(size=(n, 4))
+    scales = np.exp(rng.uniform(*log_scale, size=(n, 3)))
+    opac = rng.uniform(0.05, 1.0, n)
+    colors = rng.uniform(0, 1, (n, C))
+    # A camera slightly rotated and shifted, so that viewmat is not the identity.
+    ang = 0.04 + 0.03 * (seed % 4)
+    c, s = np.cos(ang), np.sin(ang)
+    vm = np.eye(4)
+    vm[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    vm[:3, 3] = [0.1, -0.05, 0.2]
+    return [means, quats, scales, opac, colors, vm, K64]
+
+
+def f32(xs):
+    return [jnp.asarray(x, jnp.float32) for x in xs]
+
+
+def f64(xs):
+    return [jnp.asarray(x, jnp.float64) for x in xs]
+
+
+def dense(args, background=None, w=W, h=H):
+    return rasterize_dense(*f64(args), w, h, background=None if background is None else jnp.asarray(background))
+
+
+@pytest.mark.parametrize("C", [1, 3, 8])
+@pytest.mark.parametrize("tile_size", [8, 16])
+@pytest.mark.parametrize("with_bg", [False, True])
+def test_matches_dense_reference(C, tile_size, with_bg):
+    args = random_scene(C + tile_size, C=C)
+    bg = np.linspace(0.2, 0.9, C) if with_bg else None
+    img, alpha, info = fgjax.rasterization(*f32(args), W, H, background=bg, tile_size=tile_size)
+    ref, ref_alpha, ref_depth = dense(args, bg)
+    assert img.dtype == jnp.float32 and img.shape == (H, W, C)
+    err = np.abs(np.asarray(img, np.float64) - np.asarray(ref))
+    assert err.mean() < 1e-5 and err.max() < 2e-3, (err.mean(), err.max())
+    assert np.abs(np.asarray(alpha) - np.asarray(ref_alpha)).max() < 2e-3
+    # Expected depth is a ratio: compare where the pixel is reasonably covered.
+    cov = np.asarray(ref_alpha) > 0.05
+    assert np.abs(np.asarray(info["depth"])[cov] - np.asarray(ref_depth)[cov]).max() < 1e-3
+    assert not bool(info["overflow"]) and int(info["n_isect"]) > 0
+    assert 0.3 < float(alpha.mean()) < 0.999  # the scene is neither empty nor saturated
+
+
+def test_image_independent_of_tile_chunk_batch():
+    args = f32(random_scene(3))
+    ref = fgjax.rasterization(*args, W, H, tile_size=16)[0]
+    for ts, chunk, batch in [(8, 32, 16), (16, 8, 4), (32, 16, 8), (4, 64, 2)]:
+        img = fgjax.rasterization(*args, W, H, tile_size=ts, chunk=chunk, batch=batch)[0]
+        np.testing.assert_allclose(np.asarray(img), np.asarray(ref), atol=2e-6)
+
+
+def test_projection_matches_independent_float64():
+    args = f64(random_scene(7, n=300, spread=1.5))
+    means, quats, scales, opac, _, vm, K = args
+    p = project_gaussians(means, quats, scales, opac, vm, K, W, H)
+    m2, conic, cov, depth, valid = project_reference(means, quats, scales, opac, vm, K, W, H)
+    assert bool(jnp.all(p.valid == valid)) and int(valid.sum()) > 200
+    v = np.asarray(valid)
+    np.testing.assert_allclose(np.asarray(p.means2d)[v], np.asarray(m2)[v], rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(p.conics)[v], np.asarray(conic)[v], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(p.cov2d)[v], np.asarray(cov)[v], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(p.depths), np.asarray(depth), rtol=1e-12)
+
+
+ARGNAMES = ["means", "quats", "scales", "opacities", "colors", "viewmat", "background"]
+
+
+def _loss_weights(seed, C):
+    rng = np.random.default_rng(100 + seed)
+    return jnp.asarray(rng.normal(size=(H, W, C))), jnp.asarray(rng.normal(size=(H, W))), 0.3
+
+
+def _tile_loss(wc, wa, wd, capacity=None):
+    def loss(means, quats, scales, opac, colors, vm, bg, K):
+        img, alpha, info = fgjax.rasterization(
+            means, quats, scales, opac, colors, vm, K, W, H, background=bg, capacity=capacity
+        )
+        return jnp.sum(img * wc) + jnp.sum(alpha * wa) + wd * jnp.sum(info["depth_acc"])
+    return loss
+
+
+def _dense_loss(wc, wa, wd):
+    def loss(means, quats, scales, opac, colors, vm, bg, K):
+        img, alpha, depth = rasterize_dense(means, quats, scales, opac, colors, vm, K, W, H, background=bg)
+        return jnp.sum(img * wc) + jnp.sum(alpha * wa) + wd * jnp.sum(depth * alpha)
+    return loss
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_gradients_match_dense_reference(seed):
+    args = random_scene(seed, n=80, C=3)
+    bg = np.array([0.3, 0.5, 0.7])
+    wc, wa, wd = _loss_weights(seed, 3)
+    a32 = f32(args[:6]) + [jnp.asarray(bg, jnp.float32), jnp.asarray(args[6], jnp.float32)]
+    a64 = f64(args[:6]) + [jnp.asarray(bg), jnp.asarray(args[6])]
+    g_tile = jax.grad(_tile_loss(wc.astype(jnp.float32), wa.astype(jnp.float32), wd, capacity=4096),
+                      argnums=tuple(range(7)))(*a32)
+    g_ref = jax.grad(_dense_loss(wc, wa, wd), argnums=tuple(range(7)))(*a64)
+    for name, gt, gr in zip(ARGNAMES, g_tile, g_ref):
+        gt, gr = np.asarray(gt, np.float64), np.asarray(gr)
+        assert np.all(np.isfinite(gt)), name
+        rel = np.linalg.norm(gt - gr) / max(np.linalg.norm(gr), 1e-12)
+        assert np.linalg.norm(gr) > 0, name
+        assert rel < 5e-3, (name, rel)
+
+
+def test_gradients_central_differences_float64():
+    args = random_scene(5, n=60, C=2)
+    bg = np.array([0.2, 0.6])
+    wc, wa, wd = _loss_weights(5, 2)
+    xs = f64(args[:6]) + [jnp.asarray(bg)]
+    K = jnp.asarray(args[6])
+    loss = jax.jit(lambda *a: _tile_loss(wc, wa, wd, capacity=4096)(*a, K))
+    grads = jax.grad(loss, argnums=tuple(range(7)))(*xs)
+    rng = np.random.default_rng(0)
+    eps = 1e-6
+    for i, name in enumerate(ARGNAMES):
+        d = rng.normal(size=xs[i].shape)
+        if name == "viewmat":
+            d[3] = 0.0  # stay on the affine matrices
+        d /= np.linalg.norm(d)
+        plus = [x + eps * d if j == i else x for j, x in enumerate(xs)]
+        minus = [x - eps * d if j == i else x for j, x in enumerate(xs)]
+        fd = (float(loss(*plus)) - float(loss(*minus))) / (2 * eps)
+        an = float(jnp.sum(grads[i] * d))
+        assert abs(fd - an) <= 2e-2 * max(abs(fd), 1e-3), (name, fd, an)
+
+
+def test_jit_matches_eager_and_vmap_matches_loop():
+    args = f32(random_scene(11))
+    img, alpha, _ = fgjax.rasterization(*args, W, H, capacity=4096)
+    jit_fn = jax.jit(lambda *a: fgjax.rasterization(*a, W, H, capacity=4096)[:2])
+    img_j, alpha_j = jit_fn(*args)
+    np.testing.assert_allclose(np.asarray(img_j), np.asarray(img), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(alpha_j), np.asarray(alpha), atol=1e-6)
+    vms = []
+    for k in range(3):
+        vm = np.array(args[5])
+        vm[:3, 3] += [0.05 * k, -0.03 * k, 0.1 * k]
+        vms.append(vm)
+    vms = jnp.asarray(np.stack(vms), jnp.float32)
+    batched = jax.vmap(lambda vm: fgjax.rasterization(*args[:5], vm, args[6], W, H, capacity=4096)[0])(vms)
+    for k in range(3):
+        single = fgjax.rasterization(*args[:5], vms[k], args[6], W, H)[0]
+        np.testing.assert_allclose(np.asarray(batched[k]), np.asarray(single), atol=1e-6)
+
+
+def test_overflow_raises_outside_jit_and_flags_inside():
+    args = f32(random_scene(2))
+    need = int(fgjax.rasterization(*args, W, H)[2]["n_isect"])
+    with pytest.raises(ValueError, match="exceed capacity"):
+        fgjax.rasterization(*args, W, H, capacity=need // 2)
+    flag = jax.jit(lambda *a: fgjax.rasterization(*a, W, H, capacity=need // 2)[2]["overflow"])(*args)
+    assert bool(flag)
+    ok = jax.jit(lambda *a: fgjax.rasterization(*a, W, H, capacity=need)[2]["overflow"])(*args)
+    assert not bool(ok)
+
+
+def test_bad_shapes_raise_clear_errors():
+    args = f32(random_scene(2))
+    bad = list(args)
+    bad[1] = bad[1][:, :3]
+    with pytest.raises(ValueError, match="quats"):
+        fgjax.rasterization(*bad, W, H)
+    with pytest.raises(ValueError, match="background"):
+        fgjax.rasterization(*args, W, H, background=jnp.zeros(5))
+    with pytest.raises(ValueError, match="width"):
+        fgjax.rasterization(*args, 0, H)
+
+
+def _stress_scene():
+    """One Gaussian per degenerate case, plus a few ordinary ones so the image is not empty."""
+    rows = []  # mean, quat, scale, opacity
+    rows.append(([0.0, 0.0, -1.0], [1, 0, 0, 0], [0.1] * 3, 0.8))  # behind the camera
+    rows.append(([0.0, 0.0, 0.01], [1, 0, 0, 0], [0.05] * 3, 0.8))  # exactly at the near plane
+    rows.append(([0.0, 0.0, 0.0101], [1, 0, 0, 0], [0.005] * 3, 0.8))  # just in front of it
+    rows.append(([0.1, 0.0, 2.0], [1, 0, 0, 0], [1e-8] * 3, 0.9))  # tiny
+    rows.append(([0.0, 0.1, 5.0], [1, 0, 0, 0], [1e2] * 3, 0.3))  # huge
+    rows.append(([-0.2, 0.0, 2.0], [0.3, 0.1, 0.2, 0.9], [0.2, 0.1, 1e-9], 0.9))  # flat
+    rows.append(([0.2, 0.2, 2.5], [1, 0, 0, 0], [0.1] * 3, 0.0))  # opacity 0
+    rows.append(([0.2, -0.2, 2.5], [1, 0, 0, 0], [0.1] * 3, 1.0))  # opacity 1
+    rows.append(([-0.2, -0.2, 2.5], [1e-6, 2e-7, 0, 0], [0.1, 0.05, 0.1], 0.7))  # quat norm 1e-6
+    rows.append(([50.0, 0.0, 1.0], [1, 0, 0, 0], [0.1] * 3, 0.9))  # off-screen
+    rows.append(([0.0, 0.0, 3.0], [1, 0, 0, 0], [0.3, 0.3, 0.3], 0.6))
+    means, quats, scales, opac = (np.array([r[i] for r in rows], np.float64) for i in range(4))
+    colors = np.random.default_rng(0).uniform(0, 1, (len(rows), 3))
+    return [means, quats, scales, opac, colors, np.eye(4), K64]
+
+
+def _check_finite_and_close(args, bg=None):
+    img, alpha, info = fgjax.rasterization(*f32(args), W, H, background=bg)
+    ref, ref_alpha, _ = dense(args, bg)
+    assert np.all(np.isfinite(np.asarray(img))) and np.all(np.isfinite(np.asarray(alpha)))
+    assert np.all(np.isfinite(np.asarray(info["depth"])))
+    np.testing.assert_allclose(np.asarray(img), np.asarray(ref), atol=2e-3)
+    wc, wa, wd = _loss_weights(0, args[4].shape[1])
+    xs = f32(args[:6]) + [jnp.zeros(args[4].shape[1], jnp.float32), jnp.asarray(args[6], jnp.float32)]
+    grads = jax.grad(_tile_loss(wc.astype(jnp.float32), wa.astype(jnp.float32), wd), argnums=tuple(range(7)))(*xs)
+    for name, g in zip(ARGNAMES, grads):
+        assert np.all(np.isfinite(np.asarray(g))), name
+    return img, alpha
+
+
+def test_stress_degenerate_gaussians():
+    args = _stress_scene()
+    img, alpha = _check_finite_and_close(args, bg=np.array([0.1, 0.2, 0.3]))
+    assert float(alpha.max()) > 0.5  # the ordinary Gaussians are drawn
+
+
+@pytest.mark.parametrize("case", ["empty", "one", "offscreen", "behind"])
+def test_stress_trivial_scenes(case):
+    args = _stress_scene()
+    sel = {"empty": [], "one": [10], "offscreen": [9], "behind": [0, 1]}[case]
+    sub = [a[sel] for a in args[:5]] + args[5:]
+    img, alpha = _check_finite_and_close(sub, bg=np.array([0.1, 0.2, 0.3]))
+    if case != "one":
+        assert float(alpha.max()) == 0.0
+        np.testing.assert_allclose(np.asarray(img), np.broadcast_to([0.1, 0.2, 0.3], img.shape), atol=1e-7)
+
+
+def test_garden_recipe_renders_without_overflow():
+    path = shared_data("garden") / "test_garden.npz"
+    from fgjax.bench.raster import garden_scene
+
+    args, (w, h) = garden_scene(path, camera=0, scale=0.25)
+    img, alpha, info = fgjax.rasterization(*args, w, h)
+    assert not bool(info["overflow"])
+    assert np.all(np.isfinite(np.asarray(img))) and float(alpha.mean()) > 0.1
+    assert int(info["valid"].sum()) > 0.5 * args[0].shape[0]
+
+
+def test_spherical_harmonics_orthonormal_basis():
+    """Real SH basis is orthonormal on the sphere: (4 pi / M) sum_k Y_i(d_k) Y_j(d_k) -> delta_ij."""
+    from fgjax.render.sh import sh_basis
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(400_000, 3))
+    Y = np.asarray(sh_basis(3, jnp.asarray(d)))  # [M, 16]
+    gram = 4 * np.pi * Y.T @ Y / len(d)
+    np.testing.assert_allclose(gram, np.eye(16), atol=0.02)
+    # degree-0 colour is view independent; coefficients beyond the degree are ignored
+    coeffs = jnp.asarray(rng.normal(size=(5, 16, 3)))
+    dirs = jnp.asarray(rng.normal(size=(5, 3)))
+    c0 = fgjax.spherical_harmonics(0, dirs, coeffs)
+    np.testing.assert_allclose(np.asarray(c0), 0.28209479177387814 * np.asarray(coeffs[:, 0]), rtol=1e-12)
+    c1 = fgjax.spherical_harmonics(1, dirs * 7.0, coeffs)  # direction norm does not matter
+    np.testing.assert_allclose(np.asarray(c1), np.asarray(fgjax.spherical_harmonics(1, dirs, coeffs)), rtol=1e-12)
+    g = jax.grad(lambda x: fgjax.spherical_harmonics(3, x, coeffs).sum())(jnp.zeros((5, 3)))
+    assert np.all(np.isfinite(np.asarray(g)))

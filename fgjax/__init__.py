@@ -15,7 +15,7 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name):  # lazy: `import fgjax` stays cheap, and the CLI starts fast
-    if name in ("rasterization", "spherical_harmonics"):
+    if name in ("rasterization", "spherical_harmonics", "gaussian_weights", "count_intersections"):
         from fgjax.render import api
 
         return getattr(api, name)

@@ -269,3 +269,17 @@ def test_spherical_harmonics_orthonormal_basis():
     np.testing.assert_allclose(np.asarray(c1), np.asarray(fgjax.spherical_harmonics(1, dirs, coeffs)), rtol=1e-12)
     g = jax.grad(lambda x: fgjax.spherical_harmonics(3, x, coeffs).sum())(jnp.zeros((5, 3)))
     assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_gaussian_weights_match_dense_per_gaussian_weights():
+    """sum_p m_p T_ip alpha_ip against the dense reference run once per Gaussian (one-hot colour)."""
+    args = random_scene(4, n=30, C=1)
+    rng = np.random.default_rng(1)
+    mask = rng.uniform(0, 1, (H, W))
+    got = fgjax.gaussian_weights(*f32(args[:4]), *f32(args[5:]), W, H, mask)
+    a64 = f64(args)
+    onehot = jnp.eye(30)  # colour of Gaussian i = e_i: channel i of the image is w_i per pixel
+    ref_img = rasterize_dense(a64[0], a64[1], a64[2], a64[3], onehot, a64[5], a64[6], W, H)[0]
+    ref = np.einsum("hwn,hw->n", np.asarray(ref_img), mask)
+    assert ref.max() > 1.0
+    np.testing.assert_allclose(np.asarray(got), ref, rtol=1e-4, atol=1e-4)

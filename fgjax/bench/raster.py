@@ -92,7 +92,7 @@ def dense_error(args, w, h, tile_size, crop):
     img, _, info = fgjax.rasterization(*cargs, cw, ch, tile_size=tile_size)
     rect = np.asarray(info["tile_rect"])
     sel = (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
-    with jax.experimental.enable_x64():
+    with jax.enable_x64(True):
         a64 = [jnp.asarray(np.asarray(a)[sel], jnp.float64) for a in cargs[:5]]
         a64 += [jnp.asarray(np.asarray(a), jnp.float64) for a in cargs[5:]]
         ref = np.asarray(rasterize_dense(*a64, cw, ch)[0])

@@ -21,10 +21,13 @@ from fgjax.render.project import project_gaussians
 from fgjax.render.sh import spherical_harmonics as spherical_harmonics  # re-export
 from fgjax.render.tiles import bin_gaussians, tile_ranges
 
-__all__ = ["rasterization", "spherical_harmonics", "count_intersections"]
+__all__ = ["rasterization", "spherical_harmonics", "count_intersections", "gaussian_weights"]
 
-DEFAULT_CHUNK = 32
-DEFAULT_BATCH = 16
+# Speed-only knobs, tuned with `fgjax bench raster` on the garden scene (docs/benchmarks.md):
+# 8-pixel tiles evaluate far fewer (Gaussian, pixel) pairs than 16 for small splats.
+DEFAULT_TILE = 8
+DEFAULT_CHUNK = 64
+DEFAULT_BATCH = 64
 
 
 def _is_traced(*xs) -> bool:
@@ -66,16 +69,23 @@ def _project_and_rect(means, quats, scales, opacities, viewmat, K, width, height
 
 
 @functools.partial(jax.jit, static_argnames=("width", "height", "near_plane", "tile_size"))
-def count_intersections(means, quats, scales, opacities, viewmat, K, *, width, height, near_plane=0.01, tile_size=16):
+def count_intersections(
+    means, quats, scales, opacities, viewmat, K, *, width, height, near_plane=0.01, tile_size=DEFAULT_TILE
+):
     """Number of (Gaussian, tile) intersections a render needs: the minimal ``capacity``."""
     _, rect = _project_and_rect(means, quats, scales, opacities, viewmat, K, width, height, near_plane, tile_size)
     return jnp.sum((rect[:, 2] - rect[:, 0]) * (rect[:, 3] - rect[:, 1]))
 
 
 def default_capacity(n: int, width: int, height: int, tile_size: int) -> int:
-    """Static capacity used when none is given under jit/vmap: 8 tiles per Gaussian plus one per tile."""
+    """Static capacity used when none is given under jit/vmap (a heuristic: check info["overflow"]).
+
+    16 tiles per Gaussian at tile size 8 (scaled by the tile area), plus one per tile. Training
+    loops should size it from ``count_intersections`` over their cameras instead.
+    """
     n_tiles = -(-width // tile_size) * -(-height // tile_size)
-    return 8 * max(n, 1) + n_tiles
+    per = max(2, math.ceil(16 * (8 / tile_size) ** 2))
+    return per * max(n, 1) + n_tiles
 
 
 def _round_capacity(x: int) -> int:
@@ -169,7 +179,7 @@ def rasterization(
     *,
     background: Float[ArrayLike, " C"] | None = None,
     near_plane: float = 0.01,
-    tile_size: int = 16,
+    tile_size: int = DEFAULT_TILE,
     capacity: int | None = None,
     chunk: int = DEFAULT_CHUNK,
     batch: int = DEFAULT_BATCH,
@@ -242,3 +252,37 @@ def rasterization(
             "pass a larger capacity (or capacity=None outside jit to size it automatically)"
         )
     return out
+
+
+def gaussian_weights(
+    means: Float[ArrayLike, "N 3"],
+    quats: Float[ArrayLike, "N 4"],
+    scales: Float[ArrayLike, "N 3"],
+    opacities: Float[ArrayLike, " N"],
+    viewmat: Float[ArrayLike, "4 4"],
+    K: Float[ArrayLike, "3 3"],
+    width: int,
+    height: int,
+    pixel_weights: Float[ArrayLike, "H W"],
+    **kwargs,
+) -> Float[Array, " N"]:
+    """Per-Gaussian contribution to weighted pixels: sum_p m_p T_ip alpha_ip.
+
+    The back-projection used for dynamic-Gaussian discovery (DESIGN.md section 1, step 5): with
+    m a (soft) mask of moving pixels, Gaussians that paint those pixels get large values. Computed
+    as the gradient of sum_p m_p image_p with respect to a zero one-channel colour, i.e. one
+    backward pass of the tile rasterizer (memory O(intersections)). ``kwargs`` go to
+    ``rasterization`` (capacity, tile_size, near_plane, ...).
+    """
+    means = jnp.asarray(means)
+    dtype = jnp.result_type(means.dtype, jnp.float32)
+    m = jnp.asarray(pixel_weights, dtype)
+    if m.shape != (int(height), int(width)):
+        raise ValueError(f"gaussian_weights: pixel_weights must have shape [H, W]=[{height}, {width}], got {list(m.shape)}")
+
+    def masked(c):
+        img, _, _ = rasterization(means, quats, scales, opacities, c, viewmat, K, width, height,
+                                  render_depth=False, **kwargs)
+        return jnp.sum(img[..., 0] * m)
+
+    return jax.grad(masked)(jnp.zeros((means.shape[0], 1), dtype))[:, 0]

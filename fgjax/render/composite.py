@@ -72,27 +72,38 @@ class _Static(NamedTuple):
     batch: int
 
 
-def _tile_pixels(tile: Int[Array, " B"], tile_size: int, n_tiles_x: int, dtype) -> Float[Array, "B P 2"]:
-    """Pixel centres (x, y) of each tile, row-major inside the tile."""
-    ty, tx = tile // n_tiles_x, tile % n_tiles_x
-    r = jnp.arange(tile_size, dtype=dtype) + 0.5
-    px = (tx * tile_size).astype(dtype)[:, None, None] + r[None, None, :]  # [B, 1, ts]
-    py = (ty * tile_size).astype(dtype)[:, None, None] + r[None, :, None]  # [B, ts, 1]
-    px, py = jnp.broadcast_arrays(px, py)
-    return jnp.stack([px, py], axis=-1).reshape(tile.shape[0], tile_size * tile_size, 2)
+def _pixel_basis(tile_size: int, dtype) -> Float[Array, "P 6"]:
+    """Pixel centres of a tile relative to the tile centre, and their quadratic basis.
+
+    Returns [x^2, x y, y^2, x, y, 1] per pixel (row-major inside the tile); x, y are in
+    [-tile_size/2 + 0.5, tile_size/2 - 0.5]. Centred coordinates keep float32 round-off small.
+    """
+    r = jnp.arange(tile_size, dtype=dtype) + 0.5 - 0.5 * tile_size
+    y, x = jnp.meshgrid(r, r, indexing="ij")
+    x, y = x.reshape(-1), y.reshape(-1)
+    return jnp.stack([x * x, x * y, y * y, x, y, jnp.ones_like(x)], axis=-1)
 
 
-def _alpha(pix, mean, conic, opac, live):
-    """alpha [B, C, P], its unclamped value's exponent and the pixel offsets."""
-    dx = pix[:, None, :, 0] - mean[:, :, None, 0]  # [B, C, P]
-    dy = pix[:, None, :, 1] - mean[:, :, None, 1]
-    a, b, c = conic[..., 0:1], conic[..., 1:2], conic[..., 2:3]  # [B, C, 1]
+def _local_means(tile, mean, tile_size: int, n_tiles_x: int):
+    """Gaussian centres relative to the centre of their chunk's tile: [B, C, 2]."""
+    centre = (jnp.stack([tile % n_tiles_x, tile // n_tiles_x], -1).astype(mean.dtype) + 0.5) * tile_size  # [B, 2]
+    return mean - centre[:, None, :]
+
+
+def _alpha(basis, m_local, conic, opac, live):
+    """alpha [B, C, P] (clamped), the unclamped o exp(-q/2), and the counted mask.
+
+    q = a dx^2 + 2 b dx dy + c dy^2 from the offsets directly (exact in float32 to round-off);
+    forward and backward call this same function so their keep decisions agree bit for bit.
+    """
+    dx = basis[None, None, :, 3] - m_local[..., 0:1]  # [B, C, P]
+    dy = basis[None, None, :, 4] - m_local[..., 1:2]
+    a, b, c = conic[..., 0:1], conic[..., 1:2], conic[..., 2:3]
     q = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
-    g = jnp.exp(-0.5 * jnp.maximum(q, 0.0))
-    raw = opac[..., None] * g  # [B, C, P]
+    raw = opac[..., None] * jnp.exp(-0.5 * jnp.maximum(q, 0.0))  # [B, C, P]
     alpha = jnp.minimum(ALPHA_MAX, raw)
     on = live[..., None] & (alpha >= ALPHA_MIN)
-    return alpha, raw, g, on, dx, dy
+    return alpha, raw, on
 
 
 def _segment_prefix(tile, vals, carry_tile, carry_val):
@@ -105,11 +116,6 @@ def _segment_prefix(tile, vals, carry_tile, carry_val):
     mask = (earlier & (tile[:, None] == tile[None, :])).astype(vals.dtype)  # [B, B]
     pre = mask @ vals + jnp.where(tile == carry_tile, 1.0, 0.0).astype(vals.dtype)[:, None] * carry_val
     return pre, (tile[-1], pre[-1] + vals[-1])
-
-
-def _excl_cumsum(x):
-    """Exclusive prefix sum over the chunk axis (axis 1) of [B, C, P]."""
-    return jnp.cumsum(x, axis=1) - x
 
 
 def _batches(x, batch):
@@ -147,15 +153,16 @@ def _forward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks):
     tri = jnp.tril(jnp.ones((st.chunk, st.chunk), dtype), k=-1)  # excl[i] = sum_{j<i}
     log_tmin = math.log(T_MIN)
     nb = ch.ids.shape[0] // st.batch
+    basis = _pixel_basis(st.tile_size, dtype)
 
     def body(carry, xs):
         bidx, ids, live, tile = xs
 
         def compute(carry):
             c_tile, c_val = carry
-            pix = _tile_pixels(tile, st.tile_size, ntx, dtype)
-            alpha, _, _, on, _, _ = _alpha(pix, m2[ids], cn[ids], op[ids], live)
-            lg = jnp.where(on, jnp.log1p(-alpha), 0.0)  # [B, C, P]
+            ml = _local_means(tile, m2[ids], st.tile_size, ntx)
+            alpha, _, on = _alpha(basis, ml, cn[ids], op[ids], live)
+            lg = jnp.where(on, jnp.log(1.0 - alpha), 0.0)  # [B, C, P]; 1 - alpha >= 0.01
             pre, new_carry = _segment_prefix(tile, lg.sum(1), c_tile, c_val)  # [B, P]
             L = pre[:, None, :] + jnp.einsum("ij,bjp->bip", tri, lg)
             keep = on & (L + lg > log_tmin)
@@ -191,6 +198,7 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
     tri_incl = jnp.tril(jnp.ones((st.chunk, st.chunk), dtype), k=0)
     log_tmin = math.log(T_MIN)
     g_dot_acc = jnp.sum(g_acc * acc, axis=-1)  # [T, P]
+    basis = _pixel_basis(st.tile_size, dtype)
     nb = ch.ids.shape[0] // st.batch
     G = 6 + K  # per-entry gradient row: mean x,y; conic a,b,c; opacity; colours
 
@@ -199,10 +207,10 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
 
         def compute(carry):
             c_tile, c_val = carry
-            pix = _tile_pixels(tile, st.tile_size, ntx, dtype)
-            mean, con, o, col = m2[ids], cn[ids], op[ids], co[ids]
-            alpha, raw, gauss, on, dx, dy = _alpha(pix, mean, con, o, live)
-            lg = jnp.where(on, jnp.log1p(-alpha), 0.0)
+            con, o, col = cn[ids], op[ids], co[ids]
+            ml = _local_means(tile, m2[ids], st.tile_size, ntx)
+            alpha, raw, on = _alpha(basis, ml, con, o, live)
+            lg = jnp.where(on, jnp.log(1.0 - alpha), 0.0)
             L = pre_b[:, None, :] + jnp.einsum("ij,bjp->bip", tri, lg)
             keep = on & (L + lg > log_tmin)
             T = jnp.exp(L)
@@ -214,13 +222,20 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
             suffix = g_dot_acc[tile][:, None, :] - apre[:, None, :] - jnp.einsum("ij,bjp->bip", tri_incl, a)
             d_alpha = jnp.where(keep & (raw < ALPHA_MAX), T * gc - suffix / (1.0 - alpha), 0.0)
             d_q = -0.5 * d_alpha * raw  # d alpha / d q = -alpha / 2 when unclamped
-            g_o = jnp.sum(d_alpha * gauss, -1)  # [B, C]
-            ca, cb, cc = con[..., 0:1], con[..., 1:2], con[..., 2:3]
-            g_mx = jnp.sum(-d_q * 2.0 * (ca * dx + cb * dy), -1)
-            g_my = jnp.sum(-d_q * 2.0 * (cb * dx + cc * dy), -1)
-            g_ca = jnp.sum(d_q * dx * dx, -1)
-            g_cb = jnp.sum(d_q * 2.0 * dx * dy, -1)
-            g_cc = jnp.sum(d_q * dy * dy, -1)
+            # Moments of d_q over the pixel basis give every per-entry sum in one matmul:
+            # sum_p d_q [x^2, xy, y^2, x, y, 1].
+            mom = jnp.einsum("bcp,pf->bcf", d_q, basis)
+            Sxx, Sxy, Syy, Sx, Sy, S = (mom[..., i] for i in range(6))
+            mx, my = ml[..., 0], ml[..., 1]
+            ca, cb, cc = con[..., 0], con[..., 1], con[..., 2]
+            Dx = Sx - mx * S  # sum d_q dx
+            Dy = Sy - my * S
+            g_ca = Sxx - 2.0 * mx * Sx + mx * mx * S  # sum d_q dx^2
+            g_cb = 2.0 * (Sxy - my * Sx - mx * Sy + mx * my * S)  # sum d_q 2 dx dy
+            g_cc = Syy - 2.0 * my * Sy + my * my * S
+            g_mx = -2.0 * (ca * Dx + cb * Dy)
+            g_my = -2.0 * (cb * Dx + cc * Dy)
+            g_o = -2.0 * S / jnp.where(o > 0, o, 1.0)  # sum d_alpha exp(-q/2) = -2 sum d_q / o
             g_col = jnp.einsum("bcp,bpk->bck", w, gt)  # [B, C, K]
             rows = jnp.concatenate([jnp.stack([g_mx, g_my, g_ca, g_cb, g_cc, g_o], -1), g_col], -1)
             return new_carry, rows

@@ -1,0 +1,222 @@
+"""``fgjax demo`` (``make demo``): the built-in synthetic scene and pictures of its ground truth.
+
+Until the full pipeline (stage 1, discovery, stage 2, control) is wired in, the demo generates
+the default synthetic articulated scene (`fgjax.data.synth`) into ``OUT/scene`` and writes:
+
+- ``OUT/contact_sheet.png``: a few training frames (rows) where objects move, as RGB, depth,
+  ground-truth optical flow (Middlebury colour wheel, one scale for the sheet) and per-pixel
+  object ids (columns);
+- ``OUT/demo.mp4``: the training sequence next to its flow visualisation (imageio + ffmpeg;
+  ``OUT/demo.gif`` when mp4 writing fails).
+
+``--quick`` makes a smaller scene (96x72, 24 frames) for a fast check.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import cv2
+import imageio.v3 as iio
+import numpy as np
+
+from fgjax.data import synth
+
+__all__ = ["main", "contact_sheet", "depth_to_color", "ids_to_color", "write_video"]
+
+_ID_COLORS = np.array(
+    [[70, 70, 70], [230, 60, 50], [50, 140, 230], [240, 200, 40], [160, 80, 220], [60, 200, 110], [240, 130, 190]],
+    dtype=np.uint8,
+)
+
+
+def depth_to_color(depth: np.ndarray, valid: np.ndarray | None = None, *, near: float | None = None,
+                   far: float | None = None) -> np.ndarray:
+    """[H, W] depth -> [H, W, 3] uint8 RGB (turbo colour map of inverse depth; invalid black)."""
+    depth = np.asarray(depth, dtype=np.float64)
+    ok = depth > 0 if valid is None else (np.asarray(valid, bool) & (depth > 0))
+    if not np.any(ok):
+        return np.zeros((*depth.shape, 3), np.uint8)
+    near = float(depth[ok].min()) if near is None else near
+    far = float(depth[ok].max()) if far is None else far
+    inv = np.where(ok, 1.0 / np.where(ok, depth, 1.0), 0.0)
+    lo, hi = 1.0 / far, 1.0 / near
+    x = np.clip((inv - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    bgr = cv2.applyColorMap(np.round(x * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    rgb = bgr[..., ::-1]
+    return np.where(ok[..., None], rgb, 0).astype(np.uint8)
+
+
+def ids_to_color(ids: np.ndarray) -> np.ndarray:
+    """[H, W] object ids (-1 invalid, 0 static, k object) -> [H, W, 3] uint8 RGB."""
+    ids = np.asarray(ids)
+    out = _ID_COLORS[np.clip(ids, 0, None) % len(_ID_COLORS)]
+    return np.where((ids < 0)[..., None], 0, out).astype(np.uint8)
+
+
+def _up(img: np.ndarray, s: int) -> np.ndarray:
+    return np.repeat(np.repeat(img, s, axis=0), s, axis=1) if s > 1 else img
+
+
+def _label(img: np.ndarray, text: str) -> np.ndarray:
+    """A strip with `text` above `img` (same width)."""
+    h = 16
+    strip = np.full((h, img.shape[1], 3), 255, np.uint8)
+    cv2.putText(strip, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([strip, img], axis=0)
+
+
+def _pad16(img: np.ndarray) -> np.ndarray:
+    """Pad to multiples of 16 pixels (ffmpeg's macro-block size) with black."""
+    h, w = img.shape[:2]
+    return np.pad(img, ((0, -h % 16), (0, -w % 16), (0, 0)))
+
+
+def _pick_frames(object_flow: np.ndarray, n: int) -> list[int]:
+    """Up to n frame indices with the largest object motion, spread over the sequence."""
+    t = object_flow.shape[0]
+    score = np.linalg.norm(object_flow, axis=-1).reshape(t, -1).mean(axis=1)
+    order = [int(i) for i in np.argsort(-score) if score[i] > 0]
+    picked: list[int] = []
+    gap = max(1, t // (2 * n))
+    for i in order:
+        if all(abs(i - j) >= gap for j in picked):
+            picked.append(i)
+        if len(picked) == n:
+            break
+    for i in np.linspace(0, t - 1, n).round().astype(int):  # fill with evenly spaced frames
+        if len(picked) == n:
+            break
+        if int(i) not in picked:
+            picked.append(int(i))
+    return sorted(picked)
+
+
+def contact_sheet(scene_dir: Path, n_rows: int = 4) -> np.ndarray:
+    """[H', W', 3] uint8 sheet: rows = frames, columns = RGB, depth, GT flow, object ids."""
+    gt = scene_dir / "gt" / "train"
+    depth, valid, ids = (np.load(gt / f"{k}.npy") for k in ("depth", "valid", "object_id"))
+    flow, fvalid, oflow = (np.load(gt / f"{k}.npy") for k in ("flow", "flow_valid", "object_flow"))
+    t, h, w = depth.shape
+    s = max(1, 240 // w)
+    max_flow = float(np.percentile(np.linalg.norm(flow, axis=-1)[fvalid], 99)) if np.any(fvalid) else 1.0
+    near, far = float(depth[valid].min()), float(depth[valid].max())
+    rows = []
+    for i in _pick_frames(oflow, min(n_rows, max(t - 1, 1))):
+        rgb = iio.imread(scene_dir / "images" / f"train_{i:05d}.png")[..., :3]
+        f = flow[min(i, t - 2)] if t > 1 else np.zeros((h, w, 2), np.float32)
+        fv = fvalid[min(i, t - 2)] if t > 1 else np.zeros((h, w), bool)
+        tiles = [
+            _label(_up(rgb, s), f"frame {i} RGB"),
+            _label(_up(depth_to_color(depth[i], valid[i], near=near, far=far), s), "depth"),
+            _label(_up(synth.flow_to_color(f, max_flow, valid=fv), s), f"flow {i}->{i + 1} (max {max_flow:.1f}px)"),
+            _label(_up(ids_to_color(ids[i]), s), "object id"),
+        ]
+        rows.append(np.concatenate([np.pad(x, ((2, 2), (2, 2), (0, 0)), constant_values=255) for x in tiles], 1))
+    return np.concatenate(rows, axis=0)
+
+
+def _video_frames(scene_dir: Path) -> list[np.ndarray]:
+    gt = scene_dir / "gt" / "train"
+    flow, fvalid = np.load(gt / "flow.npy"), np.load(gt / "flow_valid.npy")
+    t = len(np.load(gt / "times.npy"))
+    max_flow = float(np.percentile(np.linalg.norm(flow, axis=-1)[fvalid], 99)) if np.any(fvalid) else 1.0
+    frames = []
+    for i in range(t):
+        rgb = iio.imread(scene_dir / "images" / f"train_{i:05d}.png")[..., :3]
+        if i < t - 1:
+            fc = synth.flow_to_color(flow[i], max_flow, valid=fvalid[i])
+        else:
+            fc = np.zeros_like(rgb)
+        s = max(1, 320 // rgb.shape[1])
+        frames.append(_pad16(_up(np.concatenate([rgb, fc], axis=1), s)))
+    return frames
+
+
+def write_video(frames: list[np.ndarray], path: Path, fps: int = 10) -> Path:
+    """Write an mp4 with imageio + ffmpeg; on failure an animated GIF next to it. Returns the file."""
+    path = Path(path)
+    try:
+        import imageio.v2 as iio2
+
+        with warnings.catch_warnings():
+            # JAX warns on any fork; the writer's fork is followed by exec (ffmpeg), which is safe.
+            warnings.filterwarnings("ignore", message=".*os.fork.*", category=RuntimeWarning)
+            with iio2.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
+                                 macro_block_size=16, pixelformat="yuv420p", ffmpeg_log_level="error") as wr:
+                for f in frames:
+                    wr.append_data(f)
+        if path.stat().st_size == 0:
+            raise OSError("empty mp4")
+        with contextlib.suppress(OSError):
+            path.with_suffix(".gif").unlink()  # a fallback left by an earlier run
+        return path
+    except Exception as e:  # no ffmpeg, codec missing ...
+        with contextlib.suppress(OSError):
+            path.unlink()
+        gif = path.with_suffix(".gif")
+        print(f"fgjax demo: mp4 writing failed ({e}); writing {gif.name} instead", file=sys.stderr)
+        iio.imwrite(gif, np.stack(frames), extension=".gif", duration=1000 // fps, loop=0)
+        return gif
+
+
+def _scene_config(args: argparse.Namespace) -> synth.SynthConfig:
+    base = dict(width=96, height=72, frames=24, test_views=2, test_states=2) if args.quick else {}
+    for k in ("width", "height", "frames"):
+        if getattr(args, k) is not None:
+            base[k] = getattr(args, k)
+    return synth.SynthConfig(seed=args.seed, **base)
+
+
+def _is_synth_output(d: Path) -> bool:
+    try:
+        meta = json.loads((d / "gt" / "meta.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("generator") == synth.GENERATOR
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``fgjax demo [--out outputs/demo] [--quick]``. Returns the exit status."""
+    p = argparse.ArgumentParser(prog="fgjax demo", description="Generate the built-in synthetic articulated scene "
+                                "and pictures of its ground truth (contact sheet, video).")
+    p.add_argument("--out", default="outputs/demo", help="output folder (default: %(default)s)")
+    p.add_argument("--quick", action="store_true", help="smaller scene (96x72, 24 frames)")
+    p.add_argument("--width", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--height", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--frames", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    try:
+        cfg = _scene_config(args)
+    except ValueError as e:
+        print(f"fgjax demo: error: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    scene_dir = out / "scene"
+    if scene_dir.exists() and (not scene_dir.is_dir() or (any(scene_dir.iterdir()) and not _is_synth_output(scene_dir))):
+        print(f"fgjax demo: error: {scene_dir} exists and is not a synthetic scene from an earlier demo; "
+              "choose another --out", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    say = lambda msg: print(msg, file=sys.stderr, flush=True)
+    synth.generate(cfg, scene_dir, overwrite=True, progress=say)
+    say(f"demo: drawing ({time.perf_counter() - t0:.1f} s)")
+    sheet_path = out / "contact_sheet.png"
+    iio.imwrite(sheet_path, contact_sheet(scene_dir))
+    video_path = write_video(_video_frames(scene_dir), out / "demo.mp4")
+    print(f"scene:         {scene_dir} (transforms_train.json, transforms_test.json, images/, gt/)")
+    print(f"contact sheet: {sheet_path}")
+    print(f"video:         {video_path}")
+    say(f"demo: done in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

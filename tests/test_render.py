@@ -283,3 +283,29 @@ def test_gaussian_weights_match_dense_per_gaussian_weights():
     ref = np.einsum("hwn,hw->n", np.asarray(ref_img), mask)
     assert ref.max() > 1.0
     np.testing.assert_allclose(np.asarray(got), ref, rtol=1e-4, atol=1e-4)
+
+
+def test_ellipse_tile_test_is_conservative_and_tight():
+    """Never drops a tile where some pixel has alpha >= 1/255 (brute force), and rejects most others."""
+    from fgjax.render.tiles import ellipse_hits_tile
+
+    rng = np.random.default_rng(0)
+    M, ts = 4000, 8
+    mean = rng.uniform(-20, 40, (M, 2))
+    A = rng.normal(size=(M, 2, 2)) * rng.uniform(0.5, 6, (M, 1, 1))
+    cov = A @ np.swapaxes(A, 1, 2) + 0.3 * np.eye(2)
+    inv = np.linalg.inv(cov)
+    conic = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+    opac = rng.uniform(0.01, 1, M)
+    r2 = 2 * np.log(np.maximum(255 * opac, 1))
+    tx, ty = rng.integers(0, 3, M), rng.integers(0, 3, M)
+    got = np.asarray(ellipse_hits_tile(*(jnp.asarray(x) for x in (mean, conic, r2, tx, ty)), ts))
+    px = tx[:, None] * ts + 0.5 + np.arange(ts)[None]  # [M, ts]
+    py = ty[:, None] * ts + 0.5 + np.arange(ts)[None]
+    dx = px[:, None, :] - mean[:, 0, None, None]  # [M, ts(y), ts(x)]
+    dy = py[:, :, None] - mean[:, 1, None, None]
+    q = conic[:, 0, None, None] * dx**2 + 2 * conic[:, 1, None, None] * dx * dy + conic[:, 2, None, None] * dy**2
+    truth = np.any(opac[:, None, None] * np.exp(-q / 2) >= 1 / 255, axis=(1, 2))
+    assert truth.sum() > 200 and (~truth).sum() > 200
+    assert np.all(got[truth]), "dropped a tile that has a counted pixel"
+    assert (got & ~truth).sum() <= 0.02 * M  # margin only

@@ -59,12 +59,15 @@ def soft_scene(n: int = 20000, width: int = 320, height: int = 240, seed: int = 
     return args, (width, height)
 
 
-def _median_time(fn, repeats):
+def _median_time(fn, repeats, cpu=False):
+    """Median wall time of fn() (or process CPU time, all threads, with cpu=True: steadier than
+    wall time on a shared, loaded machine)."""
+    clock = time.process_time if cpu else time.perf_counter
     ts = []
     for _ in range(repeats):
-        t = time.perf_counter()
+        t = clock()
         jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t)
+        ts.append(clock() - t)
     return statistics.median(ts)
 
 
@@ -125,18 +128,71 @@ def bench_scene(name, args, w, h, tile_sizes, repeats, crop, check_error=True):
         compile_bwd = time.perf_counter() - t
         t_fwd = _median_time(lambda: fwd(*args), repeats)
         t_bwd = _median_time(lambda: grad(*args[:5]), repeats)
+        c_fwd = _median_time(lambda: fwd(*args), repeats, cpu=True)
+        c_bwd = _median_time(lambda: grad(*args[:5]), repeats, cpu=True)
         emax, emean, nsel = dense_error(args, w, h, ts, crop) if check_error else (float("nan"),) * 2 + (0,)
         row = dict(scene=name, tile=ts, n=int(args[0].shape[0]), isect=need, compile_s=compile_fwd + compile_bwd,
-                   compile_fwd_s=compile_fwd, fwd_s=t_fwd, fwdbwd_s=t_bwd, peak_rss_mb=_peak_rss_mb(),
+                   compile_fwd_s=compile_fwd, fwd_s=t_fwd, fwdbwd_s=t_bwd, fwd_cpu_s=c_fwd, fwdbwd_cpu_s=c_bwd,
+                   peak_rss_mb=_peak_rss_mb(),
                    err_max=emax, err_mean=emean)
         rows.append(row)
         print(
             f"{name:<8} tile {ts:>2}  N {row['n']:>6}  isect {need:>8}  compile {row['compile_s']:6.1f}s "
-            f"(fwd {compile_fwd:5.1f}s)  fwd {t_fwd:6.3f}s  fwd+bwd {t_bwd:6.3f}s  peakRSS {row['peak_rss_mb']:7.0f}MB  "
+            f"(fwd {compile_fwd:5.1f}s)  fwd {t_fwd:6.3f}s [cpu {c_fwd:6.3f}s]  fwd+bwd {t_bwd:6.3f}s [cpu {c_bwd:6.3f}s]  peakRSS {row['peak_rss_mb']:7.0f}MB  "
             f"err max {emax:.1e} mean {emean:.1e} (crop {crop[2]}x{crop[3]}, {nsel} Gaussians)",
             flush=True,
         )
     return rows
+
+
+def breakdown(name, args, w, h, tile_size, repeats, chunk=None, batch=None):
+    """Median time of each stage: projection, binning (sort), chunking, compositing fwd / fwd+bwd.
+
+    Also reports the (Gaussian, pixel) pairs evaluated, i.e. chunk slots x tile pixels, the
+    quantity the compositor's run time scales with.
+    """
+    from fgjax.render import api, tiles
+    from fgjax.render import composite as comp
+    from fgjax.render.project import project_gaussians
+
+    chunk = chunk or api.DEFAULT_CHUNK
+    batch = batch or api.DEFAULT_BATCH
+    n = int(args[0].shape[0])
+    need = int(api.count_intersections(*args[:4], args[5], args[6], width=w, height=h, tile_size=tile_size))
+    cap = api._round_capacity(need)
+    ntx, nty = -(-w // tile_size), -(-h // tile_size)
+    proj_f = jax.jit(lambda m, q, s, o, vm, K: project_gaussians(m, q, s, o, vm, K, w, h))
+    rect_f = jax.jit(lambda p: tiles.tile_ranges(p.means2d, p.extent, p.valid, tile_size, w, h))
+    bin_f = jax.jit(lambda rect, dep: tiles.bin_gaussians(rect, dep, ntx, nty, cap))
+    chunk_f = jax.jit(lambda ids, st: comp.make_chunks(ids, st, n, chunk))
+    kw = dict(width=w, height=h, tile_size=tile_size, chunk=chunk, batch=batch)
+    comp_f = jax.jit(lambda m2, cn, op, ft, ch: comp.composite(m2, cn, op, ft, ch, **kw))
+    grad_f = jax.jit(jax.grad(lambda m2, cn, op, ft, ch: jnp.sum(comp.composite(m2, cn, op, ft, ch, **kw)),
+                              argnums=(0, 1, 2, 3)))
+    p = proj_f(*args[:4], args[5], args[6])
+    rect = rect_f(p)
+    b = bin_f(rect, p.depths)
+    ch = chunk_f(b.isect_ids, b.tile_start)
+    feats = jnp.concatenate([args[4], jnp.ones((n, 1), jnp.float32)], -1)
+    opac = jnp.where(p.valid, args[3], 0.0)
+    stages = {
+        "project": lambda: proj_f(*args[:4], args[5], args[6]),
+        "tile ranges": lambda: rect_f(p),
+        "bin+sort": lambda: bin_f(rect, p.depths),
+        "chunks": lambda: chunk_f(b.isect_ids, b.tile_start),
+        "composite fwd": lambda: comp_f(p.means2d, p.conics, opac, feats, ch),
+        "composite fwd+bwd": lambda: grad_f(p.means2d, p.conics, opac, feats, ch),
+    }
+    for f in stages.values():
+        jax.block_until_ready(f())
+    times = {k: _median_time(f, repeats, cpu=True) for k, f in stages.items()}
+    pairs = int(ch.n_used) * chunk * tile_size * tile_size
+    print(f"{name} breakdown (tile {tile_size}, chunk {chunk}, batch {batch}): isect {need}, "
+          f"chunks used {int(ch.n_used)}/{ch.ids.shape[0]}, (Gaussian, pixel) pairs evaluated {pairs / 1e6:.1f}M")
+    for k, t in times.items():
+        extra = f"   {t / pairs * 1e9:5.2f} ns/pair" if k.startswith("composite") else ""
+        print(f"  {k:<18} {t * 1e3:8.1f} ms cpu{extra}")
+    return times, pairs
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scale", type=float, default=1.0, help="image scale for the garden scene")
     p.add_argument("--scenes", default="garden,soft", help="comma-separated: garden, soft")
     p.add_argument("--no-error", action="store_true", help="skip the dense-reference error (slow part)")
+    p.add_argument("--breakdown", action="store_true", help="also time each stage of the garden render")
     a = p.parse_args(argv)
     tiles = [int(t) for t in a.tiles.split(",")]
     print(f"# fgjax bench raster  jax {jax.__version__}  backend {jax.default_backend()}  "
@@ -158,6 +215,9 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         args, (w, h) = garden_scene(a.garden, 0, a.scale)
         bench_scene("garden", args, w, h, tiles, a.repeats, (w // 2 - 40, h // 2 - 30, 80, 60), not a.no_error)
+        if a.breakdown:
+            for ts in tiles:
+                breakdown("garden", args, w, h, ts, a.repeats)
     if "soft" in scenes:
         args, (w, h) = soft_scene()
         bench_scene("soft", args, w, h, tiles, a.repeats, (120, 90, 80, 60), not a.no_error)

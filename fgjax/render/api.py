@@ -109,6 +109,7 @@ def _empty_render(means, colors, background, width, height, render_depth):
         "cov2d": jnp.zeros((0, 3), dtype), "extent": jnp.zeros((0, 2), dtype),
         "radii": jnp.zeros((0, 2), jnp.int32), "valid": jnp.zeros((0,), bool),
         "tile_rect": jnp.zeros((0, 4), jnp.int32), "n_isect": jnp.zeros((), jnp.int32),
+        "n_composited": jnp.zeros((), jnp.int32),
         "overflow": jnp.zeros((), bool),
     }
     if render_depth:
@@ -132,7 +133,9 @@ def _rasterize(
     proj, rect = _project_and_rect(means, quats, scales, opacities, viewmat, K, width, height, near_plane, tile_size)
     ntx = -(-width // tile_size)
     nty = -(-height // tile_size)
-    bins = bin_gaussians(rect, proj.depths, ntx, nty, capacity)
+    r2 = 2.0 * jnp.log(jnp.maximum(jnp.where(proj.valid, opacities, 0.0) * 255.0, 1.0))  # alpha >= 1/255 <=> q <= r2
+    ellipse = jax.lax.stop_gradient((proj.means2d, proj.conics, r2))
+    bins = bin_gaussians(rect, proj.depths, ntx, nty, capacity, ellipse=ellipse, tile_size=tile_size)
     chunks = make_chunks(bins.isect_ids, bins.tile_start, n, chunk)
     extra = [jnp.ones((n, 1), dtype)]  # alpha channel
     if render_depth:
@@ -157,6 +160,7 @@ def _rasterize(
         "valid": proj.valid,
         "tile_rect": rect,
         "n_isect": bins.n_isect,
+        "n_composited": bins.n_composited,
         "overflow": bins.overflow,
     }
     if render_depth:
@@ -216,7 +220,9 @@ def rasterization(
     Returns:
       image [H, W, C], alpha [H, W] (= 1 - T_final), and ``info`` with means2d [N, 2], depths [N],
       conics [N, 3], cov2d [N, 3], extent [N, 2] (screen half-size in px), radii [N, 2] int,
-      valid [N], tile_rect [N, 4], n_isect, overflow, capacity, depth [H, W], depth_acc [H, W].
+      valid [N], tile_rect [N, 4], n_isect (bbox intersections: the capacity needed),
+      n_composited (those the exact ellipse-tile test keeps), overflow, capacity, depth [H, W],
+      depth_acc [H, W].
     """
     xs = (means, quats, scales, opacities, colors, viewmat, K) + (() if background is None else (background,))
     # The compute dtype follows the Gaussians (means, colours); cameras and background are cast to it.

@@ -21,6 +21,7 @@ class Bins(NamedTuple):
     tile_start: Int[Array, " T1"]  # [n_tiles + 1] offsets into isect_ids
     n_isect: Int[Array, ""]  # intersections needed (may exceed capacity)
     overflow: Bool[Array, ""]  # n_isect > capacity
+    n_composited: Int[Array, ""]  # slots that survive the exact ellipse-tile test
     tile_rect: Int[Array, "N 4"]  # x0, y0, x1, y1 (half-open) tile range of each Gaussian
 
 
@@ -56,18 +57,61 @@ def tile_ranges(
     return jnp.where(empty[:, None], 0, rect)
 
 
+def ellipse_hits_tile(
+    mean: Float[Array, "M 2"],
+    conic: Float[Array, "M 3"],
+    r2: Float[Array, " M"],
+    tx: Int[Array, " M"],
+    ty: Int[Array, " M"],
+    tile_size: int,
+) -> Bool[Array, " M"]:
+    """Whether some pixel centre of tile (tx, ty) can have q <= r2 (i.e. alpha >= 1/255).
+
+    Exact test of the ellipse against the box spanned by the tile's pixel centres: the minimum
+    of the convex quadratic q over a box is 0 when the centre is inside, else it lies on one of
+    the four edges, where it is a clamped 1D minimisation. A small relative margin keeps the test
+    conservative under round-off (extra pairs cost time, never correctness).
+    """
+    a, b, c = conic[:, 0], conic[:, 1], conic[:, 2]
+    lo_x = (tx * tile_size).astype(mean.dtype) + 0.5 - mean[:, 0]  # box in offsets d = x - mean
+    hi_x = lo_x + (tile_size - 1)
+    lo_y = (ty * tile_size).astype(mean.dtype) + 0.5 - mean[:, 1]
+    hi_y = lo_y + (tile_size - 1)
+    inside = (lo_x <= 0) & (hi_x >= 0) & (lo_y <= 0) & (hi_y >= 0)
+    safe_a = jnp.where(a > 0, a, 1.0)
+    safe_c = jnp.where(c > 0, c, 1.0)
+
+    def q(dx, dy):
+        return a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
+
+    def on_x_edge(dx):  # dx fixed, minimise over dy in [lo_y, hi_y]
+        return q(dx, jnp.clip(-b * dx / safe_c, lo_y, hi_y))
+
+    def on_y_edge(dy):
+        return q(jnp.clip(-b * dy / safe_a, lo_x, hi_x), dy)
+
+    qmin = jnp.minimum(jnp.minimum(on_x_edge(lo_x), on_x_edge(hi_x)), jnp.minimum(on_y_edge(lo_y), on_y_edge(hi_y)))
+    return inside | (qmin <= r2 * (1.0 + 1e-3) + 1e-3)
+
+
 def bin_gaussians(
     rect: Int[Array, "N 4"],
     depths: Float[Array, " N"],
     n_tiles_x: int,
     n_tiles_y: int,
     capacity: int,
+    ellipse: tuple | None = None,
+    tile_size: int | None = None,
 ) -> Bins:
     """Sort all (Gaussian, tile) intersections by tile, then by depth (front to back).
 
     Gaussians are first ordered by depth; their intersections are laid out in that order
-    (one contiguous run per Gaussian, located by an exclusive cumulative sum); a stable sort by
+    (one contiguous run per Gaussian, located by an exclusive cumulative sum); a sort by
     tile id then yields tile-major, depth-minor order. Work is O(capacity log capacity).
+
+    With ``ellipse = (means2d, conics, r2)`` (and ``tile_size``), bbox tiles that the
+    alpha >= 1/255 ellipse does not reach are sorted past the end, so they are never composited
+    (the capacity still counts the bbox slots, so it does not depend on this test).
     """
     n = depths.shape[0]
     n_tiles = n_tiles_x * n_tiles_y
@@ -97,6 +141,9 @@ def bin_gaussians(
         wg = jnp.maximum(w[gid], 1)
         tx = rect[gid, 0] + k % wg
         ty = rect[gid, 1] + k // wg
+        if ellipse is not None:
+            m2, cn, r2 = ellipse
+            in_use = in_use & ellipse_hits_tile(m2[gid], cn[gid], r2[gid], tx, ty, tile_size)
         tile = jnp.where(in_use, ty * n_tiles_x + tx, n_tiles)  # unused slots sort last
     if (n_tiles + 1) * max(n, 1) < 2**31 - 1:
         # One int32 key (tile, depth rank): a single-operand sort, ~2x faster than a stable
@@ -112,5 +159,6 @@ def bin_gaussians(
         tile_start=tile_start.astype(jnp.int32),
         n_isect=n_isect,
         overflow=n_isect > capacity,
+        n_composited=jnp.sum(in_use).astype(jnp.int32),
         tile_rect=rect,
     )

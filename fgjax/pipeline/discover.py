@@ -1,0 +1,311 @@
+"""Discovery of dynamic Gaussians from flow (DESIGN.md section 1, step 5), as pure functions on arrays.
+
+For each training pair (t-1, t):
+
+1. residual flow r = u - u_cam: optical flow minus the flow the camera alone would cause
+   (`camera_flow_from_depth`: exact reprojection or the first-order motion field, from the rendered
+   depth of frame t-1 and the two poses);
+2. binarise |r| per frame (`binarize`: a fixed threshold in pixels or Otsu's, with a floor);
+3. back-project the mask through the rasterizer: w_i(m) = sum_p m_p T_ip alpha_ip
+   (`fgjax.render.api.gaussian_weights`) with the Gaussians deformed to time t-1 and camera t-1.
+
+Scores are accumulated over pairs and normalised by each Gaussian's total contribution:
+
+    score_i = sum_t w_i(mask_t) / (sum_t w_i(1) + eps)
+
+i.e. the fraction of everything Gaussian i paints (over all frames) that lies on moving pixels. The
+plain sum sum_t w_i(mask_t) would favour big, opaque splats that cover many pixels (a background
+splat overlapping a moving edge collects weight from every mask pixel it touches); the ratio is in
+[0, 1] whatever the Gaussian's size, and `eps` (in pixel-equivalents: one fully opaque, unoccluded
+pixel contributes 1) damps Gaussians that are barely ever seen. `select_dynamic` then thresholds the
+scores (Otsu by default), and `fgjax.cluster.cluster_dynamic` groups the selected canonical centres.
+
+Nothing here knows of stage-1 models: `discover` takes the deformed Gaussians per pair as arrays.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Literal, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Bool, Float
+
+from fgjax import cluster
+
+__all__ = [
+    "residual_flow",
+    "binarize",
+    "camera_flow_from_depth",
+    "Scores",
+    "accumulate_scores",
+    "Discovery",
+    "discover",
+]
+
+
+def residual_flow(
+    flow: Float[np.ndarray, "*T H W 2"], camera_flow: Float[np.ndarray, "*T H W 2"]
+) -> Float[np.ndarray, "*T H W 2"]:
+    """Object-induced flow r = u - u_cam (pixels per frame interval), same shape as the inputs."""
+    f = np.asarray(flow, dtype=np.float32)
+    c = np.asarray(camera_flow, dtype=np.float32)
+    if f.shape != c.shape or f.ndim < 3 or f.shape[-1] != 2:
+        raise ValueError(f"residual_flow: flow and camera_flow must both have shape [..., H, W, 2], "
+                         f"got {f.shape} and {c.shape}")
+    return f - c
+
+
+def binarize(
+    residual: Float[np.ndarray, "*T H W 2"],
+    threshold_px: float | Literal["otsu"] | None = "otsu",
+    *,
+    valid: Bool[np.ndarray, "*T H W"] | None = None,
+    min_px: float = 0.5,
+) -> Bool[np.ndarray, "*T H W"]:
+    """Moving-pixel masks: |r| above a threshold, per frame.
+
+    The threshold is `threshold_px` pixels, or (``"otsu"`` / None) Otsu's threshold of the frame's
+    valid magnitudes, never below `min_px`: a frame where nothing moves has unimodal noise that
+    Otsu would still cut in two, and the floor keeps it empty.
+
+    Args:
+        residual: [H, W, 2] or [T, H, W, 2] residual flow.
+        threshold_px: pixels, or ``"otsu"`` (None means ``"otsu"``).
+        valid: [H, W] or [T, H, W] pixels where the residual is defined (others are False);
+            non-finite residuals are invalid too.
+        min_px: floor of the Otsu threshold (pixels).
+
+    Returns:
+        bool masks, [H, W] or [T, H, W].
+    """
+    r = np.asarray(residual, dtype=np.float64)
+    if r.ndim not in (3, 4) or r.shape[-1] != 2:
+        raise ValueError(f"binarize: residual must have shape [H, W, 2] or [T, H, W, 2], got {r.shape}")
+    single = r.ndim == 3
+    r = r[None] if single else r
+    mag = np.linalg.norm(r, axis=-1)  # [T, H, W]
+    ok = np.isfinite(mag)
+    if valid is not None:
+        v = np.asarray(valid, dtype=bool)
+        v = v[None] if single else v
+        if v.shape != mag.shape:
+            raise ValueError(f"binarize: valid must have shape {mag.shape[int(single):]}, got {np.shape(valid)}")
+        ok &= v
+    if threshold_px is None:
+        threshold_px = "otsu"
+    out = np.zeros(mag.shape, bool)
+    for t in range(len(mag)):
+        if isinstance(threshold_px, str):
+            if threshold_px != "otsu":
+                raise ValueError(f"binarize: threshold_px must be a number, 'otsu' or None, got {threshold_px!r}")
+            thr = max(cluster.otsu_threshold(mag[t][ok[t]]), float(min_px))
+        else:
+            thr = float(threshold_px)
+        out[t] = ok[t] & (np.where(ok[t], mag[t], 0.0) > thr)
+    return out[0] if single else out
+
+
+def camera_flow_from_depth(
+    depth: Float[np.ndarray, "H W"],
+    K: Float[np.ndarray, "3 3"],
+    c2w0: Float[np.ndarray, "4 4"],
+    c2w1: Float[np.ndarray, "4 4"],
+    method: Literal["reprojection", "motion_field"] = "reprojection",
+) -> tuple[Float[np.ndarray, "H W 2"], Bool[np.ndarray, "H W"]]:
+    """Camera flow u_cam of frame t-1 (step 3) from its depth and the two OpenCV camera-to-world poses.
+
+    ``"reprojection"``: exact, `fgjax.flow.reprojection_flow`. ``"motion_field"``: the first-order
+    u = A v / Z + B ω with (v, ω) = `fgjax.flow.camera_velocity` (dt = 1 frame). Returns (flow,
+    valid) as numpy; valid is False where the depth is not positive (and, for reprojection, where
+    the point falls behind camera t).
+    """
+    from fgjax import flow as fl
+
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2:
+        raise ValueError(f"camera_flow_from_depth: depth must have shape [H, W], got {depth.shape}")
+    if method == "reprojection":
+        f, v = fl.reprojection_flow(depth, K, c2w0, c2w1)
+        return np.asarray(f, np.float32), np.asarray(v)
+    if method == "motion_field":
+        vel, omega = fl.camera_velocity(c2w0, c2w1)
+        xy = fl.pixel_centers(*depth.shape)
+        f = fl.motion_field(xy, depth, K, vel, omega)
+        valid = np.isfinite(depth) & (depth > 0)
+        return np.where(valid[..., None], np.asarray(f, np.float32), 0.0).astype(np.float32), valid
+    raise ValueError(f"camera_flow_from_depth: method must be 'reprojection' or 'motion_field', got {method!r}")
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height", "capacity"))
+def _pair_weights(means, quats, scales, opacities, viewmat, K, mask, *, width, height, capacity):
+    """(w_i(mask), w_i(ones)) for one frame: two backward passes of the rasterizer."""
+    from fgjax.render.api import gaussian_weights
+
+    kw = {} if capacity is None else {"capacity": capacity}
+    moving = gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height, mask, **kw)
+    total = gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height,
+                             jnp.ones_like(mask), **kw)
+    return moving, total
+
+
+class Scores(NamedTuple):
+    """Per-Gaussian discovery scores.
+
+    score: [N] sum_t w_i(mask_t) / (sum_t w_i(1) + eps), in [0, 1).
+    moving: [N] sum_t w_i(mask_t) (pixel-equivalents on moving pixels).
+    total: [N] sum_t w_i(1) (pixel-equivalents painted in all frames): a visibility measure.
+    moving_t, total_t: [T, N] float32 per-frame terms (only with ``per_frame=True``, else None).
+    """
+
+    score: Float[np.ndarray, " N"]
+    moving: Float[np.ndarray, " N"]
+    total: Float[np.ndarray, " N"]
+    moving_t: Float[np.ndarray, "T N"] | None = None
+    total_t: Float[np.ndarray, "T N"] | None = None
+
+
+def _per_frame(x, t: int, tail: tuple[int, ...], name: str) -> np.ndarray:
+    """Broadcast a per-frame array [T, *tail] or a shared one [*tail] to [T, *tail]."""
+    a = np.asarray(x)
+    if a.shape == tail:
+        return np.broadcast_to(a, (t, *tail))
+    if a.shape != (t, *tail):
+        raise ValueError(f"{name} must have shape {list(tail)} or [T={t}, {', '.join(map(str, tail))}], "
+                         f"got {list(a.shape)}")
+    return a
+
+
+def accumulate_scores(
+    means: Float[np.ndarray, "T N 3"],
+    quats: Float[np.ndarray, "T N 4"],
+    scales: Float[np.ndarray, "T N 3"],
+    opacities: Float[np.ndarray, "T N"],
+    viewmats: Float[np.ndarray, "T 4 4"],
+    K: Float[np.ndarray, "T 3 3"],
+    masks: Bool[np.ndarray, "T H W"],
+    *,
+    eps: float = 0.1,
+    capacity: int | None = None,
+    per_frame: bool = False,
+) -> Scores:
+    """Back-project moving-pixel masks onto Gaussians and accumulate over frames (step 5).
+
+    score_i = sum_t w_i(mask_t) / (sum_t w_i(1) + eps), w_i(m) = sum_p m_p T_ip alpha_ip
+    (`fgjax.render.api.gaussian_weights`, the rasterizer's own compositing weights); see the module
+    docstring for why the ratio. Frame t here is the first frame of pair t: the Gaussians are those
+    deformed to time t-1 and the camera that of frame t-1.
+
+    Args:
+        means, quats, scales, opacities: activated Gaussians per frame, [T, N, ...] (or shared
+            across frames without the T axis: scales [N, 3] and opacities [N] usually are).
+        viewmats: [T, 4, 4] OpenCV world-to-camera.
+        K: [3, 3] or [T, 3, 3].
+        masks: [T, H, W] moving pixels (bool or soft weights in [0, 1]).
+        eps: pixel-equivalents added to the denominator.
+        capacity: the rasterizer's intersection capacity (static; None: its default). One
+            compile serves every frame when it is fixed.
+        per_frame: also return the per-frame terms (memory T x N).
+
+    Returns:
+        `Scores` (numpy float64).
+    """
+    m = np.asarray(masks)
+    if m.ndim != 3:
+        raise ValueError(f"accumulate_scores: masks must have shape [T, H, W], got {list(m.shape)}")
+    t, h, w = m.shape
+    means_a = np.asarray(means)
+    n = means_a.shape[-2] if means_a.ndim >= 2 else -1
+    means_a = _per_frame(means_a, t, (n, 3), "accumulate_scores: means")
+    quats_a = _per_frame(quats, t, (n, 4), "accumulate_scores: quats")
+    scales_a = _per_frame(scales, t, (n, 3), "accumulate_scores: scales")
+    opac_a = _per_frame(opacities, t, (n,), "accumulate_scores: opacities")
+    vm_a = _per_frame(viewmats, t, (4, 4), "accumulate_scores: viewmats")
+    k_a = _per_frame(K, t, (3, 3), "accumulate_scores: K")
+    moving = np.zeros(n)
+    total = np.zeros(n)
+    mt = np.zeros((t, n), np.float32) if per_frame else None
+    tt = np.zeros((t, n), np.float32) if per_frame else None
+    f32 = lambda x: jnp.asarray(np.asarray(x, dtype=np.float32))
+    for i in range(t):
+        mv, tot = _pair_weights(f32(means_a[i]), f32(quats_a[i]), f32(scales_a[i]), f32(opac_a[i]),
+                                f32(vm_a[i]), f32(k_a[i]), f32(m[i]), width=w, height=h, capacity=capacity)
+        moving += np.asarray(mv, np.float64)
+        total += np.asarray(tot, np.float64)
+        if per_frame:
+            mt[i], tt[i] = np.asarray(mv), np.asarray(tot)
+    return Scores(score=moving / (total + eps), moving=moving, total=total, moving_t=mt, total_t=tt)
+
+
+class Discovery(NamedTuple):
+    """Result of `discover`.
+
+    dynamic: [N] bool, the selected set D.
+    scores: `Scores`.
+    masks: [T, H, W] bool moving-pixel masks, one per pair.
+    threshold: the score threshold used (Otsu's or the one given).
+    """
+
+    dynamic: Bool[np.ndarray, " N"]
+    scores: Scores
+    masks: Bool[np.ndarray, "T H W"]
+    threshold: float
+
+
+def discover(
+    means: Float[np.ndarray, "T N 3"],
+    quats: Float[np.ndarray, "T N 4"],
+    scales: Float[np.ndarray, "T N 3"],
+    opacities: Float[np.ndarray, "T N"],
+    viewmats: Float[np.ndarray, "T 4 4"],
+    K: Float[np.ndarray, "T 3 3"],
+    flows: Float[np.ndarray, "T H W 2"],
+    camera_flows: Float[np.ndarray, "T H W 2"],
+    *,
+    valid: Bool[np.ndarray, "T H W"] | None = None,
+    threshold_px: float | Literal["otsu"] | None = "otsu",
+    min_px: float = 0.5,
+    score_threshold: float | Literal["otsu"] = "otsu",
+    min_score: float = 0.02,
+    min_total: float = 0.0,
+    eps: float = 0.1,
+    capacity: int | None = None,
+    per_frame: bool = False,
+) -> Discovery:
+    """Select the dynamic Gaussians D from optical flow and camera flow (step 5), over T pairs.
+
+    Pair t maps frame t-1 to frame t; every array with a T axis is indexed by pair and describes
+    frame t-1 (Gaussians deformed to time t-1, camera t-1, flow on frame t-1's grid).
+
+    Args:
+        means, quats, scales, opacities: activated Gaussians per pair ([T, N, ...], or shared).
+        viewmats: [T, 4, 4] world-to-camera of frame t-1.
+        K: [3, 3] or [T, 3, 3].
+        flows: [T, H, W, 2] optical flow t-1 -> t.
+        camera_flows: [T, H, W, 2] camera flow of frame t-1 (`camera_flow_from_depth`).
+        valid: [T, H, W] pixels where both flows are trusted (None: all finite ones).
+        threshold_px, min_px: see `binarize`.
+        score_threshold, min_score: see `fgjax.cluster.select_dynamic`.
+        min_total: Gaussians painting fewer pixel-equivalents than this over all frames are not
+            selected (never seen, nothing to say about them).
+        eps: see `accumulate_scores`.
+        capacity: rasterizer capacity (static).
+        per_frame: keep the per-frame terms in ``scores`` (see `Scores`).
+
+    Returns:
+        `Discovery`.
+    """
+    masks = binarize(residual_flow(flows, camera_flows), threshold_px, valid=valid, min_px=min_px)
+    if masks.ndim != 3:
+        raise ValueError(f"discover: flows must have shape [T, H, W, 2], got {np.shape(flows)}")
+    sc = accumulate_scores(means, quats, scales, opacities, viewmats, K, masks, eps=eps, capacity=capacity,
+                           per_frame=per_frame)
+    ok = sc.total > min_total
+    if isinstance(score_threshold, str):
+        thr = cluster.otsu_threshold(sc.score[ok]) if ok.any() else float("inf")
+    else:
+        thr = float(score_threshold)
+    dyn = cluster.select_dynamic(sc.score, thr, min_score=min_score, valid=ok)
+    return Discovery(dynamic=dyn, scores=sc, masks=masks, threshold=float(thr))

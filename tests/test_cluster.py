@@ -1,0 +1,226 @@
+"""fgjax.cluster: Otsu selection, DBSCAN / HDBSCAN with size filtering, auto eps, trajectories, snapping.
+
+Synthetic data only (numpy): Gaussian blobs with uniform noise, and trajectories with known samples.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from sklearn.metrics import adjusted_rand_score
+
+from fgjax import cluster as C
+
+
+def _blobs(seed=0, n=200, std=0.015, centres=((0, 0, 0), (0.5, 0, 0), (0, 0.5, 0.2)), n_noise=30):
+    rng = np.random.default_rng(seed)
+    pts = [rng.normal(c, std, (n, 3)) for c in centres]
+    labels = np.repeat(np.arange(len(centres)), n)
+    noise = rng.uniform(-0.6, 1.1, (n_noise, 3))
+    return np.concatenate(pts + [noise]), np.concatenate([labels, np.full(n_noise, -1)])
+
+
+# ---------------------------------------------------------------------------------------------- selection
+
+
+def test_otsu_threshold_separates_two_modes():
+    rng = np.random.default_rng(0)
+    v = np.concatenate([rng.normal(0.02, 0.01, 900), rng.normal(0.3, 0.03, 100)])
+    thr = C.otsu_threshold(v)
+    assert v[:900].max() < thr < v[900:].min()  # well-separated modes: a perfect cut
+    np.testing.assert_array_equal(C.select_dynamic(v), np.arange(1000) >= 900)
+    # edge cases: empty, constant, non-finite
+    assert C.otsu_threshold(np.array([])) == np.inf
+    assert C.otsu_threshold(np.full(5, 0.3)) == 0.3
+    assert not C.select_dynamic(np.full(5, 0.3)).any()
+    assert C.select_dynamic(np.zeros(0)).shape == (0,)
+    s = np.array([0.0, 0.0, 0.9, np.nan, np.inf])
+    np.testing.assert_array_equal(C.select_dynamic(s), [False, False, True, False, False])
+
+
+def test_select_dynamic_threshold_floor_and_valid():
+    s = np.array([0.0, 0.01, 0.015, 0.5, 0.6])
+    np.testing.assert_array_equal(C.select_dynamic(s, 0.1), [0, 0, 0, 1, 1])
+    # Otsu on pure low noise still cuts; the floor keeps it empty
+    noise = np.random.default_rng(1).uniform(0, 0.01, 100)
+    assert C.select_dynamic(noise).any()
+    assert not C.select_dynamic(noise, min_score=0.02).any()
+    valid = np.array([1, 1, 1, 0, 1], bool)
+    np.testing.assert_array_equal(C.select_dynamic(s, 0.1, valid=valid), [0, 0, 0, 0, 1])
+    with pytest.raises(ValueError, match="scores"):
+        C.select_dynamic(np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="valid"):
+        C.select_dynamic(s, valid=np.ones(3, bool))
+    with pytest.raises(ValueError, match="threshold"):
+        C.select_dynamic(s, "mean")  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------- clustering
+
+
+@pytest.mark.parametrize("method", ["dbscan", "hdbscan"])
+def test_cluster_blobs(method):
+    pts, truth = _blobs()
+    labels = C.cluster_dynamic(pts, method)
+    rep = C.cluster_report(labels)
+    assert rep.n_clusters == 3 and rep.n_points == len(pts)
+    assert rep.sizes == tuple(sorted(rep.sizes, reverse=True))
+    core = truth >= 0
+    assert adjusted_rand_score(truth[core], labels[core]) > 0.98
+    assert np.mean(labels[~core] == -1) > 0.5  # scattered points are mostly noise
+    assert "3 cluster(s)" in str(rep)
+
+
+def test_labels_ordered_by_size_and_small_clusters_dropped():
+    rng = np.random.default_rng(2)
+    big = rng.normal((0, 0, 0), 0.01, (300, 3))
+    mid = rng.normal((1, 0, 0), 0.01, (100, 3))
+    small = rng.normal((0, 1, 0), 0.01, (12, 3))  # 12 / 412 = 2.9 %
+    pts = np.concatenate([small, mid, big])
+    lab = C.cluster_dynamic(pts, min_fraction=0.0)
+    assert C.cluster_report(lab).sizes == (300, 100, 12)
+    assert np.all(lab[112:] == 0) and np.all(lab[12:112] == 1) and np.all(lab[:12] == 2)
+    lab = C.cluster_dynamic(pts, min_fraction=0.05)
+    assert C.cluster_report(lab).sizes == (300, 100)
+    assert np.all(lab[:12] == -1)
+    # the same with HDBSCAN
+    lab = C.cluster_dynamic(pts, "hdbscan", min_fraction=0.05)
+    assert C.cluster_report(lab).n_clusters == 2 and np.all(lab[:12] == -1)
+
+
+def test_relabel_by_size_ties_keep_first_occurrence():
+    np.testing.assert_array_equal(C.relabel_by_size(np.array([5, 5, 2, 2, -1, 7])), [0, 0, 1, 1, -1, 2])
+    np.testing.assert_array_equal(C.relabel_by_size(np.array([5, 5, 2, 2, 2, 7]), min_size=2), [1, 1, 0, 0, 0, -1])
+
+
+def test_cluster_edge_cases():
+    assert C.cluster_dynamic(np.zeros((0, 3))).shape == (0,)
+    np.testing.assert_array_equal(C.cluster_dynamic(np.zeros((1, 3))), [-1])  # single point
+    np.testing.assert_array_equal(C.cluster_dynamic(np.zeros((1, 3)), "hdbscan"), [-1])
+    np.testing.assert_array_equal(C.cluster_dynamic(np.zeros((4, 3)), min_samples=5), [-1] * 4)
+    far = np.arange(30, dtype=float)[:, None] * np.array([[1.0, 0, 0]])  # all far apart: all noise
+    lab = C.cluster_dynamic(far)
+    assert np.all(lab == -1)
+    rep = C.cluster_report(lab)
+    assert rep.n_clusters == 0 and rep.sizes == () and rep.n_noise == 30
+    assert C.cluster_report(np.zeros(0, int)).n_points == 0
+    with pytest.raises(ValueError, match="method"):
+        C.cluster_dynamic(far, "kmeans")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="non-finite"):
+        C.cluster_dynamic(np.full((6, 3), np.nan))
+    with pytest.raises(ValueError, match="points"):
+        C.cluster_dynamic(np.zeros(6))
+
+
+def test_auto_eps_on_blobs():
+    pts, truth = _blobs(std=0.015, n_noise=40)
+    eps = C.auto_eps(pts, 4)
+    # within-blob 4-NN distances are ~0.01, noise 4-NN distances ~0.2: the knee lies between
+    kd = C.k_distances(pts, 4)
+    assert np.median(kd) < eps < 0.15, (eps, np.median(kd))
+    lab = C.cluster_dynamic(pts, auto_eps=True)
+    assert C.cluster_report(lab).n_clusters == 3
+    assert adjusted_rand_score(truth[truth >= 0], lab[truth >= 0]) > 0.95
+    # scale equivariance: the knee scales with the data
+    np.testing.assert_allclose(C.auto_eps(10 * pts, 4), 10 * eps, rtol=1e-9)
+    # duplicate points: a tiny positive eps, not 0 or a crash
+    assert 0 < C.auto_eps(np.zeros((10, 3)), 3) <= 1e-12
+    with pytest.raises(ValueError, match="more than k"):
+        C.auto_eps(pts[:4], 4)
+
+
+# ---------------------------------------------------------------------------------------------- trajectories
+
+
+def test_trajectories_are_cluster_means():
+    rng = np.random.default_rng(3)
+    t, n = 7, 50
+    centres = rng.normal(size=(t, n, 3))
+    labels = rng.integers(-1, 3, n)
+    traj = C.trajectories(centres, labels)
+    assert traj.shape == (3, t, 3)
+    for k in range(3):
+        np.testing.assert_allclose(traj[k], centres[:, labels == k].mean(axis=1), rtol=1e-12)
+    # T = 1, all noise, compactness
+    assert C.trajectories(centres[:1], labels).shape == (3, 1, 3)
+    assert C.trajectories(centres, np.full(n, -1)).shape == (0, t, 3)
+    with pytest.raises(ValueError, match="compact"):
+        C.trajectories(centres, np.where(labels == 1, 2, labels))
+    with pytest.raises(ValueError, match="labels"):
+        C.trajectories(centres, labels[:-1])
+
+
+def test_snap_on_path_returns_exact_samples():
+    rng = np.random.default_rng(4)
+    traj = np.cumsum(rng.normal(size=(9, 3)), axis=0)
+    for i in range(9):
+        t, p = C.snap_to_trajectory(traj, traj[i] - traj[0])
+        assert t == float(i)
+        np.testing.assert_array_equal(p, traj[i])
+    # time stamps instead of indices
+    times = np.linspace(0, 1, 9)
+    assert C.snap_to_trajectory(traj, traj[4] - traj[0], times=times).t == times[4]
+
+
+def test_snap_off_path_interpolates():
+    traj = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 1, 1]])
+    t, p = C.snap_to_trajectory(traj, np.array([0.25, 0.4, 0.0]))
+    assert t == pytest.approx(0.25)
+    np.testing.assert_allclose(p, [0.25, 0, 0])
+    t, p = C.snap_to_trajectory(traj, np.array([1.3, 0.6, -0.2]))
+    assert t == pytest.approx(1.6)
+    np.testing.assert_allclose(p, [1, 0.6, 0])
+    # beyond the end: the last sample
+    t, p = C.snap_to_trajectory(traj, np.array([1.0, 1.0, 5.0]))
+    assert t == 3.0 and np.array_equal(p, traj[-1])
+    # a different origin: the vector is taken from it
+    t, p = C.snap_to_trajectory(traj, np.array([0.0, 0.5, 0.0]), origin=np.array([1.0, 0.0, 0.0]))
+    assert t == pytest.approx(1.5)
+    # interpolated times
+    t, _ = C.snap_to_trajectory(traj, np.array([0.25, 0.4, 0.0]), times=np.array([0.0, 0.2, 0.6, 1.0]))
+    assert t == pytest.approx(0.05)
+
+
+def test_snap_open_close_prefers_first_and_handles_rests():
+    # rest, open, hold, close, rest: repeated samples (zero-length segments) and a path walked twice
+    traj = np.array([[0.0, 0, 0], [0, 0, 0], [0.5, 0, 0], [1, 0, 0], [1, 0, 0], [0.5, 0, 0], [0, 0, 0]])
+    t, p = C.snap_to_trajectory(traj, np.array([0.5, 0.1, 0.0]))
+    assert t == 2.0 and np.array_equal(p, traj[2])
+    t, p = C.snap_to_trajectory(traj, np.array([0.75, 0.0, 0.0]))
+    assert t == pytest.approx(2.5)
+    t, p = C.snap_to_trajectory(traj, np.zeros(3))
+    assert t == 0.0
+
+
+def test_snap_edge_cases():
+    t, p = C.snap_to_trajectory(np.array([[1.0, 2, 3]]), np.array([5.0, 5, 5]))  # T = 1
+    assert t == 0.0 and np.array_equal(p, [1.0, 2, 3])
+    with pytest.raises(ValueError, match="traj"):
+        C.snap_to_trajectory(np.zeros((0, 3)), np.zeros(3))
+    with pytest.raises(ValueError, match="vector"):
+        C.snap_to_trajectory(np.zeros((2, 3)), np.zeros(2))
+    with pytest.raises(ValueError, match="non-finite"):
+        C.snap_to_trajectory(np.zeros((2, 3)), np.array([np.nan, 0, 0]))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 8))
+def test_snap_is_nearest_point_of_polyline(seed, t):
+    """Property: no point of the polyline (dense sampling) is nearer than the snapped point."""
+    rng = np.random.default_rng(seed)
+    traj = rng.normal(size=(t, 3))
+    v = rng.normal(size=3) * 2
+    snap = C.snap_to_trajectory(traj, v)
+    p = traj[0] + v
+    d = np.linalg.norm(snap.point - p)
+    if t > 1:
+        u = np.linspace(0, 1, 201)[:, None, None]
+        dense = (traj[:-1] + u * (traj[1:] - traj[:-1])).reshape(-1, 3)
+        assert d <= np.linalg.norm(dense - p, axis=1).min() + 1e-9
+        i = int(np.floor(snap.t))
+        frac = snap.t - i
+        expect = traj[i] if frac == 0 else traj[i] + frac * (traj[i + 1] - traj[i])
+        np.testing.assert_allclose(snap.point, expect, atol=1e-12)
+    assert 0.0 <= snap.t <= t - 1

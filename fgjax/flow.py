@@ -1,0 +1,802 @@
+"""Flow derivatives: camera velocity, motion field, reprojection flow, Gaussian flow maps, Lemma 1, flow loss.
+
+The maths is ../shared/DESIGN.md section 1, steps 3 and 4 (FreeGaussian, Lemma 1; GaussianFlow for the
+anisotropic form). Conventions, shared by every function here:
+
+- Cameras are OpenCV (x right, y down, z forward). ``c2w`` is a 4x4 camera-to-world pose, ``viewmat`` a 4x4
+  world-to-camera matrix. ``K`` is 3x3; the motion-field formulas assume zero skew (``K[0, 1]`` ignored
+  there), ``reprojection_flow`` and ``geometry.project_points`` honour it.
+- Pixel (j, i) (column j, row i) has its centre at m = (j + 0.5, i + 0.5); ``xy`` arguments are in that
+  continuous system, as are K's cx, cy (gsplat's convention). Datasets whose K assumes integer pixel
+  centres (OpenCV/ROS calibrations such as TUM's cx = 319.5) need cx + 0.5, cy + 0.5.
+- Flow is forward, frame t-1 -> t, on frame t-1's pixel grid, in pixels per frame interval, stored
+  [H, W, 2] as (dx, dy): the content at m in frame t-1 is at m + flow(m) in frame t.
+- Camera velocity (v, omega) is expressed in camera-(t-1) coordinates: v is the camera centre's velocity,
+  omega the angular velocity, so that a static point P (camera coordinates) moves as P' = -v - omega x P.
+- Quaternions are wxyz, any norm; scales and opacities are activated (as the rasterizer takes them).
+
+Every function is pure, differentiable, vmap-able and NaN-free (double-``where`` on every division and
+square root). The array functions are wrapped in ``jax.jit`` (static: image sizes, norms, thresholds), so
+eager calls run as one compiled program and calls inside other jitted code are inlined. The Gaussian flow
+maps render through ``fgjax.rasterization`` (imported lazily) and are not jitted themselves, so that
+outside jit the rasterizer can size its intersection buffer exactly; they are jit-able with a
+``capacity``.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Literal, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from fgjax import geometry
+
+__all__ = [
+    "pixel_centers",
+    "camera_velocity",
+    "motion_field_matrices",
+    "motion_field",
+    "motion_field_inv_depth",
+    "reprojection_flow",
+    "gaussian_image_velocity",
+    "gaussian_image_velocity_jvp",
+    "project_covariances",
+    "sqrtm_2x2",
+    "gaussian_flow_affine",
+    "GaussianFlowMaps",
+    "dynamic_gaussian_flow",
+    "composited_inverse_depth",
+    "lemma1_residual",
+    "flow_loss",
+    "warp_backward",
+]
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def _float(x: ArrayLike) -> Array:
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    return x
+
+
+def _check_shape(name: str, x: Array, tail: tuple[int, ...]) -> None:
+    if x.shape[x.ndim - len(tail) :] != tail or x.ndim < len(tail):
+        raise ValueError(f"{name} must have trailing shape {list(tail)}; got {list(x.shape)}.")
+
+
+def _safe_inv_depth(depth: Array) -> Array:
+    """1/Z where Z is finite and > 0; 0 elsewhere (a point at infinity). Finite gradients (double-where)."""
+    ok = jnp.isfinite(depth) & (depth > 0)
+    return jnp.where(ok, 1.0 / jnp.where(ok, depth, 1.0), 0.0)
+
+
+def _intrinsics(K: Array) -> tuple[Array, Array, Array, Array]:
+    return K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+
+
+@functools.partial(jax.jit, static_argnames=("height", "width", "dtype"))
+def pixel_centers(height: int, width: int, dtype=None) -> Float[Array, "H W 2"]:
+    """Pixel centres m[i, j] = (j + 0.5, i + 0.5) as (x, y), shape [H, W, 2]."""
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    x = jnp.arange(width, dtype=dtype) + 0.5
+    y = jnp.arange(height, dtype=dtype) + 0.5
+    xx, yy = jnp.meshgrid(x, y, indexing="xy")  # [H, W] each
+    return jnp.stack([xx, yy], axis=-1)
+
+
+# ----------------------------------------------------------------------------------------------
+# camera flow
+# ----------------------------------------------------------------------------------------------
+
+
+@jax.jit
+def camera_velocity(
+    c2w0: Float[ArrayLike, "4 4"], c2w1: Float[ArrayLike, "4 4"], dt: float | ArrayLike = 1.0
+) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+    """Camera velocity (v, omega) between two OpenCV camera-to-world poses, in camera-0 coordinates.
+
+    v = R0^T (c1 - c0) / dt,  omega = log(R0^T R1) / dt  (DESIGN section 1, step 3), with c_i the camera
+    centres (translation column of c2w_i) and log the SO(3) logarithm (rotation vector, angle <= pi).
+
+    Relation to twists: if c2w1 = c2w0 @ se3_exp(dt [w, u]) then omega == w but v == V(dt w) u (the
+    SE(3) exponential moves the centre along an arc); v == u exactly when c1 = c0 + dt R0 u. Both agree
+    with the instantaneous velocity as dt -> 0. Batched poses: use ``jax.vmap``.
+
+    Args:
+        c2w0: camera-to-world pose at t-1 (OpenCV), [4, 4].
+        c2w1: camera-to-world pose at t (OpenCV), [4, 4].
+        dt: time between the frames (non-zero; dt == 0 returns zeros rather than inf).
+
+    Returns:
+        (v [3], omega [3]) in camera-0 coordinates, per unit of dt.
+    """
+    c2w0, c2w1 = _float(c2w0), _float(c2w1)
+    _check_shape("c2w0", c2w0, (4, 4))
+    _check_shape("c2w1", c2w1, (4, 4))
+    dt = jnp.asarray(dt, dtype=c2w0.dtype)
+    inv_dt = jnp.where(dt != 0, 1.0 / jnp.where(dt != 0, dt, 1.0), 0.0)
+    r0t = c2w0[:3, :3].T
+    v = r0t @ (c2w1[:3, 3] - c2w0[:3, 3]) * inv_dt
+    omega = geometry.so3_log(r0t @ c2w1[:3, :3]) * inv_dt
+    return v, omega
+
+
+@jax.jit
+def motion_field_matrices(
+    xy: Float[ArrayLike, "*batch 2"], K: Float[ArrayLike, "3 3"]
+) -> tuple[Float[Array, "*batch 2 3"], Float[Array, "*batch 2 3"]]:
+    """The translational and rotational motion-field matrices A(m), B(m) (DESIGN section 1, step 3).
+
+    A = [[-fx, 0, x~], [0, -fy, y~]],
+    B = [[x~ y~ / fy, -fx - x~^2 / fx, y~ fx / fy], [fy + y~^2 / fy, -x~ y~ / fx, -x~ fy / fx]],
+    with x~ = x - cx, y~ = y - cy. The projection Jacobian is J(P) = -A(pi(P)) / Z and
+    B(pi(P)) omega = J(P) (-omega x P) exactly.
+
+    Args:
+        xy: pixel coordinates (centres at +0.5), [..., 2].
+        K: intrinsics, [3, 3] (zero skew assumed).
+
+    Returns:
+        (A [..., 2, 3], B [..., 2, 3]).
+    """
+    xy, K = _float(xy), _float(K)
+    fx, fy, cx, cy = _intrinsics(K)
+    xt, yt = xy[..., 0] - cx, xy[..., 1] - cy
+    zero = jnp.zeros_like(xt)
+    a = jnp.stack(
+        [jnp.stack([-fx + zero, zero, xt], -1), jnp.stack([zero, -fy + zero, yt], -1)], axis=-2
+    )
+    b = jnp.stack(
+        [
+            jnp.stack([xt * yt / fy, -fx - xt * xt / fx, yt * fx / fy], -1),
+            jnp.stack([fy + yt * yt / fy, -xt * yt / fx, -xt * fy / fx], -1),
+        ],
+        axis=-2,
+    )
+    return a, b
+
+
+@jax.jit
+def motion_field_inv_depth(
+    xy: Float[ArrayLike, "*batch 2"],
+    inv_depth: Float[ArrayLike, "*batch"],
+    K: Float[ArrayLike, "3 3"],
+    v: Float[ArrayLike, "3"],
+    omega: Float[ArrayLike, "3"],
+) -> Float[Array, "*batch 2"]:
+    """Motion field u = A v rho + B omega with the inverse depth rho = 1/Z given directly.
+
+    Linear in rho, which is what makes Lemma 1 exact with the composited inverse depth
+    (``composited_inverse_depth``); rho = 0 is a point at infinity (pure rotational flow).
+
+    Args:
+        xy: pixel coordinates (centres at +0.5), [..., 2].
+        inv_depth: inverse camera-frame depth 1/Z, [...] (broadcast against xy[..., 0]).
+        K: intrinsics, [3, 3] (zero skew assumed).
+        v: camera translational velocity in camera-0 coordinates, [3].
+        omega: camera angular velocity in camera-0 coordinates, [3].
+
+    Returns:
+        Flow in pixels per unit time, [..., 2].
+    """
+    xy, K, v, omega = _float(xy), _float(K), _float(v), _float(omega)
+    rho = _float(inv_depth)
+    fx, fy, cx, cy = _intrinsics(K)
+    xt, yt = xy[..., 0] - cx, xy[..., 1] - cy
+    # A v and B omega written out (cheaper than building the [..., 2, 3] matrices)
+    av_x = -fx * v[0] + xt * v[2]
+    av_y = -fy * v[1] + yt * v[2]
+    bw_x = xt * yt / fy * omega[0] - (fx + xt * xt / fx) * omega[1] + yt * fx / fy * omega[2]
+    bw_y = (fy + yt * yt / fy) * omega[0] - xt * yt / fx * omega[1] - xt * fy / fx * omega[2]
+    return jnp.stack([av_x * rho + bw_x, av_y * rho + bw_y], axis=-1)
+
+
+@jax.jit
+def motion_field(
+    xy: Float[ArrayLike, "*batch 2"],
+    depth: Float[ArrayLike, "*batch"],
+    K: Float[ArrayLike, "3 3"],
+    v: Float[ArrayLike, "3"],
+    omega: Float[ArrayLike, "3"],
+) -> Float[Array, "*batch 2"]:
+    """First-order camera flow u = A(m) v / Z + B(m) omega of static points (DESIGN section 1, step 3).
+
+    Follows from P' = -v - omega x P and the projection Jacobian J(P) = -A / Z; it is the exact
+    instantaneous image velocity, and a first-order approximation of the flow between two frames when
+    (v, omega) come from ``camera_velocity`` with dt = 1 frame.
+
+    Args:
+        xy: pixel coordinates (centres at +0.5), [..., 2].
+        depth: camera-frame depth Z (z coordinate, not ray length), [...]. Non-positive or non-finite
+            depth is treated as a point at infinity (rotational flow only); mask such pixels yourself.
+        K: intrinsics, [3, 3] (zero skew assumed).
+        v: camera translational velocity in camera-0 coordinates, [3].
+        omega: camera angular velocity in camera-0 coordinates, [3].
+
+    Returns:
+        Flow (dx, dy) in pixels per unit time, [..., 2].
+    """
+    return motion_field_inv_depth(xy, _safe_inv_depth(_float(depth)), K, v, omega)
+
+
+@jax.jit
+def reprojection_flow(
+    depth: Float[ArrayLike, "H W"],
+    K: Float[ArrayLike, "3 3"],
+    c2w0: Float[ArrayLike, "4 4"],
+    c2w1: Float[ArrayLike, "4 4"],
+) -> tuple[Float[Array, "H W 2"], Bool[Array, "H W"]]:
+    """Exact camera flow by reprojection: u(m) = pi(K, T1^-1 T0 Z K^-1 m~) - m.
+
+    Each frame-0 pixel centre m is back-projected with its depth Z (camera z), moved into camera 1 with
+    the OpenCV camera-to-world poses, and projected with the same K.
+
+    Args:
+        depth: frame-0 depth map (camera z), [H, W].
+        K: intrinsics, [3, 3] (skew honoured).
+        c2w0: camera-to-world pose of frame 0 (OpenCV), [4, 4].
+        c2w1: camera-to-world pose of frame 1 (OpenCV), [4, 4].
+
+    Returns:
+        flow: [H, W, 2] (dx, dy) in pixels, 0 where invalid.
+        valid: [H, W] bool, False for non-positive or non-finite depth and for points that land on or
+            behind camera 1's image plane (z1 <= eps * Z).
+    """
+    depth, K, c2w0, c2w1 = _float(depth), _float(K), _float(c2w0), _float(c2w1)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must have shape [H, W]; got {list(depth.shape)}.")
+    _check_shape("K", K, (3, 3))
+    _check_shape("c2w0", c2w0, (4, 4))
+    _check_shape("c2w1", c2w1, (4, 4))
+    h, w = depth.shape
+    m = pixel_centers(h, w, depth.dtype)  # [H, W, 2]
+    ok0 = jnp.isfinite(depth) & (depth > 0)
+    z = jnp.where(ok0, depth, 1.0)
+    fx, fy, cx, cy = _intrinsics(K)
+    yn = (m[..., 1] - cy) / fy
+    xn = (m[..., 0] - cx - K[0, 1] * yn) / fx
+    rel = geometry.se3_inverse(c2w1) @ c2w0  # camera 0 -> camera 1, [4, 4]
+    # P1 = R (Z xn, Z yn, Z) + t, written out per component: one fused elementwise kernel
+    # (a [H*W, 3] x [3, 3] matmul would not fuse with the rest on CPU)
+    r, t = rel[:3, :3], rel[:3, 3]
+    x1 = z * (r[0, 0] * xn + r[0, 1] * yn + r[0, 2]) + t[0]
+    y1 = z * (r[1, 0] * xn + r[1, 1] * yn + r[1, 2]) + t[1]
+    z1 = z * (r[2, 0] * xn + r[2, 1] * yn + r[2, 2]) + t[2]
+    valid = ok0 & (z1 > jnp.finfo(depth.dtype).eps * z)
+    p1 = jnp.stack([x1, y1, jnp.where(valid, z1, 1.0)], axis=-1)  # [H, W, 3]
+    flow = geometry.project_points(p1, K) - m
+    return jnp.where(valid[..., None], flow, 0.0), valid
+
+
+# ----------------------------------------------------------------------------------------------
+# per-Gaussian image velocity
+# ----------------------------------------------------------------------------------------------
+
+
+@jax.jit
+def gaussian_image_velocity(
+    p_cam: Float[ArrayLike, "*batch 3"],
+    v_obj: Float[ArrayLike, "*batch 3"],
+    K: Float[ArrayLike, "3 3"],
+    v: Float[ArrayLike, "3"],
+    omega: Float[ArrayLike, "3"],
+) -> Float[Array, "*batch 2"]:
+    """Analytic image velocity of Gaussian centres: A v / Z_i + B omega - A v_i / Z_i.
+
+    Sign convention: ``v_obj`` (v_i) is the Gaussian's own velocity in camera-0 coordinates
+    (R0^T dX_i/dt for a world-frame velocity dX_i/dt), so the centre moves as P_i' = -v - omega x P_i + v_i
+    and its image velocity is J(P_i) P_i' with J = -A / Z_i: positive v_i[0] moves it right in the image
+    (+fx v_i[0] / Z_i), while positive camera v[0] moves the image left. Exact (not first order) for
+    instantaneous velocities; equals ``gaussian_image_velocity_jvp`` to rounding.
+
+    Args:
+        p_cam: Gaussian centres in camera-0 coordinates (OpenCV), [..., 3], z > 0 expected.
+        v_obj: Gaussian velocities in camera-0 coordinates, [..., 3].
+        K: intrinsics, [3, 3] (zero skew assumed).
+        v, omega: camera velocity in camera-0 coordinates, [3] each.
+
+    Returns:
+        Image velocities (dx/dt, dy/dt) in pixels per unit time, [..., 2]; centres with z <= 0 get the
+        rotational term only (their inverse depth is taken as 0).
+    """
+    p_cam, v_obj, K, v = _float(p_cam), _float(v_obj), _float(K), _float(v)
+    xy = geometry.project_points(p_cam, K)
+    rho = _safe_inv_depth(p_cam[..., 2])
+    fx, fy, _, _ = _intrinsics(K)
+    xt = xy[..., 0] - K[0, 2]
+    yt = xy[..., 1] - K[1, 2]
+    # A (v - v_i) / Z_i, written out, plus B omega (the camera flow at rho = 0)
+    dv = jnp.broadcast_to(v, v_obj.shape) - v_obj  # [..., 3]
+    tx = (-fx * dv[..., 0] + xt * dv[..., 2]) * rho
+    ty = (-fy * dv[..., 1] + yt * dv[..., 2]) * rho
+    rot = motion_field_inv_depth(xy, jnp.zeros_like(rho), K, jnp.zeros(3, dtype=rho.dtype), omega)
+    return jnp.stack([tx, ty], axis=-1) + rot
+
+
+def gaussian_image_velocity_jvp(
+    means_fn: Callable[[Array], Float[Array, "N 3"]],
+    c2w_fn: Callable[[Array], Float[Array, "4 4"]],
+    K: Float[ArrayLike, "3 3"],
+    t: float | ArrayLike,
+) -> tuple[Float[Array, "N 2"], Float[Array, "N 2"]]:
+    """Exact image velocity d/dt pi(K, c2w(t)^-1 X(t)) of moving centres under a moving camera (``jax.jvp``).
+
+    The oracle for ``gaussian_image_velocity`` and ``motion_field``: no formula, only autodiff of the
+    projection through both trajectories.
+
+    Args:
+        means_fn: t -> world-frame centres X(t), [N, 3].
+        c2w_fn: t -> OpenCV camera-to-world pose, [4, 4].
+        K: intrinsics, [3, 3].
+        t: time (scalar) at which to differentiate.
+
+    Returns:
+        (xy [N, 2], dxy/dt [N, 2]): projections at t and their time derivative.
+    """
+    K = _float(K)
+    t = jnp.asarray(t, dtype=jnp.result_type(float))
+
+    def proj(tt):
+        view = geometry.se3_inverse(c2w_fn(tt))
+        p = means_fn(tt) @ view[:3, :3].T + view[None, :3, 3]
+        return geometry.project_points(p, K)
+
+    return jax.jvp(proj, (t,), (jnp.ones_like(t),))
+
+
+# ----------------------------------------------------------------------------------------------
+# 2D covariances and the GaussianFlow affine term
+# ----------------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height", "blur"))
+def project_covariances(
+    means: Float[ArrayLike, "N 3"],
+    quats: Float[ArrayLike, "N 4"],
+    scales: Float[ArrayLike, "N 3"],
+    viewmat: Float[ArrayLike, "4 4"],
+    K: Float[ArrayLike, "3 3"],
+    width: int,
+    height: int,
+    *,
+    blur: float = 0.3,
+) -> tuple[Float[Array, "N 2"], Float[Array, "N 2 2"], Float[Array, " N"]]:
+    """EWA projection of 3D Gaussians, with the rasterizer's rules (DESIGN section 2).
+
+    Sigma' = J W Sigma W^T J^T + blur I, Sigma = R diag(s^2) R^T (R from the wxyz quaternion), W the
+    world-to-camera rotation, J the perspective Jacobian at the centre with x/z clamped to
+    [-cx/fx - 0.3 tan_x, (width - cx)/fx + 0.3 tan_x] (tan_x = width / (2 fx)) and y/z likewise; the 2D
+    mean itself is not clamped. Computed here rather than by inverting the rasterizer's conics, so that
+    it is available without rendering and its gradients are exact.
+
+    Args:
+        means: world-frame centres, [N, 3].
+        quats: rotations, wxyz any norm, [N, 4].
+        scales: activated scales (> 0), [N, 3].
+        viewmat: world-to-camera (OpenCV), [4, 4].
+        K: intrinsics, [3, 3].
+        width, height: image size in pixels (for the clamp).
+        blur: screen-space low-pass variance added to the 2D covariance (0.3 px^2 as in gsplat).
+
+    Returns:
+        (means2d [N, 2], cov2d [N, 2, 2], depths [N]); depths are camera z. Centres with z <= 0 get a
+        finite but meaningless covariance (the rasterizer culls them).
+    """
+    means, quats, scales = _float(means), _float(quats), _float(scales)
+    viewmat, K = _float(viewmat), _float(K)
+    rw = viewmat[:3, :3]
+    p = means @ rw.T + viewmat[None, :3, 3]  # [N, 3]
+    rot = geometry.quat_to_rotmat(quats)  # [N, 3, 3]
+    m = rot * scales[..., None, :]  # R diag(s)
+    cov3 = m @ jnp.swapaxes(m, -1, -2)  # [N, 3, 3]
+    cov_cam = rw @ cov3 @ rw.T  # [N, 3, 3]
+    fx, fy, cx, cy = _intrinsics(K)
+    z = p[:, 2]
+    pos = z > 0
+    zs = jnp.where(pos, z, 1.0)
+    tan_x, tan_y = width / (2.0 * fx), height / (2.0 * fy)
+    lim_x_pos = (width - cx) / fx + 0.3 * tan_x
+    lim_x_neg = cx / fx + 0.3 * tan_x
+    lim_y_pos = (height - cy) / fy + 0.3 * tan_y
+    lim_y_neg = cy / fy + 0.3 * tan_y
+    tx = zs * jnp.clip(p[:, 0] / zs, -lim_x_neg, lim_x_pos)
+    ty = zs * jnp.clip(p[:, 1] / zs, -lim_y_neg, lim_y_pos)
+    zero = jnp.zeros_like(zs)
+    jac = jnp.stack(
+        [
+            jnp.stack([fx / zs, zero, -fx * tx / (zs * zs)], -1),
+            jnp.stack([zero, fy / zs, -fy * ty / (zs * zs)], -1),
+        ],
+        axis=-2,
+    )  # [N, 2, 3]
+    cov2 = jac @ cov_cam @ jnp.swapaxes(jac, -1, -2) + blur * jnp.eye(2, dtype=zs.dtype)[None]
+    return geometry.project_points(p, K), cov2, z
+
+
+@jax.jit
+def sqrtm_2x2(s: Float[ArrayLike, "*batch 2 2"]) -> Float[Array, "*batch 2 2"]:
+    """Principal square root of symmetric positive semi-definite 2x2 matrices, closed form.
+
+    sqrt(S) = (S + sqrt(det S) I) / sqrt(tr S + 2 sqrt(det S)). Uses only the determinant and trace,
+    no eigen-decomposition, so values and gradients are smooth at isotropic S (repeated eigenvalues),
+    where eigenvector-based square roots have singular gradients. det S is clamped at 0 and the
+    denominator guarded (S = 0 gives 0 with finite gradients).
+
+    Args:
+        s: SPD matrices, [..., 2, 2].
+
+    Returns:
+        B with B @ B == S, B symmetric positive semi-definite, [..., 2, 2].
+    """
+    s = _float(s)
+    det = s[..., 0, 0] * s[..., 1, 1] - s[..., 0, 1] * s[..., 1, 0]
+    det_pos = det > 0
+    sd = jnp.where(det_pos, jnp.sqrt(jnp.where(det_pos, det, 1.0)), 0.0)
+    den2 = s[..., 0, 0] + s[..., 1, 1] + 2.0 * sd
+    den_pos = den2 > 0
+    inv_den = jnp.where(den_pos, 1.0 / jnp.sqrt(jnp.where(den_pos, den2, 1.0)), 0.0)
+    eye = jnp.broadcast_to(jnp.eye(2, dtype=s.dtype), s.shape)
+    return (s + sd[..., None, None] * eye) * inv_den[..., None, None]
+
+
+def _inv_2x2(m: Array) -> Array:
+    det = m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
+    ok = det != 0
+    inv_det = jnp.where(ok, 1.0 / jnp.where(ok, det, 1.0), 0.0)
+    adj = jnp.stack(
+        [jnp.stack([m[..., 1, 1], -m[..., 0, 1]], -1), jnp.stack([-m[..., 1, 0], m[..., 0, 0]], -1)], axis=-2
+    )
+    return adj * inv_det[..., None, None]
+
+
+@jax.jit
+def gaussian_flow_affine(
+    means2d0: Float[ArrayLike, "N 2"],
+    cov2d0: Float[ArrayLike, "N 2 2"],
+    means2d1: Float[ArrayLike, "N 2"],
+    cov2d1: Float[ArrayLike, "N 2 2"],
+) -> tuple[Float[Array, "N 2 2"], Float[Array, "N 2"]]:
+    """Per-Gaussian affine flow of GaussianFlow, f_i(m) = (M_i - I)(m - mu_i,0) + dmu_i, as (M_i - I, offset).
+
+    M_i = B_i,1 B_i,0^-1 with B = Sigma'^(1/2) (``sqrtm_2x2``), dmu_i = mu_i,1 - mu_i,0. The returned
+    offset is dmu_i - (M_i - I) mu_i,0, so f_i(m) = (M_i - I) m + offset_i: both parts are constant per
+    Gaussian and can be alpha-composited as 6 colour channels.
+
+    Args:
+        means2d0, cov2d0: 2D means [N, 2] and covariances [N, 2, 2] at t-1 (camera t-1).
+        means2d1, cov2d1: the same at t, projected with the camera of t-1.
+
+    Returns:
+        (M - I [N, 2, 2], offset [N, 2]).
+    """
+    means2d0, cov2d0 = _float(means2d0), _float(cov2d0)
+    means2d1, cov2d1 = _float(means2d1), _float(cov2d1)
+    b0_inv = _inv_2x2(sqrtm_2x2(cov2d0))
+    m = sqrtm_2x2(cov2d1) @ b0_inv  # [N, 2, 2]
+    m_minus_i = m - jnp.broadcast_to(jnp.eye(2, dtype=m.dtype), m.shape)
+    offset = (means2d1 - means2d0) - (m_minus_i @ means2d0[..., None])[..., 0]
+    return m_minus_i, offset
+
+
+# ----------------------------------------------------------------------------------------------
+# rendered maps
+# ----------------------------------------------------------------------------------------------
+
+
+class GaussianFlowMaps(NamedTuple):
+    """Rendered per-pixel maps of a dynamic Gaussian flow pass (all on the frame t-1 pixel grid)."""
+
+    flow: Float[Array, "H W 2"]
+    """Dynamic Gaussian flow sum_i T_i alpha_i f_i(m) (background 0), pixels per frame."""
+    alpha: Float[Array, "H W"]
+    """Accumulated opacity sum_i T_i alpha_i."""
+    inv_depth: Float[Array, "H W"]
+    """Composited inverse depth sum_i T_i alpha_i / Z_i (background 0, i.e. at infinity)."""
+    overflow: Bool[Array, ""]
+    """The rasterizer ran out of intersection slots (only possible under jit with a too small
+    ``capacity``); the maps must not be used then."""
+
+
+def _rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, **kw):
+    from fgjax.render.api import rasterization  # lazy: flow.py imports without the renderer
+
+    return rasterization(
+        means, quats, scales, opacities, colors, viewmat, K, width, height, background=None, **kw
+    )
+
+
+def dynamic_gaussian_flow(
+    means0: Float[ArrayLike, "N 3"],
+    quats0: Float[ArrayLike, "N 4"],
+    scales0: Float[ArrayLike, "N 3"],
+    opacities: Float[ArrayLike, " N"],
+    means1: Float[ArrayLike, "N 3"],
+    viewmat: Float[ArrayLike, "4 4"],
+    K: Float[ArrayLike, "3 3"],
+    width: int,
+    height: int,
+    *,
+    anisotropic: bool = False,
+    quats1: Float[ArrayLike, "N 4"] | None = None,
+    scales1: Float[ArrayLike, "N 3"] | None = None,
+    near_plane: float = 0.01,
+    tile_size: int = 16,
+    capacity: int | None = None,
+) -> GaussianFlowMaps:
+    """Dynamic Gaussian flow map u~_GS(m) = sum_i T_i alpha_i f_i(m), rendered with ``fgjax.rasterization``.
+
+    Both frames' Gaussians are projected with the camera of frame t-1 (``viewmat``), so only object
+    motion remains (DESIGN section 1, step 4); T_i alpha_i are those of the frame t-1 Gaussians
+    (``means0, quats0, scales0, opacities``). Background 0.
+
+    - Isotropic (default, the paper's form): f_i = dmu_i = mu_i(t) - mu_i(t-1), composited as 2 colour
+      channels.
+    - Anisotropic (GaussianFlow): f_i(m) = (M_i - I)(m - mu_i,t-1) + dmu_i with M_i = B_i,t B_i,t-1^-1,
+      B = Sigma'^(1/2) in closed form (``gaussian_flow_affine``), composited as 6 channels
+      [(M - I) row-major, offset] and evaluated as flow(m) = R_M(m) m + R_off(m) at pixel centres m.
+      The 2D covariances come from ``project_covariances`` (same EWA rule as the rasterizer).
+
+    A 3rd (or 7th) channel carries 1/Z_i (camera depth of the frame t-1 centre), giving the composited
+    inverse depth of Lemma 1 from the same pass.
+
+    Args:
+        means0, quats0, scales0, opacities: frame t-1 Gaussians (world frame, wxyz any norm, activated
+            scales > 0, opacities in [0, 1]), [N, 3], [N, 4], [N, 3], [N].
+        means1: frame t centres (world frame), [N, 3].
+        viewmat: world-to-camera of frame t-1 (OpenCV), [4, 4].
+        K: intrinsics, [3, 3].
+        width, height: image size (static ints).
+        anisotropic: use the GaussianFlow affine term.
+        quats1, scales1: frame t rotations/scales for the anisotropic form (default: frame t-1's, so that
+            only the projection of the moved centre changes the 2D covariance).
+        near_plane, tile_size, capacity: passed to the rasterizer.
+
+    Returns:
+        ``GaussianFlowMaps(flow [H, W, 2], alpha [H, W], inv_depth [H, W], overflow [])``.
+
+    Outside ``jax.jit`` with ``capacity=None`` the rasterizer sizes its intersection buffer exactly; under
+    jit pass a ``capacity`` (or check ``overflow``).
+    """
+    means0, quats0, scales0 = _float(means0), _float(quats0), _float(scales0)
+    opacities, means1, viewmat, K = _float(opacities), _float(means1), _float(viewmat), _float(K)
+    n = means0.shape[0]
+    for name, x, tail in (
+        ("means0", means0, (n, 3)),
+        ("quats0", quats0, (n, 4)),
+        ("scales0", scales0, (n, 3)),
+        ("means1", means1, (n, 3)),
+        ("viewmat", viewmat, (4, 4)),
+        ("K", K, (3, 3)),
+    ):
+        if x.shape != tail:
+            raise ValueError(f"{name} must have shape {list(tail)}; got {list(x.shape)}.")
+    if opacities.shape != (n,):
+        raise ValueError(f"opacities must have shape [{n}]; got {list(opacities.shape)}.")
+    kw = dict(near_plane=near_plane, tile_size=tile_size, capacity=capacity)
+    if not anisotropic:
+        colors = _iso_colors(means0, means1, viewmat, K)  # [N, 3]
+        image, alpha, info = _rasterize(means0, quats0, scales0, opacities, colors, viewmat, K, width, height, **kw)
+        return GaussianFlowMaps(image[..., :2], alpha, image[..., 2], jnp.asarray(info["overflow"]))
+    quats1 = quats0 if quats1 is None else _float(quats1)
+    scales1 = scales0 if scales1 is None else _float(scales1)
+    colors = _aniso_colors(means0, quats0, scales0, means1, quats1, scales1, viewmat, K, width, height)  # [N, 7]
+    image, alpha, info = _rasterize(means0, quats0, scales0, opacities, colors, viewmat, K, width, height, **kw)
+    return GaussianFlowMaps(_aniso_flow(image), alpha, image[..., 6], jnp.asarray(info["overflow"]))
+
+
+@jax.jit
+def _iso_colors(means0, means1, viewmat, K):
+    """Per-Gaussian channels [dmu (2), 1/Z_i (1)], both frames projected with camera t-1."""
+    view_rot, view_t = viewmat[:3, :3], viewmat[:3, 3]
+    p0 = means0 @ view_rot.T + view_t[None]  # [N, 3]
+    p1 = means1 @ view_rot.T + view_t[None]  # [N, 3]
+    dmu = geometry.project_points(p1, K) - geometry.project_points(p0, K)  # [N, 2]
+    return jnp.concatenate([dmu, _safe_inv_depth(p0[:, 2])[:, None]], axis=-1)
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height"))
+def _aniso_colors(means0, quats0, scales0, means1, quats1, scales1, viewmat, K, width, height):
+    """Per-Gaussian channels [(M - I) row-major (4), offset (2), 1/Z_i (1)]."""
+    n = means0.shape[0]
+    mu0, cov0, z0 = project_covariances(means0, quats0, scales0, viewmat, K, width, height)
+    mu1, cov1, _ = project_covariances(means1, quats1, scales1, viewmat, K, width, height)
+    m_minus_i, offset = gaussian_flow_affine(mu0, cov0, mu1, cov1)
+    return jnp.concatenate([m_minus_i.reshape(n, 4), offset, _safe_inv_depth(z0)[:, None]], axis=-1)
+
+
+@jax.jit
+def _aniso_flow(image):
+    """flow(m) = R_M(m) m + R_off(m) at the pixel centres, from the 7-channel composite."""
+    height, width = image.shape[:2]
+    pix = pixel_centers(height, width, image.dtype)  # [H, W, 2]
+    r_m = image[..., :4].reshape(height, width, 2, 2)
+    return (r_m @ pix[..., None])[..., 0] + image[..., 4:6]
+
+
+def composited_inverse_depth(
+    means: Float[ArrayLike, "N 3"],
+    quats: Float[ArrayLike, "N 4"],
+    scales: Float[ArrayLike, "N 3"],
+    opacities: Float[ArrayLike, " N"],
+    viewmat: Float[ArrayLike, "4 4"],
+    K: Float[ArrayLike, "3 3"],
+    width: int,
+    height: int,
+    *,
+    near_plane: float = 0.01,
+    tile_size: int = 16,
+    capacity: int | None = None,
+) -> tuple[Float[Array, "H W"], Float[Array, "H W"], Bool[Array, ""]]:
+    """Composited inverse depth rho(m) = sum_i T_i alpha_i / Z_i (background 0), alpha, and overflow.
+
+    This is the depth for which Lemma 1's residual vanishes: with 1/Z = rho, the composite of the
+    per-Gaussian camera flows equals ``motion_field_inv_depth(m, rho, ...)`` plus (1 - alpha) B omega
+    (the background at infinity). Z_i is the camera z of centre i. (``dynamic_gaussian_flow`` returns
+    the same map from its own pass.)
+
+    Args:
+        means, quats, scales, opacities: Gaussians (world frame, wxyz, activated), [N, ...].
+        viewmat: world-to-camera (OpenCV), [4, 4].
+        K: intrinsics, [3, 3].
+        width, height: image size.
+
+    Returns:
+        (inv_depth [H, W], alpha [H, W], overflow []): overflow as in ``GaussianFlowMaps``.
+    """
+    means, viewmat = _float(means), _float(viewmat)
+    colors = _inv_depth_colors(means, viewmat)  # [N, 1]
+    image, alpha, info = _rasterize(
+        means, quats, scales, opacities, colors, viewmat, K, width, height,
+        near_plane=near_plane, tile_size=tile_size, capacity=capacity,
+    )  # fmt: skip
+    return image[..., 0], alpha, jnp.asarray(info["overflow"])
+
+
+@jax.jit
+def _inv_depth_colors(means, viewmat):
+    z = means @ viewmat[2, :3] + viewmat[2, 3]  # [N]
+    return _safe_inv_depth(z)[:, None]
+
+
+@jax.jit
+def lemma1_residual(
+    xy: Float[ArrayLike, "*batch 2"],
+    K: Float[ArrayLike, "3 3"],
+    v: Float[ArrayLike, "3"],
+    inv_depth_gs: Float[ArrayLike, "*batch"],
+    depth: Float[ArrayLike, "*batch"],
+) -> Float[Array, "*batch 2"]:
+    """Residual Delta of Lemma 1: A v (sum_i T_i alpha_i / Z_i - 1/Z).
+
+    For composited Gaussians each moving with image velocity u_i = A v / Z_i + B omega + dmu_i, over a
+    background at infinity, u = sum_i w_i u_i + (1 - alpha) B omega = u_cam(Z) + u~_GS + Delta with
+    w_i = T_i alpha_i and u_cam(Z) = A v / Z + B omega (``motion_field``). This equals the paper's
+    A sum_i w_i v (1/Z_i - 1/Z) when alpha = 1, and vanishes when 1/Z = sum_i w_i / Z_i
+    (``composited_inverse_depth``). The expected depth sum_i w_i Z_i does not make it vanish.
+
+    Args:
+        xy: pixel coordinates (centres at +0.5), [..., 2].
+        K: intrinsics, [3, 3] (zero skew assumed).
+        v: camera translational velocity (camera-0 coordinates), [3].
+        inv_depth_gs: composited inverse depth sum_i T_i alpha_i / Z_i, [...].
+        depth: the depth Z used for u_cam, [...]; non-positive or non-finite means infinity.
+
+    Returns:
+        Delta, [..., 2].
+    """
+    zero = jnp.zeros(3, dtype=jnp.result_type(_float(v).dtype, _float(xy).dtype))
+    d_rho = _float(inv_depth_gs) - _safe_inv_depth(_float(depth))
+    return motion_field_inv_depth(xy, d_rho, K, v, zero)
+
+
+# ----------------------------------------------------------------------------------------------
+# loss and warping
+# ----------------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnames=("norm", "threshold"))
+def flow_loss(
+    flow: Float[ArrayLike, "*batch H W 2"],
+    flow_cam: Float[ArrayLike, "*batch H W 2"],
+    flow_gs: Float[ArrayLike, "*batch H W 2"],
+    valid: Bool[ArrayLike, "*batch H W"] | Float[ArrayLike, "*batch H W"] | None = None,
+    *,
+    norm: Literal["l1", "l2"] = "l1",
+    threshold: float | None = None,
+) -> Float[Array, ""]:
+    """Dynamic flow loss L_uGS = mean over valid pixels of ||u - u_cam - u~_GS|| (DESIGN section 1, step 4).
+
+    The target is the observed flow minus the camera flow, d = u - u_cam. With ``threshold`` set, target
+    vectors with |d| < threshold pixels are treated as static (d := 0): optical-flow noise below the
+    threshold then pulls the Gaussian flow towards zero instead of fitting noise; pixels are not dropped.
+
+    Args:
+        flow: observed optical flow u, [..., H, W, 2].
+        flow_cam: camera flow u_cam (``motion_field`` or ``reprojection_flow``), [..., H, W, 2].
+        flow_gs: rendered dynamic Gaussian flow u~_GS (``dynamic_gaussian_flow``), [..., H, W, 2].
+        valid: pixel mask (bool, or float weights in [0, 1]), [..., H, W]; None = all pixels.
+        norm: "l1" = |dx| + |dy| per pixel; "l2" = sqrt(dx^2 + dy^2) per pixel (end-point error; zero
+            gradient at a zero residual instead of NaN).
+        threshold: optional magnitude threshold (pixels) on the target u - u_cam; None = off. A Python
+            float (static under jit, like ``norm``).
+
+    Returns:
+        Scalar loss: sum(w * err) / max(sum(w), 1) with w the validity weights (0 when nothing is valid).
+    """
+    flow, flow_cam, flow_gs = _float(flow), _float(flow_cam), _float(flow_gs)
+    if flow.shape != flow_cam.shape or flow.shape != flow_gs.shape or flow.shape[-1:] != (2,):
+        raise ValueError(
+            f"flow, flow_cam, flow_gs must share one shape [..., H, W, 2]; got {list(flow.shape)}, "
+            f"{list(flow_cam.shape)}, {list(flow_gs.shape)}."
+        )
+    if norm not in ("l1", "l2"):
+        raise ValueError(f"norm must be 'l1' or 'l2'; got {norm!r}.")
+    target = flow - flow_cam  # [..., H, W, 2]
+    if threshold is not None:
+        mag2 = jnp.sum(target * target, axis=-1, keepdims=True)
+        target = jnp.where(mag2 >= threshold * threshold, target, 0.0)
+    r = target - flow_gs
+    if norm == "l1":
+        err = jnp.sum(jnp.abs(r), axis=-1)
+    else:
+        r2 = jnp.sum(r * r, axis=-1)
+        pos = r2 > 0
+        err = jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0)
+    if valid is None:
+        w = jnp.ones_like(err)
+    else:
+        valid = jnp.asarray(valid)
+        if valid.shape != err.shape:
+            raise ValueError(f"valid must have shape {list(err.shape)}; got {list(valid.shape)}.")
+        w = valid.astype(err.dtype)
+    return jnp.sum(w * err) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+@jax.jit
+def warp_backward(
+    image: Float[ArrayLike, "H W C"], flow: Float[ArrayLike, "H W 2"]
+) -> tuple[Float[Array, "H W C"], Bool[Array, "H W"]]:
+    """Backward warp: out(m) = image(m + flow(m)), bilinear, for a forward flow from frame t-1 to t.
+
+    With ``image`` = frame t and ``flow`` the t-1 -> t flow, ``out`` approximates frame t-1. Sample
+    positions use pixel centres at +0.5 (array index = coordinate - 0.5); samples outside the image
+    clamp to the border and are flagged invalid.
+
+    Args:
+        image: frame t, [H, W, C] float.
+        flow: forward flow (dx, dy) on frame t-1's grid, [H, W, 2].
+
+    Returns:
+        (warped [H, W, C], inside [H, W]) with inside False where m + flow(m) leaves the image
+        (or the flow is not finite).
+    """
+    image, flow = _float(image), _float(flow)
+    h, w = image.shape[:2]
+    if flow.shape != (h, w, 2):
+        raise ValueError(f"flow must have shape [{h}, {w}, 2]; got {list(flow.shape)}.")
+    finite = jnp.all(jnp.isfinite(flow), axis=-1)
+    flow = jnp.where(finite[..., None], flow, 0.0)
+    pos = pixel_centers(h, w, flow.dtype) + flow - 0.5  # continuous array indices (col, row)
+    inside = finite & (pos[..., 0] >= 0) & (pos[..., 0] <= w - 1) & (pos[..., 1] >= 0) & (pos[..., 1] <= h - 1)
+    x = jnp.clip(pos[..., 0], 0.0, w - 1.0)
+    y = jnp.clip(pos[..., 1], 0.0, h - 1.0)
+    x0 = jnp.clip(jnp.floor(x), 0, max(w - 2, 0)).astype(jnp.int32)
+    y0 = jnp.clip(jnp.floor(y), 0, max(h - 2, 0)).astype(jnp.int32)
+    x1, y1 = jnp.minimum(x0 + 1, w - 1), jnp.minimum(y0 + 1, h - 1)
+    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
+    out = (
+        image[y0, x0] * (1 - fx) * (1 - fy)
+        + image[y0, x1] * fx * (1 - fy)
+        + image[y1, x0] * (1 - fx) * fy
+        + image[y1, x1] * fx * fy
+    )
+    return out, inside

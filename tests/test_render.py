@@ -309,3 +309,22 @@ def test_ellipse_tile_test_is_conservative_and_tight():
     assert truth.sum() > 200 and (~truth).sum() > 200
     assert np.all(got[truth]), "dropped a tile that has a counted pixel"
     assert (got & ~truth).sum() <= 0.02 * M  # margin only
+
+
+def test_backward_memory_scales_with_intersections_not_pixels_times_gaussians():
+    """XLA's compiled temp buffers for forward+backward stay far below one [pixels, N] array."""
+    rng = np.random.default_rng(0)
+    n, w, h = 3000, 256, 256
+    args = [jnp.asarray(x, jnp.float32) for x in (
+        rng.normal(size=(n, 3)) * 0.8 + [0, 0, 4], rng.normal(size=(n, 4)), np.exp(rng.uniform(-4, -2.5, (n, 3))),
+        rng.uniform(0.1, 1, n), rng.uniform(0, 1, (n, 3)), np.eye(4), [[200.0, 0, 128], [0, 200.0, 128], [0, 0, 1]])]
+    need = int(fgjax.count_intersections(*args[:4], args[5], args[6], width=w, height=h))
+    grad = jax.jit(jax.grad(lambda m, c: jnp.sum(fgjax.rasterization(
+        m, args[1], args[2], args[3], c, args[5], args[6], w, h, capacity=need)[0]), argnums=(0, 1)))
+    stats = grad.lower(args[0], args[4]).compile().memory_analysis()
+    if stats is None:
+        pytest.skip("this backend reports no memory analysis")
+    dense_bytes = w * h * n * 4
+    per_isect = stats.temp_size_in_bytes / need
+    assert stats.temp_size_in_bytes < 0.05 * dense_bytes, (stats.temp_size_in_bytes, dense_bytes)
+    assert per_isect < 4096, per_isect  # bytes per intersection slot (a tile is 64 pixels)

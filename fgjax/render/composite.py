@@ -118,6 +118,26 @@ def _segment_prefix(tile, vals, carry_tile, carry_val):
     return pre, (tile[-1], pre[-1] + vals[-1])
 
 
+def _prefix_sum(x, inclusive: bool):
+    """Prefix sum over the chunk axis (axis 1) of x [B, C, P], in two levels of small matmuls.
+
+    The chunk is split into groups of g = 8 entries: a triangular g x g matmul inside each group
+    plus a triangular matmul over the group sums costs about 2 g + C / g multiply-adds per entry
+    instead of C for one C x C triangular matmul.
+    """
+    B, C, P = x.shape
+    g = 8 if C % 8 == 0 and C > 8 else C
+    k = 0 if inclusive else -1
+    tri_in = jnp.tril(jnp.ones((g, g), x.dtype), k=k)
+    xg = x.reshape(B, C // g, g, P)
+    within = jnp.einsum("ij,bgjp->bgip", tri_in, xg)
+    if C // g > 1:
+        tri_out = jnp.tril(jnp.ones((C // g, C // g), x.dtype), k=-1)
+        before = jnp.einsum("gh,bhp->bgp", tri_out, xg.sum(2))  # sum of earlier groups
+        within = within + before[:, :, None, :]
+    return within.reshape(B, C, P)
+
+
 def _batches(x, batch):
     return x.reshape((x.shape[0] // batch, batch) + x.shape[1:])
 
@@ -150,7 +170,6 @@ def _forward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks):
     cn = jnp.concatenate([conics, jnp.zeros((1, 3), dtype)])
     op = jnp.concatenate([opac, jnp.zeros((1,), dtype)])
     co = jnp.concatenate([colors, jnp.zeros((1, K), dtype)])
-    tri = jnp.tril(jnp.ones((st.chunk, st.chunk), dtype), k=-1)  # excl[i] = sum_{j<i}
     log_tmin = math.log(T_MIN)
     nb = ch.ids.shape[0] // st.batch
     basis = _pixel_basis(st.tile_size, dtype)
@@ -164,7 +183,7 @@ def _forward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks):
             alpha, _, on = _alpha(basis, ml, cn[ids], op[ids], live)
             lg = jnp.where(on, jnp.log(1.0 - alpha), 0.0)  # [B, C, P]; 1 - alpha >= 0.01
             pre, new_carry = _segment_prefix(tile, lg.sum(1), c_tile, c_val)  # [B, P]
-            L = pre[:, None, :] + jnp.einsum("ij,bjp->bip", tri, lg)
+            L = pre[:, None, :] + _prefix_sum(lg, inclusive=False)
             keep = on & (L + lg > log_tmin)
             w = jnp.where(keep, alpha * jnp.exp(L), 0.0)  # [B, C, P]
             out = jnp.einsum("bcp,bck->bpk", w, co[ids])  # [B, P, K]
@@ -194,8 +213,6 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
     cn = jnp.concatenate([conics, jnp.zeros((1, 3), dtype)])
     op = jnp.concatenate([opac, jnp.zeros((1,), dtype)])
     co = jnp.concatenate([colors, jnp.zeros((1, K), dtype)])
-    tri = jnp.tril(jnp.ones((st.chunk, st.chunk), dtype), k=-1)
-    tri_incl = jnp.tril(jnp.ones((st.chunk, st.chunk), dtype), k=0)
     log_tmin = math.log(T_MIN)
     g_dot_acc = jnp.sum(g_acc * acc, axis=-1)  # [T, P]
     basis = _pixel_basis(st.tile_size, dtype)
@@ -211,7 +228,7 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
             ml = _local_means(tile, m2[ids], st.tile_size, ntx)
             alpha, raw, on = _alpha(basis, ml, con, o, live)
             lg = jnp.where(on, jnp.log(1.0 - alpha), 0.0)
-            L = pre_b[:, None, :] + jnp.einsum("ij,bjp->bip", tri, lg)
+            L = pre_b[:, None, :] + _prefix_sum(lg, inclusive=False)
             keep = on & (L + lg > log_tmin)
             T = jnp.exp(L)
             w = jnp.where(keep, alpha * T, 0.0)  # [B, C, P]
@@ -219,7 +236,7 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
             gc = jnp.einsum("bck,bpk->bcp", col, gt)  # g . c_i per pixel
             a = w * gc
             apre, new_carry = _segment_prefix(tile, a.sum(1), c_tile, c_val)  # [B, P]
-            suffix = g_dot_acc[tile][:, None, :] - apre[:, None, :] - jnp.einsum("ij,bjp->bip", tri_incl, a)
+            suffix = g_dot_acc[tile][:, None, :] - apre[:, None, :] - _prefix_sum(a, inclusive=True)
             d_alpha = jnp.where(keep & (raw < ALPHA_MAX), T * gc - suffix / (1.0 - alpha), 0.0)
             d_q = -0.5 * d_alpha * raw  # d alpha / d q = -alpha / 2 when unclamped
             # Moments of d_q over the pixel basis give every per-entry sum in one matmul:

@@ -1,0 +1,649 @@
+"""Stage 1: deformable 4D Gaussian training (DESIGN.md section 1, step 1) and the ``fgjax train`` command.
+
+Library entry point: ``train_stage1(cfg, scene, out_dir, ...)``. One jitted step renders a batch of
+training cameras (vmapped; data-parallel over a ``jax.sharding`` mesh when several devices exist),
+with the deformation field applied (or not: the warm-up and a detected static scene use a separately
+traced step without it, so they pay nothing for it), and applies one optax update. Densification runs
+between steps over fixed-capacity arrays. Checkpoints hold everything needed to resume bit-for-bit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from fgjax.config import Config, ConfigError, load_config, to_toml
+from fgjax.gaussians import Gaussians, activate, init_from_points
+from fgjax.models.deform import DeformSpec, deform_apply, deform_init
+from fgjax.train import checkpoint as ckpt
+from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
+from fgjax.train.losses import photometric_loss, scale_regularizer
+from fgjax.train.optim import OptimSpec, active_sh_degree, make_optimizer
+
+__all__ = ["train_stage1", "TrainState", "render_params", "scene_box", "main", "deform_spec_from_config"]
+
+
+# ---------------------------------------------------------------------------------------------
+# set-up helpers
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class TrainState:
+    """Everything a checkpoint holds (host-side container; arrays are device arrays)."""
+
+    params: dict[str, Any]
+    opt_state: Any
+    densify: DensifyState
+    step: int
+    key: jax.Array
+    capacity: int
+    static: bool | None  # None: not decided yet (before the end of warm-up)
+
+
+def scene_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """A box the cameras look into: centred on the least-squares closest point to all optical axes,
+    half-size the median camera distance to it (no depth, no SfM points needed)."""
+    r = viewmats[:, :3, :3]
+    c = -np.einsum("tji,tj->ti", r, viewmats[:, :3, 3])  # camera centres
+    d = r[:, 2, :]  # optical axes (world)
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for ci, di in zip(c, d):
+        p = np.eye(3) - np.outer(di, di)
+        a += p
+        b += p @ ci
+    if np.linalg.cond(a) < 1e8:
+        centre = np.linalg.solve(a, b)
+    else:  # all axes parallel: a point in front of the cameras
+        centre = c.mean(0) + d.mean(0)
+    rad = float(np.median(np.linalg.norm(c - centre, axis=-1)))
+    rad = max(rad, 1e-3)
+    return centre - rad, centre + rad
+
+
+def _visible_any(points, viewmats, Ks, width, height):
+    vis = np.zeros(len(points), bool)
+    for vm, K in zip(viewmats, Ks):
+        p = points @ vm[:3, :3].T + vm[:3, 3]
+        z = p[:, 2]
+        ok = z > 0.05
+        u = K[0, 0] * p[:, 0] / np.where(ok, z, 1) + K[0, 2]
+        v = K[1, 1] * p[:, 1] / np.where(ok, z, 1) + K[1, 2]
+        vis |= ok & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    return vis
+
+
+def init_gaussians(cfg: Config, scene, key) -> tuple[Gaussians, jax.Array]:
+    """Random points in the scene box that some training camera sees; colours from that camera's pixel."""
+    lo, hi = scene_box(scene.viewmats, scene.Ks, scene.width, scene.height)
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).astype(np.uint64).tolist())
+    want = cfg.model.init_points
+    pts = np.zeros((0, 3))
+    for _ in range(20):
+        cand = lo + rng.uniform(size=(want * 2, 3)) * (hi - lo)
+        pts = np.concatenate([pts, cand[_visible_any(cand, scene.viewmats, scene.Ks, scene.width, scene.height)]])
+        if len(pts) >= want:
+            break
+    pts = pts[:want]
+    # colour: the pixel of the first camera that sees the point (a cheap, depth-free guess)
+    cols = np.full((len(pts), 3), 0.5)
+    vm, K = scene.viewmats[0], scene.Ks[0]
+    p = pts @ vm[:3, :3].T + vm[:3, 3]
+    z = np.where(p[:, 2] > 0.05, p[:, 2], np.inf)
+    u = np.floor(K[0, 0] * p[:, 0] / z + K[0, 2]).astype(np.int64)
+    v = np.floor(K[1, 1] * p[:, 1] / z + K[1, 2]).astype(np.int64)
+    ok = np.isfinite(z) & (u >= 0) & (u < scene.width) & (v >= 0) & (v < scene.height)
+    cols[ok] = scene.images[0][v[ok], u[ok]]
+    cap = max(cfg.model.capacity, len(pts))
+    return init_from_points(pts, cols, capacity=cap, sh_degree=cfg.model.sh_degree,
+                            init_opacity=cfg.model.init_opacity, scale_factor=cfg.model.init_scale)
+
+
+def deform_spec_from_config(cfg: Config, aabb) -> DeformSpec:
+    d = cfg.deform
+    return DeformSpec(
+        kind=d.kind, depth=d.depth, width=d.width, x_freqs=d.x_freqs, t_freqs=d.t_freqs, skip=d.skip,
+        hash_levels=d.hash_levels, hash_log2_table=d.hash_log2_table, hash_features=d.hash_features,
+        hash_base_res=d.hash_base_res, hash_max_res=d.hash_max_res, x_freqs_hash=d.x_freqs_hash,
+        aabb=tuple(float(x) for x in aabb),
+    )
+
+
+def scene_extent(viewmats: np.ndarray) -> float:
+    """3DGS's camera extent: 1.1 x the largest distance of a camera centre from their mean."""
+    c = -np.einsum("tji,tj->ti", viewmats[:, :3, :3], viewmats[:, :3, 3])
+    return 1.1 * float(max(np.max(np.linalg.norm(c - c.mean(0), axis=-1)), 1e-3))
+
+
+# ---------------------------------------------------------------------------------------------
+# rendering with the model
+# ---------------------------------------------------------------------------------------------
+
+
+def _deformed(params, alive, t, spec: DeformSpec | None):
+    g: Gaussians = params["gaussians"]
+    means, quats, log_scales = g.means, g.quats, g.log_scales
+    if spec is not None:
+        dx, dq, ds = deform_apply(spec, params["deform"], jax.lax.stop_gradient(means), t)
+        means, quats, log_scales = means + dx, quats + dq, log_scales + ds
+    g2 = Gaussians(means, log_scales, quats, g.opacity_logits, g.sh)
+    q, s, o = activate(g2, alive)
+    return means, q, s, o, log_scales
+
+
+def render_params(
+    params, alive, viewmat, K, t, *, spec: DeformSpec | None, sh_degree: int, width: int, height: int,
+    background, capacity: int | None, tile_size: int = 8, delta2d=None, render_depth: bool = False, sh_mask=None,
+):
+    """Render the model at time t from one camera: (image [H, W, 3], alpha, info, log_scales).
+
+    ``delta2d`` [N, 2] (zeros) shifts each Gaussian by that many pixels on screen (a camera-space
+    offset proportional to depth); its gradient is the screen-space gradient densification needs.
+    """
+    from fgjax.render.api import rasterization, spherical_harmonics
+
+    means, q, s, o, log_scales = _deformed(params, alive, t, spec)
+    rot = viewmat[:3, :3]
+    if delta2d is not None:
+        z = means @ rot[2] + viewmat[2, 3]  # [N]
+        off_cam = jnp.stack([delta2d[:, 0] * z / K[0, 0], delta2d[:, 1] * z / K[1, 1], jnp.zeros_like(z)], -1)
+        means = means + off_cam @ rot  # R^T off
+    campos = -rot.T @ viewmat[:3, 3]
+    sh = params["gaussians"].sh
+    if sh_mask is not None:  # SH-degree schedule without recompiling: zero the inactive coefficients
+        sh = sh * sh_mask[:, None]
+    colors = jnp.maximum(spherical_harmonics(sh_degree, means - campos, sh) + 0.5, 0.0)
+    img, alpha, info = rasterization(
+        means, q, s, o, colors, viewmat, K, width, height, background=background, capacity=capacity,
+        tile_size=tile_size, render_depth=render_depth,
+    )
+    return img, alpha, info, log_scales
+
+
+# ---------------------------------------------------------------------------------------------
+# the step
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class StepSpec:
+    spec: DeformSpec | None  # None: no deformation (warm-up or static scene)
+    sh_degree: int
+    width: int
+    height: int
+    capacity: int
+    tile_size: int
+    lambda_dssim: float
+    scale_reg: float
+    scale_reg_max: float
+    pose: bool
+
+
+@functools.lru_cache(maxsize=16)
+def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[float, ...]):
+    """The jitted step for one static configuration. Memoised on its (hashable, immutable) static inputs
+    so that repeated runs in one process (tests, resume, benchmarks) reuse compiled code."""
+    optimizer = make_optimizer(ospec, num_sh)
+    bg = jnp.asarray(background, jnp.float32)
+
+    def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx):
+        if ss.pose:
+            from fgjax.geometry import se3_exp
+
+            viewmat = se3_exp(params["pose"][idx]) @ viewmat
+        img, _, info, log_scales = render_params(
+            params, alive, viewmat, K, t, spec=ss.spec, sh_degree=ss.sh_degree, width=ss.width,
+            height=ss.height, background=bg, capacity=ss.capacity, tile_size=ss.tile_size, delta2d=delta2d,
+            sh_mask=sh_mask,
+        )
+        loss = photometric_loss(img, image, ss.lambda_dssim)
+        if ss.scale_reg > 0:
+            loss = loss + ss.scale_reg * scale_regularizer(log_scales, alive, ss.scale_reg_max)
+        mse = jnp.mean((img - image) ** 2)
+        return loss, (mse, info["overflow"], info["valid"])
+
+    def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx):
+        losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0))(
+            params, alive, sh_mask, delta2d, images, viewmats, Ks, times, idx)
+        return jnp.mean(losses), aux
+
+    def step(params, opt_state, dstate: DensifyState, sh_mask, images, viewmats, Ks, times, idx):
+        b = images.shape[0]
+        n = params["gaussians"].means.shape[0]
+        delta2d = jnp.zeros((b, n, 2), jnp.float32)
+        (loss, (mse, overflow, valid)), (grads, g2d) = jax.value_and_grad(batch_loss, argnums=(0, 1), has_aux=True)(
+            params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx)
+        bad = jnp.any(overflow) | ~jnp.isfinite(loss)
+        updates, new_opt = optimizer.update(grads, opt_state, params)
+        new_params = optax.apply_updates(params, updates)
+        # An overflowing (or non-finite) step is dropped, and reported to the host loop.
+        keep = lambda new, old: jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), new, old)
+        new_params = keep(new_params, params)
+        new_opt = keep(new_opt, opt_state)
+        # densification statistics: mean of per-camera screen gradients (x batch, since the loss is a mean)
+        nd = dstate
+        for i in range(b):
+            nd = densify_accumulate(nd, g2d[i] * b, valid[i], ss.width, ss.height)
+        nd = jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), nd, dstate)
+        return new_params, new_opt, nd, loss, jnp.mean(mse), bad
+
+    return jax.jit(step, donate_argnums=(0, 1, 2))
+
+
+# ---------------------------------------------------------------------------------------------
+# training
+# ---------------------------------------------------------------------------------------------
+
+
+def _compute_capacity(params, alive, viewmats, Ks, width, height, tile_size, margin) -> int:
+    from fgjax.render.api import _round_capacity, count_intersections
+
+    g = params["gaussians"]
+    q, s, o = activate(g, alive)
+    worst = 0
+    for vm, K in zip(viewmats, Ks):
+        worst = max(worst, int(count_intersections(g.means, q, s, o, jnp.asarray(vm, jnp.float32),
+                                                   jnp.asarray(K, jnp.float32), width=width, height=height,
+                                                   tile_size=tile_size)))
+    return _round_capacity(int(worst * margin) + 1024)
+
+
+def _batch_indices(seed: int, step: int, num_frames: int, batch: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, step])
+    return rng.choice(num_frames, size=batch, replace=batch > num_frames)
+
+
+def _mesh_shardings(batch: int, devices=None):
+    devs = jax.devices() if devices is None else list(devices)
+    if len(devs) < 2 or batch % len(devs) != 0:
+        return None, None
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    mesh = Mesh(np.asarray(devs), ("cams",))
+    return NamedSharding(mesh, PartitionSpec("cams")), NamedSharding(mesh, PartitionSpec())
+
+
+def initial_state(cfg: Config, scene) -> tuple[TrainState, DeformSpec, OptimSpec]:
+    key = jax.random.key(cfg.model.seed)
+    k_init, k_def, key = jax.random.split(key, 3)
+    g, alive = init_gaussians(cfg, scene, k_init)
+    lo, hi = scene_box(scene.viewmats, scene.Ks, scene.width, scene.height)
+    spec = deform_spec_from_config(cfg, np.concatenate([lo, hi]))
+    params: dict[str, Any] = {"gaussians": g, "deform": deform_init(k_def, spec)}
+    if cfg.pose.enabled:
+        params["pose"] = jnp.zeros((scene.num_frames, 6), jnp.float32)
+    t = cfg.train
+    ospec = OptimSpec(
+        steps=t.steps, scene_extent=scene_extent(scene.viewmats), lr_means=t.lr_means,
+        lr_means_final=t.lr_means_final, lr_deform=t.lr_deform, lr_deform_final=t.lr_deform_final,
+        lr_hash_factor=t.lr_hash_factor, lr_opacity=t.lr_opacity, lr_scales=t.lr_scales, lr_quats=t.lr_quats,
+        lr_sh=t.lr_sh, lr_pose=cfg.pose.lr, lr_pose_final=cfg.pose.lr_final, warmup_steps=t.warmup_steps,
+    )
+    opt = make_optimizer(ospec, g.sh.shape[1])
+    state = TrainState(params, opt.init(params), densify_init(alive), 0, key, 0, None)
+    if cfg.static.force in ("static", "dynamic"):
+        state.static = cfg.static.force == "static"
+    return state, spec, ospec
+
+
+def template_state(cfg: Config, spec: DeformSpec, num_frames: int, scene_extent_: float = 1.0) -> TrainState:
+    """A state with the shapes and tree structure a checkpoint of this config has (values are placeholders)."""
+    n = cfg.model.capacity
+    k = (cfg.model.sh_degree + 1) ** 2
+    z = lambda *shape: jnp.zeros(shape, jnp.float32)
+    g = Gaussians(z(n, 3), z(n, 3), z(n, 4).at[:, 0].set(1.0), z(n), z(n, k, 3))
+    params: dict[str, Any] = {"gaussians": g, "deform": deform_init(jax.random.key(0), spec)}
+    if cfg.pose.enabled:
+        params["pose"] = z(num_frames, 6)
+    t = cfg.train
+    ospec = OptimSpec(steps=t.steps, scene_extent=scene_extent_, warmup_steps=t.warmup_steps)
+    opt = make_optimizer(ospec, k)
+    return TrainState(params, opt.init(params), densify_init(jnp.zeros((n,), bool)), 0, jax.random.key(0), 0, None)
+
+
+def load_run(run_dir: str | Path) -> tuple[Config, TrainState, DeformSpec, dict[str, Any]]:
+    """(config, state, deformation spec, model.json) of a finished or checkpointed run."""
+    run_dir = Path(run_dir)
+    for name in ("config.toml", "model.json", ckpt.CHECKPOINT_NAME):
+        if not (run_dir / name).exists():
+            raise FileNotFoundError(f"{run_dir} is not a trained run: {name} is missing")
+    cfg = load_config(run_dir / "config.toml")
+    meta = json.loads((run_dir / "model.json").read_text())
+    spec = DeformSpec(**{**meta["deform_spec"], "aabb": tuple(meta["deform_spec"]["aabb"])})
+    state = ckpt.load_checkpoint(run_dir / ckpt.CHECKPOINT_NAME, template_state(cfg, spec, meta["num_frames"]))
+    return cfg, state, spec, meta
+
+
+def detect_static(params, alive, scene, cfg: Config, capacity: int) -> tuple[bool, float]:
+    """Static-scene test after the warm-up (no deformation yet): a static model of a dynamic scene leaves
+    localised residual blobs. Score = max over frames of the fraction of pixels with |error| > 0.15;
+    static when the score is below ``static.threshold``."""
+    bg = jnp.asarray(cfg.model.background, jnp.float32)
+    score = 0.0
+    idx = np.linspace(0, scene.num_frames - 1, min(scene.num_frames, 12)).round().astype(int)
+    for i in idx:
+        img, _, _, _ = render_params(params, alive, jnp.asarray(scene.viewmats[i], jnp.float32),
+                                     jnp.asarray(scene.Ks[i], jnp.float32), 0.0, spec=None, sh_degree=0,
+                                     width=scene.width, height=scene.height, background=bg, capacity=capacity)
+        err = np.abs(np.asarray(img) - scene.images[i]).max(-1)
+        thr = max(0.1, 4.0 * float(np.median(err)))  # relative: an unconverged model errs everywhere
+        score = max(score, float(np.mean(err > thr)))
+    return score < cfg.static.threshold, score
+
+
+def train_stage1(
+    cfg: Config,
+    scene,
+    out_dir: str | Path | None = None,
+    *,
+    test_scene=None,
+    resume: bool = False,
+    stop_at: int | None = None,
+    progress: bool = True,
+    log=print,
+    devices=None,
+) -> dict[str, Any]:
+    """Train stage 1. Returns {"state", "spec", "losses" (per step), "static", "time_s", "capacity"}.
+
+    Args:
+        cfg: the run config.
+        scene: training `Scene`.
+        out_dir: run folder for checkpoints and the effective config (None: nothing written).
+        test_scene: optional held-out `Scene` for periodic evaluation.
+        resume: continue from out_dir/checkpoint.npz.
+        stop_at: stop (and checkpoint) after this step, as if interrupted (tests).
+        devices: devices of the data-parallel mesh over cameras (default all; used when there are >= 2
+            and train.batch_size is a multiple of their number).
+    """
+    out = None if out_dir is None else Path(out_dir)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.toml").write_text(to_toml(cfg))
+    state, spec, ospec = initial_state(cfg, scene)
+    opt = make_optimizer(ospec, state.params["gaussians"].sh.shape[1])
+    if resume:
+        if out is None or not (out / ckpt.CHECKPOINT_NAME).exists():
+            raise FileNotFoundError(f"--resume: no checkpoint at {out}/{ckpt.CHECKPOINT_NAME}")
+        state = ckpt.load_checkpoint(out / ckpt.CHECKPOINT_NAME, state)
+        log(f"resumed from step {state.step}")
+    t = cfg.train
+    w, h = scene.width, scene.height
+    images = scene.images.astype(np.float32)
+    viewmats = scene.viewmats.astype(np.float32)
+    Ks = scene.Ks.astype(np.float32)
+    times = scene.times.astype(np.float32)
+    if state.capacity == 0 and t.tile_capacity > 0:
+        state.capacity = t.tile_capacity
+    if state.capacity == 0:
+        state.capacity = _compute_capacity(state.params, state.densify.alive, viewmats, Ks, w, h, t.tile_size,
+                                           t.capacity_margin)
+    batch_sh, repl_sh = _mesh_shardings(t.batch_size, devices)
+    if batch_sh is not None:
+        state.params = jax.device_put(state.params, repl_sh)
+        state.opt_state = jax.device_put(state.opt_state, repl_sh)
+        state.densify = jax.device_put(state.densify, repl_sh)
+    steps_cache: dict[StepSpec, Any] = {}
+
+    def get_step(use_deform: bool, sh_deg: int):
+        ss = StepSpec(spec if use_deform else None, sh_deg, w, h, state.capacity, t.tile_size, t.lambda_dssim,
+                      t.scale_reg, t.scale_reg_max, "pose" in state.params)
+        if ss not in steps_cache:
+            steps_cache[ss] = _make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
+        return steps_cache[ss]
+
+    d = cfg.densify
+    extent = ospec.scene_extent
+    n_frames = scene.num_frames
+    losses: list[float] = []
+    pending: list[tuple[Any, Any, Any]] = []
+    end = t.steps if stop_at is None else min(int(stop_at), t.steps)
+    t_start = time.time()
+    t_last, s_last = t_start, state.step
+    warned_full = False
+    metrics_hist = []
+    while state.step < end:
+        s = state.step
+        if state.static is None and s >= t.warmup_steps:
+            if cfg.static.detect:
+                state.static, score = detect_static(state.params, state.densify.alive, scene, cfg, state.capacity)
+                log(f"static-scene check after warm-up: score {score:.4f} (threshold {cfg.static.threshold}) -> "
+                    + ("static: training without the deformation field" if state.static else "dynamic"))
+            else:
+                state.static = False
+        use_deform = s >= t.warmup_steps and not bool(state.static)
+        step_fn = get_step(use_deform, cfg.model.sh_degree)
+        sh_mask = _sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
+        idx = _batch_indices(cfg.model.seed, s, n_frames, t.batch_size)
+        batch = (images[idx], viewmats[idx], Ks[idx], times[idx], idx.astype(np.int32))
+        if batch_sh is not None:
+            batch = jax.device_put(batch, batch_sh)
+        state.params, state.opt_state, state.densify, loss, mse, bad = step_fn(
+            state.params, state.opt_state, state.densify, sh_mask, *batch)
+        pending.append((loss, mse, bad))
+        state.step += 1
+        s1 = state.step
+        if d.enabled and d.start < s1 <= d.stop and s1 % d.every == 0:
+            g, state.opt_state, state.densify, n_alive = densify_apply(
+                state.params["gaussians"], state.opt_state, state.densify, jax.random.fold_in(state.key, s1),
+                grad_threshold=d.grad_threshold, clone_max_scale=d.percent_dense * extent,
+                prune_opacity=d.prune_opacity,
+                # 3DGS prunes oversized Gaussians only once opacity resets have started
+                prune_max_scale=d.max_world_scale * extent if 0 < d.reset_every < s1 else 1e9,
+            )
+            state.params = {**state.params, "gaussians": g}
+            if bool(state.densify.full) and not warned_full:
+                warned_full = True
+                log(f"densify: capacity reached ({g.means.shape[0]} Gaussian slots all in use); "
+                    "raise model.capacity to allow more growth (further densification only re-uses pruned slots)")
+            _maybe_grow_capacity(state, viewmats, Ks, w, h, t, log)
+        if d.enabled and d.reset_every > 0 and s1 % d.reset_every == 0 and s1 < d.stop:
+            g, state.opt_state = opacity_reset(state.params["gaussians"], state.opt_state)
+            state.params = {**state.params, "gaussians": g}
+        if s1 % t.log_every == 0 or s1 == end:
+            vals = jax.device_get(pending)
+            pending = []
+            n_bad = sum(bool(b) for _, _, b in vals)
+            losses.extend(float(l) for l, _, _ in vals)
+            if n_bad:
+                log(f"warning: {n_bad} step(s) before step {s1} overflowed the tile capacity {state.capacity} "
+                    "or had a non-finite loss and were skipped; recomputing the capacity")
+                _maybe_grow_capacity(state, viewmats, Ks, w, h, t, log, force=True)
+            now = time.time()
+            rate = (s1 - s_last) / max(now - t_last, 1e-9)
+            t_last, s_last = now, s1
+            mse_mean = float(np.mean([float(m) for _, m, _ in vals])) if vals else float("nan")
+            eta = (end - s1) / max(rate, 1e-9)
+            if progress:
+                log(f"step {s1:>6}/{t.steps}  {rate:6.1f} it/s  loss {float(vals[-1][0]):.4f}  "
+                    f"PSNR {10 * math.log10(1.0 / max(mse_mean, 1e-12)):5.2f}  "
+                    f"alive {int(jnp.sum(state.densify.alive))}  ETA {eta:6.0f} s")
+        if test_scene is not None and t.eval_every and s1 % t.eval_every == 0:
+            m = evaluate(state, spec, cfg, test_scene)
+            metrics_hist.append({"step": s1, "time_s": time.time() - t_start, **m})
+            log(f"eval step {s1}: PSNR {m['psnr']:.2f} SSIM {m['ssim']:.4f} ({time.time() - t_start:.0f} s)")
+        if out is not None and t.checkpoint_every and s1 % t.checkpoint_every == 0 and s1 < end:
+            ckpt.save_checkpoint(out / ckpt.CHECKPOINT_NAME, state, config_toml=to_toml(cfg))
+    if out is not None:
+        ckpt.save_checkpoint(out / ckpt.CHECKPOINT_NAME, state, config_toml=to_toml(cfg))
+        meta = {"deform_spec": dataclasses.asdict(spec), "static": bool(state.static), "step": state.step,
+                "capacity": state.capacity, "width": w, "height": h, "num_frames": n_frames,
+                "normalization": scene.normalization.to_dict(), "scene_extent": extent}
+        (out / "model.json").write_text(json.dumps(meta, indent=1))
+    return {"state": state, "spec": spec, "losses": losses, "static": state.static,
+            "time_s": time.time() - t_start, "capacity": state.capacity, "eval_history": metrics_hist}
+
+
+def _sh_mask(active: int, max_degree: int) -> jax.Array:
+    k = (max_degree + 1) ** 2
+    return (jnp.arange(k) < (active + 1) ** 2).astype(jnp.float32)
+
+
+def _maybe_grow_capacity(state: TrainState, viewmats, Ks, w, h, t, log, force: bool = False) -> None:
+    need = _compute_capacity(state.params, state.densify.alive, viewmats, Ks, w, h, t.tile_size, t.capacity_margin)
+    if force:
+        need = max(need, int(state.capacity * 1.5))
+    if need > state.capacity:
+        log(f"tile capacity {state.capacity} -> {need} (recompiling the step)")
+        state.capacity = need
+
+
+# ---------------------------------------------------------------------------------------------
+# evaluation and outputs
+# ---------------------------------------------------------------------------------------------
+
+
+def render_frame(state: TrainState, spec: DeformSpec, cfg: Config, viewmat, K, t, width, height):
+    """Render the trained model (deformation unless the scene is static) at time t: image [H, W, 3] numpy.
+
+    Runs outside jit so that the rasterizer sizes its intersection buffer exactly (no overflow)."""
+    use = None if state.static else spec
+    img, _, _, _ = render_params(state.params, state.densify.alive, jnp.asarray(viewmat, jnp.float32),
+                                 jnp.asarray(K, jnp.float32), jnp.asarray(t, jnp.float32), spec=use,
+                                 sh_degree=cfg.model.sh_degree, width=int(width), height=int(height),
+                                 background=jnp.asarray(cfg.model.background, jnp.float32), capacity=None,
+                                 tile_size=cfg.train.tile_size)
+    return np.clip(np.asarray(img), 0.0, 1.0)
+
+
+def evaluate(state: TrainState, spec, cfg: Config, test_scene, masks=None, out_dir: Path | None = None,
+             names=None) -> dict[str, Any]:
+    """PSNR, SSIM (and masked PSNR of the dynamic region where masks exist) over the test views."""
+    from fgjax import metrics
+
+    ps, ss, mps = [], [], []
+    for i in range(test_scene.num_frames):
+        img = render_frame(state, spec, cfg, test_scene.viewmats[i], test_scene.Ks[i], test_scene.times[i],
+                           test_scene.width, test_scene.height)
+        gt = test_scene.images[i]
+        ps.append(float(metrics.psnr(img, gt)))
+        ss.append(float(metrics.ssim(img, gt)))
+        if masks is not None and np.any(masks[i]):
+            mps.append(float(metrics.masked_psnr(img, gt, masks[i])))
+        if out_dir is not None:
+            import imageio.v3 as iio
+
+            out_dir.mkdir(parents=True, exist_ok=True)
+            name = (names[i] if names else f"{i:03d}").replace("/", "_")
+            iio.imwrite(out_dir / f"{name}.png", (img * 255 + 0.5).astype(np.uint8))
+    res: dict[str, Any] = {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "per_view_psnr": ps,
+                           "num_views": len(ps)}
+    if mps:
+        res["masked_psnr_dynamic"] = float(np.mean(mps))
+    return res
+
+
+def _stage1_test_views(data_dir: Path, cfg: Config, normalization):
+    """Held-out test views evaluated by time (the synthetic scenes' "state" frames are skipped), plus
+    dynamic-region masks where the dataset has them (scene masks, or the synthetic gt object ids)."""
+    from fgjax.data.loaders import load_scene
+
+    try:
+        test = load_scene(data_dir, "test", normalize=normalization, downscale=cfg.data.downscale)
+    except (FileNotFoundError, ValueError):
+        return None, None, None
+    keep = list(range(test.num_frames))
+    masks = None if test.masks is None else (np.asarray(test.masks) > 0)
+    meta_p = data_dir / "gt" / "meta.json"
+    if meta_p.exists():
+        meta = json.loads(meta_p.read_text())
+        kinds = [f.get("kind", "view") for f in meta.get("test_frames", [])]
+        if len(kinds) == test.num_frames:
+            keep = [i for i, k in enumerate(kinds) if k == "view"]
+        oid = data_dir / "gt" / "test" / "object_id.npy"
+        if masks is None and oid.exists():
+            ids = np.load(oid)
+            if ids.shape[:1] == (test.num_frames,) and ids.shape[1:3] == (test.height, test.width):
+                masks = ids > 0
+    test = test.subset(keep)
+    names = test.frame_names
+    if masks is not None:
+        masks = masks[keep]
+    return test, masks, names
+
+
+def write_video(state, spec, cfg: Config, scene, path: Path, frames: int) -> Path:
+    """Time sweep t = 0..1 from the first training camera, as mp4 (GIF without ffmpeg)."""
+    import imageio.v2 as imageio
+
+    imgs = [(render_frame(state, spec, cfg, scene.viewmats[0], scene.Ks[0], t, scene.width, scene.height) * 255
+             + 0.5).astype(np.uint8) for t in np.linspace(0, 1, frames)]
+    try:
+        imageio.mimwrite(path, imgs, fps=15, macro_block_size=1)
+        return path
+    except Exception:  # no ffmpeg backend
+        gif = path.with_suffix(".gif")
+        imageio.mimwrite(gif, imgs, duration=1 / 15)
+        return gif
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------------------------
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="fgjax train", description="Stage 1: deformable Gaussian training.")
+    p.add_argument("--data", required=True, help="dataset folder (nerfstudio/Blender/D-NeRF/...)")
+    p.add_argument("--out", required=True, help="run folder (config, checkpoint, metrics, renders)")
+    p.add_argument("--config", default=None, help="TOML config (e.g. experiments/default.toml)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key, e.g. --set train.steps=3000 (repeatable)")
+    p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
+    return p
+
+
+def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print) -> dict[str, Any]:
+    """Load, train, evaluate and write RUN/{config.toml, checkpoint.npz, metrics.json, test/*.png, sweep.mp4}."""
+    from fgjax.data.loaders import load_scene
+
+    scene = load_scene(data_dir, "train", downscale=cfg.data.downscale)
+    test, masks, names = _stage1_test_views(data_dir, cfg, scene.normalization)
+    log(f"train: {scene.num_frames} frames {scene.width}x{scene.height}; "
+        f"test: {0 if test is None else test.num_frames} views")
+    res = train_stage1(cfg, scene, out, test_scene=test, resume=resume, log=log)
+    metrics: dict[str, Any] = {"train_time_s": res["time_s"], "steps": cfg.train.steps, "static": bool(res["static"]),
+                               "num_gaussians": int(jnp.sum(res["state"].densify.alive)),
+                               "eval_history": res["eval_history"]}
+    if test is not None and test.num_frames:
+        m = evaluate(res["state"], res["spec"], cfg, test, masks, out / "test", names)
+        metrics.update(m)
+        log(f"test views: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}"
+            + (f", dynamic-region PSNR {m['masked_psnr_dynamic']:.2f} dB" if "masked_psnr_dynamic" in m else ""))
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    if cfg.train.video_frames > 0:
+        v = write_video(res["state"], res["spec"], cfg, scene, out / "sweep.mp4", cfg.train.video_frames)
+        log(f"time sweep: {v}")
+    return {**res, "metrics": metrics}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        cfg = load_config(args.config, args.overrides)
+    except ConfigError as e:
+        print(f"fgjax train: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    try:
+        run(cfg, Path(args.data), out, resume=args.resume)
+    except ckpt.CheckpointError as e:
+        print(f"fgjax train: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

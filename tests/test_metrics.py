@@ -1,0 +1,92 @@
+"""Metrics against independent numpy/scipy references and hand-computed values."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
+
+from fgjax import metrics
+
+
+def _ssim_reference(a, b, data_range=1.0):
+    """skimage.structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False),
+    re-written with scipy.ndimage.gaussian_filter (truncate=3.5 gives the 11-tap window) and the
+    (win - 1) / 2 border crop that skimage applies before averaging."""
+    out = []
+    for c in range(a.shape[-1]):
+        x, y = a[..., c].astype(np.float64), b[..., c].astype(np.float64)
+        f = lambda z: gaussian_filter(z, sigma=1.5, truncate=3.5, mode="reflect")
+        ux, uy = f(x), f(y)
+        vx, vy, vxy = f(x * x) - ux * ux, f(y * y) - uy * uy, f(x * y) - ux * uy
+        c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+        s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux**2 + uy**2 + c1) * (vx + vy + c2))
+        out.append(s[5:-5, 5:-5].mean())
+    return float(np.mean(out))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ssim_matches_scipy_reference(seed):
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(size=(32, 40, 3))
+    b = np.clip(a + 0.1 * rng.normal(size=a.shape), 0, 1)
+    # float64 (conftest enables x64): both sides are exact up to rounding.
+    assert float(metrics.ssim(a, b)) == pytest.approx(_ssim_reference(a, b), abs=1e-10)
+
+
+def test_ssim_known_values():
+    a = np.full((16, 16, 1), 0.3)
+    assert float(metrics.ssim(a, a)) == pytest.approx(1.0, abs=1e-12)
+    # Constant images: variances vanish, SSIM = (2 mu_a mu_b + C1) / (mu_a^2 + mu_b^2 + C1) exactly.
+    b = np.full((16, 16, 1), 0.5)
+    c1 = 0.01**2
+    expect = (2 * 0.3 * 0.5 + c1) / (0.3**2 + 0.5**2 + c1)
+    assert float(metrics.ssim(a, b)) == pytest.approx(expect, abs=1e-12)
+    # An image against its negative about the mean: correlation -1 on a zero-mean-ish pattern.
+    rng = np.random.default_rng(0)
+    x = rng.uniform(size=(24, 24, 1))
+    assert float(metrics.ssim(x, 1 - x)) < 0.0
+
+
+def test_gaussian_window_is_scipy_kernel():
+    imp = np.zeros(21)
+    imp[10] = 1.0
+    from scipy.ndimage import gaussian_filter1d
+
+    k = gaussian_filter1d(imp, 1.5, truncate=3.5)[5:16]
+    np.testing.assert_allclose(metrics.gaussian_window(11, 1.5), k, atol=1e-12)
+
+
+def test_psnr_and_masked_psnr():
+    a = np.zeros((4, 4, 3))
+    b = np.full((4, 4, 3), 0.1)
+    assert float(metrics.psnr(a, b)) == pytest.approx(20.0, abs=1e-9)
+    b2 = b.copy()
+    b2[:2] = 0.0
+    mask = np.zeros((4, 4), bool)
+    mask[2:] = True
+    assert float(metrics.masked_psnr(a, b2, mask)) == pytest.approx(20.0, abs=1e-9)
+    assert np.isnan(float(metrics.masked_psnr(a, b2, np.zeros((4, 4), bool))))
+
+
+def test_epe_and_ari():
+    f = np.zeros((3, 3, 2))
+    g = np.zeros((3, 3, 2))
+    g[..., 0] = 3.0
+    g[..., 1] = 4.0
+    assert float(metrics.epe(f, g)) == pytest.approx(5.0)
+    valid = np.zeros((3, 3), bool)
+    assert float(metrics.epe(f, g, valid)) == 0.0
+    assert metrics.ari([0, 0, 1, 1], [5, 5, 2, 2]) == pytest.approx(1.0)
+    assert metrics.ari([0, 0, 1, 1], [0, 1, 0, 1]) < 0.0
+
+
+def test_ssim_is_differentiable():
+    import jax
+
+    rng = np.random.default_rng(1)
+    a = jnp.asarray(rng.uniform(size=(16, 16, 3)))
+    b = jnp.asarray(rng.uniform(size=(16, 16, 3)))
+    g = jax.grad(lambda x: metrics.ssim(x, b))(a)
+    assert np.all(np.isfinite(np.asarray(g)))

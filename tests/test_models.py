@@ -1,0 +1,105 @@
+"""Encodings, deformation fields and the Gaussian pytree."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fgjax import gaussians as G
+from fgjax.models import deform, encoding
+
+
+def test_frequency_encoding_layout():
+    x = jnp.array([[0.25, -0.5]])
+    e = encoding.frequency_encoding(x, 3)
+    assert e.shape == (1, encoding.frequency_dim(2, 3)) == (1, 14)
+    np.testing.assert_allclose(e[0, :2], [0.25, -0.5])
+    np.testing.assert_allclose(e[0, 2:4], np.sin(np.pi * np.array([0.25, -0.5])), atol=1e-12)
+    np.testing.assert_allclose(e[0, 4:6], np.cos(np.pi * np.array([0.25, -0.5])), atol=1e-12)
+    np.testing.assert_allclose(e[0, 12:14], np.cos(4 * np.pi * np.array([0.25, -0.5])), atol=1e-12)
+
+
+def _hash_reference(tables, x, resolutions):
+    """Slow per-point loop: dense or hashed index of each of the 2^D corners, d-linear weights."""
+    primes = [1, 2654435761, 805459861, 3674653429]
+    L, T, F = tables.shape
+    out = np.zeros((len(x), L * F))
+    for n, p in enumerate(np.clip(x, 0, 1)):
+        for level, res in enumerate(resolutions):
+            pos = p * res
+            base = np.minimum(np.floor(pos).astype(np.int64), res - 1)
+            frac = pos - np.floor(pos)
+            acc = np.zeros(F)
+            for c in range(2 ** len(p)):
+                off = np.array([(c >> k) & 1 for k in range(len(p))])
+                idx = base + off
+                w = np.prod(np.where(off == 1, frac, 1 - frac))
+                if (res + 1) ** len(p) <= T:
+                    h = sum(int(idx[k]) * (res + 1) ** k for k in range(len(p))) % T
+                else:
+                    h = 0
+                    for k in range(len(p)):
+                        h ^= (int(idx[k]) * primes[k]) & 0xFFFFFFFF
+                    h %= T
+                acc += w * tables[level, h]
+            out[n, level * F : (level + 1) * F] = acc
+    return out
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_hash_grid_matches_reference(key, d):
+    tables = jax.random.normal(key, (3, 2**8, 2))
+    res = (4, 9, 40)  # dense, dense (d=2), hashed
+    x = jax.random.uniform(jax.random.key(1), (7, d))
+    got = encoding.hash_grid_encode(tables, x, res)
+    np.testing.assert_allclose(got, _hash_reference(np.asarray(tables), np.asarray(x), res), atol=1e-9)
+
+
+def test_hash_grid_continuous_and_differentiable(key):
+    tables = jax.random.normal(key, (4, 2**10, 2))
+    res = tuple(encoding.hash_grid_resolutions(4, 4, 64))
+    x0 = jnp.array([[0.3, 0.6, 0.2]])
+    a = encoding.hash_grid_encode(tables, x0, res)
+    b = encoding.hash_grid_encode(tables, x0 + 1e-7, res)
+    assert float(jnp.max(jnp.abs(a - b))) < 1e-4
+    g = jax.grad(lambda t: jnp.sum(encoding.hash_grid_encode(t, x0, res) ** 2))(tables)
+    assert int(jnp.sum(g != 0)) > 0
+
+
+@pytest.mark.parametrize("kind", ["frequency", "hash"])
+def test_deform_starts_at_identity_and_learns(key, kind):
+    spec = deform.DeformSpec(kind=kind, depth=3, width=32, skip=2, hash_levels=4, hash_log2_table=10)
+    params = deform.deform_init(key, spec, dtype=jnp.float64)
+    x = jax.random.uniform(jax.random.key(2), (50, 3), minval=-1, maxval=1)
+    dx, dq, ds = deform.deform_apply(spec, params, x, 0.3)
+    assert dx.shape == (50, 3) and dq.shape == (50, 4) and ds.shape == (50, 3)
+    assert float(jnp.max(jnp.abs(jnp.concatenate([dx, dq, ds], -1)))) == 0.0
+    # gradients reach every leaf group (heads first; the rest after one step)
+    loss = lambda p: jnp.sum((deform.deform_apply(spec, p, x, 0.3)[0] - 0.1) ** 2)
+    g = jax.grad(loss)(params)
+    assert float(jnp.abs(g["head"]["w"]).sum()) > 0
+    # per-Gaussian times broadcast
+    dx2, _, _ = deform.deform_apply(spec, params, x, jnp.full((50,), 0.3))
+    np.testing.assert_allclose(dx2, dx)
+
+
+def test_deform_default_sizes_match_deformable_3dgs(key):
+    spec = deform.DeformSpec()
+    assert spec.in_dim == 63 + 13
+    params = deform.deform_init(key, spec)
+    assert len(params["layers"]) == 8
+    assert params["layers"][4]["w"].shape == (256 + 76, 256)
+
+
+def test_gaussians_init_and_activate(key):
+    g, alive = G.init_random(key, 20, [-1, -1, -1], [1, 1, 1], capacity=32, sh_degree=2)
+    assert g.means.shape == (32, 3) and g.sh.shape == (32, 9, 3) and g.sh_degree == 2
+    assert int(alive.sum()) == 20
+    q, s, o = G.activate(g, alive)
+    np.testing.assert_allclose(jnp.linalg.norm(q, axis=-1), 1.0, rtol=1e-6)
+    assert float(o[20:].max()) == 0.0 and float(o[:20].min()) == pytest.approx(0.1, rel=1e-5)
+    assert bool(jnp.all(s > 0))
+    with pytest.raises(ValueError, match="opacity_logits"):
+        G.Gaussians(g.means, g.log_scales, g.quats, g.opacity_logits[:3], g.sh)

@@ -35,7 +35,7 @@ __all__ = [
 # ============================================================================ selection
 
 
-def otsu_threshold(values: Float[np.ndarray, "..."], *, bins: int = 256) -> float:
+def otsu_threshold(values: Float[np.ndarray, ...], *, bins: int = 256) -> float:
     """Otsu's threshold: the cut that maximises the between-class variance of a 1D sample.
 
     For a histogram with class probabilities w0(c), w1(c) and means m0(c), m1(c) of the values
@@ -326,13 +326,13 @@ class Snap(NamedTuple):
     """
 
     t: float
-    point: Float[np.ndarray, "3"]
+    point: Float[np.ndarray, 3]
 
 
 def snap_to_trajectory(
     traj: Float[np.ndarray, "T 3"],
-    vector: Float[np.ndarray, "3"],
-    origin: Float[np.ndarray, "3"] | None = None,
+    vector: Float[np.ndarray, 3],
+    origin: Float[np.ndarray, 3] | None = None,
     *,
     times: Float[np.ndarray, " T"] | None = None,
 ) -> Snap:

@@ -101,7 +101,7 @@ def pixel_centers(height: int, width: int, dtype=None) -> Float[Array, "H W 2"]:
 @jax.jit
 def camera_velocity(
     c2w0: Float[ArrayLike, "4 4"], c2w1: Float[ArrayLike, "4 4"], dt: float | ArrayLike = 1.0
-) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+) -> tuple[Float[Array, 3], Float[Array, 3]]:
     """Camera velocity (v, omega) between two OpenCV camera-to-world poses, in camera-0 coordinates.
 
     v = R0^T (c1 - c0) / dt,  omega = log(R0^T R1) / dt  (DESIGN section 1, step 3), with c_i the camera
@@ -170,8 +170,8 @@ def motion_field_inv_depth(
     xy: Float[ArrayLike, "*batch 2"],
     inv_depth: Float[ArrayLike, "*batch"],
     K: Float[ArrayLike, "3 3"],
-    v: Float[ArrayLike, "3"],
-    omega: Float[ArrayLike, "3"],
+    v: Float[ArrayLike, 3],
+    omega: Float[ArrayLike, 3],
 ) -> Float[Array, "*batch 2"]:
     """Motion field u = A v rho + B omega with the inverse depth rho = 1/Z given directly.
 
@@ -205,8 +205,8 @@ def motion_field(
     xy: Float[ArrayLike, "*batch 2"],
     depth: Float[ArrayLike, "*batch"],
     K: Float[ArrayLike, "3 3"],
-    v: Float[ArrayLike, "3"],
-    omega: Float[ArrayLike, "3"],
+    v: Float[ArrayLike, 3],
+    omega: Float[ArrayLike, 3],
 ) -> Float[Array, "*batch 2"]:
     """First-order camera flow u = A(m) v / Z + B(m) omega of static points (DESIGN section 1, step 3).
 
@@ -287,8 +287,8 @@ def gaussian_image_velocity(
     p_cam: Float[ArrayLike, "*batch 3"],
     v_obj: Float[ArrayLike, "*batch 3"],
     K: Float[ArrayLike, "3 3"],
-    v: Float[ArrayLike, "3"],
-    omega: Float[ArrayLike, "3"],
+    v: Float[ArrayLike, 3],
+    omega: Float[ArrayLike, 3],
 ) -> Float[Array, "*batch 2"]:
     """Analytic image velocity of Gaussian centres: A v / Z_i + B omega - A v_i / Z_i.
 
@@ -375,8 +375,8 @@ def project_covariances(
     Sigma' = J W Sigma W^T J^T + blur I, Sigma = R diag(s^2) R^T (R from the wxyz quaternion), W the
     world-to-camera rotation, J the perspective Jacobian at the centre with x/z clamped to
     [-cx/fx - 0.3 tan_x, (width - cx)/fx + 0.3 tan_x] (tan_x = width / (2 fx)) and y/z likewise; the 2D
-    mean itself is not clamped. Computed here rather than by inverting the rasterizer's conics, so that
-    it is available without rendering and its gradients are exact.
+    mean itself is not clamped. Uses the rasterizer's projection (``fgjax.render.project``), so both
+    always follow the same rule, without rendering and with exact gradients.
 
     Args:
         means: world-frame centres, [N, 3].
@@ -391,35 +391,18 @@ def project_covariances(
         (means2d [N, 2], cov2d [N, 2, 2], depths [N]); depths are camera z. Centres with z <= 0 get a
         finite but meaningless covariance (the rasterizer culls them).
     """
+    from fgjax.render.project import project_gaussians  # the rasterizer's own EWA rule
+
     means, quats, scales = _float(means), _float(quats), _float(scales)
     viewmat, K = _float(viewmat), _float(K)
-    rw = viewmat[:3, :3]
-    p = means @ rw.T + viewmat[None, :3, 3]  # [N, 3]
-    rot = geometry.quat_to_rotmat(quats)  # [N, 3, 3]
-    m = rot * scales[..., None, :]  # R diag(s)
-    cov3 = m @ jnp.swapaxes(m, -1, -2)  # [N, 3, 3]
-    cov_cam = rw @ cov3 @ rw.T  # [N, 3, 3]
-    fx, fy, cx, cy = _intrinsics(K)
-    z = p[:, 2]
-    pos = z > 0
-    zs = jnp.where(pos, z, 1.0)
-    tan_x, tan_y = width / (2.0 * fx), height / (2.0 * fy)
-    lim_x_pos = (width - cx) / fx + 0.3 * tan_x
-    lim_x_neg = cx / fx + 0.3 * tan_x
-    lim_y_pos = (height - cy) / fy + 0.3 * tan_y
-    lim_y_neg = cy / fy + 0.3 * tan_y
-    tx = zs * jnp.clip(p[:, 0] / zs, -lim_x_neg, lim_x_pos)
-    ty = zs * jnp.clip(p[:, 1] / zs, -lim_y_neg, lim_y_pos)
-    zero = jnp.zeros_like(zs)
-    jac = jnp.stack(
-        [
-            jnp.stack([fx / zs, zero, -fx * tx / (zs * zs)], -1),
-            jnp.stack([zero, fy / zs, -fy * ty / (zs * zs)], -1),
-        ],
-        axis=-2,
-    )  # [N, 2, 3]
-    cov2 = jac @ cov_cam @ jnp.swapaxes(jac, -1, -2) + blur * jnp.eye(2, dtype=zs.dtype)[None]
-    return geometry.project_points(p, K), cov2, z
+    p = means @ viewmat[:3, :3].T + viewmat[None, :3, 3]  # [N, 3]
+    proj = project_gaussians(
+        means, quats, scales, jnp.ones(means.shape[:1], means.dtype), viewmat, K, width, height, near_plane=0.0
+    )
+    a, b, c = proj.cov2d[:, 0], proj.cov2d[:, 1], proj.cov2d[:, 2]  # includes the 0.3 px^2 low-pass
+    cov2 = jnp.stack([jnp.stack([a, b], -1), jnp.stack([b, c], -1)], -2)
+    cov2 = cov2 + (blur - 0.3) * jnp.eye(2, dtype=cov2.dtype)[None]
+    return geometry.project_points(p, K), cov2, p[:, 2]
 
 
 @jax.jit
@@ -671,7 +654,7 @@ def _inv_depth_colors(means, viewmat):
 def lemma1_residual(
     xy: Float[ArrayLike, "*batch 2"],
     K: Float[ArrayLike, "3 3"],
-    v: Float[ArrayLike, "3"],
+    v: Float[ArrayLike, 3],
     inv_depth_gs: Float[ArrayLike, "*batch"],
     depth: Float[ArrayLike, "*batch"],
 ) -> Float[Array, "*batch 2"]:

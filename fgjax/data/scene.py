@@ -68,7 +68,7 @@ class Normalization:
         scale: positive float, normalised units per world unit.
     """
 
-    centre: Float[np.ndarray, "3"]
+    centre: Float[np.ndarray, 3]
     scale: float
 
     def __post_init__(self):

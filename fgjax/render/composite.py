@@ -155,6 +155,11 @@ def _pad_chunks(ch: Chunks, batch: int, n: int) -> Chunks:
     )
 
 
+def _with_padding_row(*arrays):
+    """Append row N, a harmless Gaussian (all zeros: opacity 0) that padding entries point to."""
+    return tuple(jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)]) for x in arrays)
+
+
 def _forward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks):
     """Returns acc [n_tiles, P, K] and the per-chunk transmittance prefix L0 [NCH, P]."""
     dtype = colors.dtype
@@ -165,11 +170,7 @@ def _forward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks):
     P = st.tile_size * st.tile_size
     K = colors.shape[-1]
     ch = _pad_chunks(ch, st.batch, n)
-    # Padding row n: parameters of a harmless Gaussian (never live).
-    m2 = jnp.concatenate([means2d, jnp.zeros((1, 2), dtype)])
-    cn = jnp.concatenate([conics, jnp.zeros((1, 3), dtype)])
-    op = jnp.concatenate([opac, jnp.zeros((1,), dtype)])
-    co = jnp.concatenate([colors, jnp.zeros((1, K), dtype)])
+    m2, cn, op, co = _with_padding_row(means2d, conics, opac, colors)
     log_tmin = math.log(T_MIN)
     nb = ch.ids.shape[0] // st.batch
     basis = _pixel_basis(st.tile_size, dtype)
@@ -209,10 +210,7 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
     P = st.tile_size * st.tile_size
     K = colors.shape[-1]
     ch = _pad_chunks(ch, st.batch, n)
-    m2 = jnp.concatenate([means2d, jnp.zeros((1, 2), dtype)])
-    cn = jnp.concatenate([conics, jnp.zeros((1, 3), dtype)])
-    op = jnp.concatenate([opac, jnp.zeros((1,), dtype)])
-    co = jnp.concatenate([colors, jnp.zeros((1, K), dtype)])
+    m2, cn, op, co = _with_padding_row(means2d, conics, opac, colors)
     log_tmin = math.log(T_MIN)
     g_dot_acc = jnp.sum(g_acc * acc, axis=-1)  # [T, P]
     basis = _pixel_basis(st.tile_size, dtype)

@@ -19,8 +19,10 @@ $(STAMP_TEST): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install -q -e '.[test]'
 	touch $@ $(STAMP_RUN)
 
+# The whole pipeline on a smaller synthetic scene (a smoke run of a few minutes); `fgjax demo`
+# without --quick runs it at full size.
 demo: $(STAMP_RUN)
-	$(BIN)/fgjax demo
+	$(BIN)/fgjax demo --quick
 
 test: $(STAMP_TEST)
 	$(BIN)/python -m pytest -q

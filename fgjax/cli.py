@@ -16,7 +16,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("fgjax.data.synth", "generate a synthetic articulated scene with ground truth"),
     "flow": ("fgjax.data.opticalflow", "estimate optical flow over a sequence (cached)"),
     "train": ("fgjax.pipeline.stage1", "stage 1: deformable Gaussian training"),
-    "render": ("fgjax.pipeline.render", "render cameras from a trained run"),
+    "stage2": ("fgjax.pipeline.stage2", "discovery, clustering and control network on a trained run"),
+    "render": ("fgjax.pipeline.render", "render cameras (or --clusters object ids) from a trained run"),
     "control": ("fgjax.pipeline.control", "move a discovered object and render"),
     "eval": ("fgjax.pipeline.evaluate", "evaluate a run against ground truth"),
 }

@@ -9,7 +9,7 @@ from fgjax import cli
 
 def test_demo_tiny(tmp_path, capsys):
     out = tmp_path / "demo"
-    args = ["demo", "--out", str(out), "--quick", "--width", "64", "--height", "48", "--frames", "10"]
+    args = ["demo", "--out", str(out), "--quick", "--synth-only", "--width", "64", "--height", "48", "--frames", "10"]
     assert cli.main(args) == 0
     printed = capsys.readouterr().out
     sheet = out / "contact_sheet.png"
@@ -24,5 +24,5 @@ def test_demo_tiny(tmp_path, capsys):
     # but never a folder that is not a demo scene
     (tmp_path / "other" / "scene").mkdir(parents=True)
     (tmp_path / "other" / "scene" / "keep.txt").write_text("x")
-    assert cli.main(["demo", "--out", str(tmp_path / "other"), "--quick"]) == 2
+    assert cli.main(["demo", "--out", str(tmp_path / "other"), "--quick", "--synth-only"]) == 2
     assert (tmp_path / "other" / "scene" / "keep.txt").read_text() == "x"

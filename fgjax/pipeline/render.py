@@ -38,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--run", required=True, help="run folder written by `fgjax train`")
     p.add_argument("--cameras", required=True, help="transforms json (nerfstudio/Blender/D-NeRF, with times)")
     p.add_argument("--out", required=True, help="output folder for PNGs")
+    p.add_argument("--clusters", action="store_true",
+                   help="write per-pixel object-id maps (0 = static; needs stage 2) instead of colour")
     args = p.parse_args(argv)
     import imageio.v3 as iio
 
@@ -56,6 +58,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as e:
         print(f"fgjax render: {e}", file=sys.stderr)
         return 2
+    if args.clusters:
+        from fgjax.pipeline.stage2 import write_cluster_maps
+
+        return write_cluster_maps(args.run, cams, args.out)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for name, vm, K, t, w, h in cams:

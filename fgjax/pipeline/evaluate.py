@@ -1,0 +1,126 @@
+"""``fgjax eval --run RUN [--data DATA]``: control metrics against ground truth (synthetic gt/ only).
+
+Only this module reads ground truth; the pipeline never does. When DATA/gt/meta.json exists
+(`fgjax.data.synth`), RUN/metrics.json gets a ``"control"`` entry (written atomically, other entries
+kept):
+
+- ``ari``: adjusted Rand index of per-pixel object ids (`stage2.render_clusters` with the stage-1
+  model at the frame's time, 0 = static included) against gt object ids, over the test frames of
+  kind "view" (pixels with gt id >= 0).
+- ``state_psnr``: PSNR of controlled renders of the held-out "state" test frames. Each discovered
+  cluster is matched to the gt object under most of its pixels in the training frames (majority
+  vote: evaluation only); the gt object's centre displacement from the reference (first) training
+  frame, in scene units, is snapped to the cluster's trajectory and fed to the control network.
+  ``state_psnr_stage1`` is stage 1 rendered at the frame's time, for reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["main", "evaluate_control"]
+
+
+def evaluate_control(run, data_dir: Path, log=print) -> dict:
+    """The metrics above (a dict); raises FileNotFoundError without ground truth."""
+    from fgjax import metrics
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+    from fgjax.pipeline import stage2
+
+    gt = data_dir / "gt"
+    meta = json.loads((gt / "meta.json").read_text())
+    norm = Normalization.from_dict(run.meta["normalization"])
+    ds = run.cfg.data.downscale
+    train = load_scene(data_dir, "train", normalize=norm, downscale=ds)
+    test = load_scene(data_dir, "test", normalize=norm, downscale=ds)
+    s2 = run.s2
+    kinds = [f.get("kind", "view") for f in meta.get("test_frames", [])]
+    ids_test = np.load(gt / "test" / "object_id.npy")
+    ids_train = np.load(gt / "train" / "object_id.npy")
+    res: dict = {"num_objects_found": s2.num_objects, "num_objects_gt": len(meta.get("objects", []))}
+    # ARI on "view" frames
+    aris = []
+    for i, kd in enumerate(kinds):
+        if kd != "view":
+            continue
+        pred = stage2.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height, t=test.times[i])
+        ok = ids_test[i] >= 0
+        aris.append(float(metrics.ari(ids_test[i][ok], pred[ok])))
+    if aris:
+        res["ari"] = float(np.mean(aris))
+        res["ari_per_view"] = aris
+    # cluster -> gt object matching by pixel majority over training frames
+    k = s2.num_objects
+    votes = np.zeros((k + 1, int(ids_train.max()) + 1 if ids_train.size else 1))
+    for i in np.linspace(0, train.num_frames - 1, min(train.num_frames, 8)).round().astype(int):
+        pred = stage2.render_clusters(run, train.viewmats[i], train.Ks[i], train.width, train.height,
+                                      t=train.times[i])
+        ok = ids_train[i] >= 0
+        np.add.at(votes, (pred[ok], ids_train[i][ok]), 1)
+    match = {c: int(np.argmax(votes[c + 1])) for c in range(k)}  # cluster c (0-based) -> gt label (0 static)
+    res["match"] = {str(c + 1): match[c] for c in range(k)}
+    # held-out states
+    c_train = np.load(gt / "train" / "centres.npy")  # [T, Kobj, 3] world units
+    t_train = np.load(gt / "train" / "times.npy")
+    ref = int(np.argmin(np.abs(t_train - s2.t0)))
+    c_test = np.load(gt / "test" / "centres.npy")
+    ps, ps1 = [], []
+    for i, kd in enumerate(kinds):
+        if kd != "state":
+            continue
+        vecs = np.zeros((max(k, 1), 3))
+        for c in range(k):
+            j = match[c]
+            if j >= 1:
+                d = norm.lengths_to_scene(c_test[i, j - 1] - c_train[ref, j - 1])
+                vecs[c] = stage2.snap_vector(s2, c, d)[0]
+        img = stage2.render_controlled(run, vecs[:k] if k else vecs, test.viewmats[i], test.Ks[i], test.width,
+                                       test.height)
+        ps.append(float(metrics.psnr(img, test.images[i])))
+        from fgjax.pipeline.stage1 import render_frame
+
+        img1 = render_frame(run.state, run.spec, run.cfg, test.viewmats[i], test.Ks[i], test.times[i], test.width,
+                            test.height)
+        ps1.append(float(metrics.psnr(img1, test.images[i])))
+    if ps:
+        res["state_psnr"] = float(np.mean(ps))
+        res["state_psnr_per_frame"] = ps
+        res["state_psnr_stage1"] = float(np.mean(ps1))
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="fgjax eval", description="Evaluate a run against ground truth.")
+    p.add_argument("--run", required=True, help="run folder with stage-2 results")
+    p.add_argument("--data", default=None, help="dataset folder (default: the one stage 2 recorded)")
+    args = p.parse_args(argv)
+    from fgjax.pipeline import stage2
+    from fgjax.train.checkpoint import CheckpointError
+
+    try:
+        run = stage2.load_stage2(args.run)
+    except (FileNotFoundError, CheckpointError, stage2.Stage2Error) as e:
+        print(f"fgjax eval: {e}", file=sys.stderr)
+        return 2
+    data = Path(args.data) if args.data else Path(run.s2.meta.get("data_dir", ""))
+    if not (data / "gt" / "meta.json").is_file():
+        print(f"fgjax eval: no ground truth at {data / 'gt'}; nothing to evaluate", file=sys.stderr)
+        return 0
+    res = evaluate_control(run, data)
+    path = Path(args.run) / "metrics.json"
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    old["control"] = res
+    stage2._atomic_bytes(path, lambda f: f.write(json.dumps(old, indent=1).encode()))
+    print(json.dumps({k: v for k, v in res.items() if not k.endswith("per_view") and not k.endswith("per_frame")}))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,682 @@
+"""Stage 2: discovery, clustering, trajectories and the control network (DESIGN.md section 1, steps 5-7).
+
+Library entry point: ``run_stage2(run_dir, data_dir, cfg)``; command line
+``python -m fgjax.pipeline.stage2 --run RUN --data DATA`` (writes RUN/stage2.npz and RUN/stage2.json).
+The pipeline never reads ground truth (no ``gt/``): only the training images, poses and times.
+
+1. **Discovery** (`fgjax.pipeline.discover.discover`). For each training pair (t-1, t): the stage-1
+   Gaussians deformed to time t-1 are rendered from camera t-1 for their expected depth; the camera
+   flow is `fgjax.flow.reprojection_flow` of that depth (exact; see docs/benchmarks.md); the optical
+   flow t-1 -> t comes from `fgjax.data.opticalflow.estimate_flow` (cached); |u - u_cam| is binarised
+   and back-projected through the rasterizer's contribution weights; D is Otsu's cut of the scores.
+2. **Clustering** (`fgjax.cluster.cluster_dynamic`) of the canonical centres of D (DBSCAN by default).
+3. **Trajectories** ς(t, k): the mean deformed centre of cluster k at each training time, frames in
+   time order. The reference time t0 is the first training time; v_c(t, k) = ς(t, k) - ς(t0, k).
+4. **Control network** f_Θ(E(v_c, X)) -> (ΔX, Δq, Δs). The controlled scene for per-cluster vectors
+   v [K, 3] is
+
+       G_i(v) = G_i(t0) + [f_Θ(v_{k(i)}, X_i) - f_Θ(0, X_i)]   for clustered Gaussians (k(i) >= 0)
+       G_i(v) = G_i(t0)                                       for all others
+
+   where G_i(t0) are the stage-1 Gaussians deformed to the reference time (centre, raw quaternion,
+   log-scale) and X_i the canonical centre. So v = 0 reproduces the stage-1 scene at t0 exactly,
+   everything outside the clusters is frozen at t0 (it is static, or noise D did not take), and a
+   cluster's Gaussians move with their own cluster's vector only (`control_apply` is row-wise).
+   Opacities and colours are stage 1's and are not trained. Θ is fitted in two phases:
+   (a) distillation: ||ΔG_i(v(t)) - (G_i(t) - G_i(t0))||² over the training times, the stage-1
+   deformation as teacher (cheap: no rendering); (b) the photometric loss 0.8 L1 + 0.2 (1 - SSIM)
+   of controlled renders with v = v_c(t, ·) against the training images. The flow loss L_uGS is
+   not used here yet (see the report in stage2.json: ``"flow_loss": false``).
+
+Outputs are written atomically: RUN/stage2.npz (the authoritative result: labels, scores,
+trajectories, control parameters, metadata as JSON) and RUN/stage2.json (a readable summary).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from fgjax import cluster
+from fgjax.gaussians import Gaussians, activate
+from fgjax.models.control_net import ControlNet, control_apply, control_init
+
+__all__ = [
+    "Stage2Config",
+    "Stage2Result",
+    "Stage2Error",
+    "run_stage2",
+    "load_stage2",
+    "controlled_gaussians",
+    "render_controlled",
+    "render_clusters",
+    "write_cluster_maps",
+    "cluster_vectors_at",
+    "snap_vector",
+    "main",
+    "STAGE2_NAME",
+]
+
+STAGE2_NAME = "stage2.npz"
+FORMAT_VERSION = 1
+
+
+class Stage2Error(RuntimeError):
+    """A run without (usable) stage-2 results, or a stage-2 input that cannot work."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage2Config:
+    """Options of stage 2 (defaults follow DESIGN.md)."""
+
+    flow_method: str = "dis_deepflow"
+    """OpenCV optical-flow method (`fgjax.data.opticalflow.METHODS`)."""
+    flow_cache: str | None = None
+    """Flow cache folder (None: RUN/flow_cache)."""
+    threshold_px: float | str = "otsu"
+    """Binarisation of |u - u_cam|: pixels, or "otsu" per frame."""
+    min_px: float = 0.5
+    """Floor of the Otsu threshold (pixels)."""
+    min_alpha: float = 0.5
+    """Pixels whose rendered alpha is below this have no trusted depth (excluded from the masks)."""
+    score_threshold: float | str = "otsu"
+    """Cut of the per-Gaussian scores (a number in [0, 1], or "otsu")."""
+    min_score: float = 0.05
+    """Scores below this are never dynamic."""
+    cluster_method: str = "dbscan"
+    eps: float = 0.05
+    """DBSCAN radius in scene units."""
+    min_samples: int = 5
+    min_fraction: float = 0.05
+    """Clusters smaller than this fraction of D are dropped."""
+    auto_eps: bool = False
+    """Choose eps from the k-distance curve."""
+    hidden: int = 64
+    depth: int = 3
+    n_freqs_x: int = 6
+    n_freqs_v: int = 4
+    distill_steps: int = 500
+    photo_steps: int = 200
+    lr: float = 2e-3
+    seed: int = 0
+
+
+class Stage2Result:
+    """Stage-2 results (host-side). Arrays are numpy.
+
+    labels: [N] int, cluster id 0..K-1 of each Gaussian slot, -1 static / noise / dead.
+    dynamic: [N] bool, the discovered set D (before clustering).
+    scores: [N] float, discovery scores.
+    traj: [K, T, 3] ς(t, k) at `traj_times` (sorted training times).
+    traj_times: [T].
+    t0: the reference time (traj_times[0]).
+    control: the trained `ControlNet`.
+    meta: dict (config, report, timings, data_dir).
+    """
+
+    def __init__(self, labels, dynamic, scores, traj, traj_times, control: ControlNet, meta: dict[str, Any]):
+        self.labels = np.asarray(labels, np.int64)
+        self.dynamic = np.asarray(dynamic, bool)
+        self.scores = np.asarray(scores, np.float64)
+        self.traj = np.asarray(traj, np.float64).reshape(-1, len(traj_times), 3)
+        self.traj_times = np.asarray(traj_times, np.float64)
+        self.control = control
+        self.meta = meta
+
+    @property
+    def num_objects(self) -> int:
+        return int(self.traj.shape[0])
+
+    @property
+    def t0(self) -> float:
+        return float(self.traj_times[0])
+
+
+# ---------------------------------------------------------------------------------------------
+# small helpers
+# ---------------------------------------------------------------------------------------------
+
+
+def _atomic_bytes(path: Path, write) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        _unlink_quietly(tmp)
+        raise
+
+
+def _unlink_quietly(p) -> None:
+    try:
+        os.unlink(p)
+    except OSError:
+        pass
+
+
+def _deformed_fn(spec, static: bool):
+    """jitted (params, alive, t) -> (means, raw quats, log_scales) of the stage-1 model at time t."""
+    from fgjax.models.deform import deform_apply
+
+    def f(params, t):
+        g: Gaussians = params["gaussians"]
+        if static or spec is None:
+            return g.means, g.quats, g.log_scales
+        dx, dq, ds = deform_apply(spec, params["deform"], g.means, t)
+        return g.means + dx, g.quats + dq, g.log_scales + ds
+
+    return jax.jit(f)
+
+
+def _with_geometry(params, means, quats, log_scales):
+    g: Gaussians = params["gaussians"]
+    return {**params, "gaussians": Gaussians(means, log_scales, quats, g.opacity_logits, g.sh)}
+
+
+def _control_hparams(cfg: Stage2Config, x_scale: float, v_scale: float) -> dict[str, Any]:
+    return {"encoding": "frequency", "hidden": cfg.hidden, "depth": cfg.depth, "n_freqs_x": cfg.n_freqs_x,
+            "n_freqs_v": cfg.n_freqs_v, "x_scale": float(x_scale), "v_scale": float(v_scale)}
+
+
+def controlled_gaussians(control: ControlNet, base, canonical, labels, vectors):
+    """Geometry of the controlled scene (module docstring, step 4).
+
+    Args:
+        control: `ControlNet`.
+        base: (means [N, 3], raw quats [N, 4], log_scales [N, 3]) of the stage-1 scene at t0.
+        canonical: [N, 3] canonical centres X.
+        labels: [N] int cluster ids (-1: not controlled).
+        vectors: [K, 3] one control vector per cluster (K >= 1 when any label >= 0).
+
+    Returns:
+        (means, quats, log_scales), each [N, ...].
+    """
+    from fgjax.models.control_net import per_gaussian_vectors
+
+    means0, q0, s0 = base
+    labels = jnp.asarray(labels)
+    vectors = jnp.asarray(vectors, jnp.float32).reshape(-1, 3)
+    v, mask = per_gaussian_vectors(vectors, labels)
+    dx1, dq1, ds1 = control_apply(control, v, canonical, mask)
+    dx0, dq0, ds0 = control_apply(control, jnp.zeros_like(v), canonical, mask)
+    return means0 + (dx1 - dx0), q0 + (dq1 - dq0), s0 + (ds1 - ds0)
+
+
+# ---------------------------------------------------------------------------------------------
+# run-level helpers: a loaded stage-1 run bundled with its stage-2 result
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class LoadedRun:
+    """A stage-1 run (config, state, spec, model.json) and, when present, its stage-2 result."""
+
+    run_dir: Path
+    cfg: Any
+    state: Any
+    spec: Any
+    meta: dict[str, Any]
+    s2: Stage2Result | None
+
+    @property
+    def static(self) -> bool:
+        return bool(self.meta.get("static", False))
+
+    def deformed(self, t: float):
+        """(means, raw quats, log_scales) of the stage-1 model at time t."""
+        f = self.__dict__.get("_deformed_jit")
+        if f is None:
+            f = self.__dict__["_deformed_jit"] = _deformed_fn(self.spec, self.static)
+        return f(self.state.params, jnp.asarray(t, jnp.float32))
+
+    def render_geometry(self, means, quats, log_scales, viewmat, K, width: int, height: int, *, colors=None,
+                        background=None, capacity=None):
+        """Render given geometry with the run's opacities and colours (or `colors` [N, C])."""
+        from fgjax.pipeline.stage1 import render_params
+        from fgjax.render.api import rasterization
+
+        params = _with_geometry(self.state.params, means, quats, log_scales)
+        vm = jnp.asarray(viewmat, jnp.float32)
+        Kj = jnp.asarray(K, jnp.float32)
+        if colors is None:
+            bg = jnp.asarray(self.cfg.model.background if background is None else background, jnp.float32)
+            img, alpha, info, _ = render_params(params, self.state.densify.alive, vm, Kj, 0.0, spec=None,
+                                                sh_degree=self.cfg.model.sh_degree, width=int(width),
+                                                height=int(height), background=bg, capacity=capacity,
+                                                tile_size=self.cfg.train.tile_size)
+            return img, alpha, info
+        q, s, o = activate(params["gaussians"], self.state.densify.alive)
+        return rasterization(params["gaussians"].means, q, s, o, jnp.asarray(colors, jnp.float32), vm, Kj,
+                             int(width), int(height), background=None if background is None else
+                             jnp.asarray(background, jnp.float32), capacity=capacity,
+                             tile_size=self.cfg.train.tile_size, render_depth=False)
+
+
+def load_stage2(run_dir: str | Path, *, require_stage2: bool = True) -> LoadedRun:
+    """Load a run folder: stage 1 (`fgjax.pipeline.stage1.load_run`) and RUN/stage2.npz.
+
+    Raises:
+        FileNotFoundError: not a trained run.
+        Stage2Error: stage-2 results missing (when required) or unreadable.
+    """
+    from fgjax.pipeline.stage1 import load_run
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run folder {run_dir} does not exist")
+    cfg, state, spec, meta = load_run(run_dir)
+    state.static = meta.get("static", False)
+    p = run_dir / STAGE2_NAME
+    if not p.exists():
+        if require_stage2:
+            raise Stage2Error(f"{run_dir} has no stage-2 results ({STAGE2_NAME}); run stage 2 first: "
+                              f"python -m fgjax.pipeline.stage2 --run {run_dir} --data DATA")
+        return LoadedRun(run_dir, cfg, state, spec, meta, None)
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            m = json.loads(str(z["meta"]))
+            if m.get("format_version") != FORMAT_VERSION:
+                raise Stage2Error(f"{p}: format version {m.get('format_version')} != {FORMAT_VERSION}")
+            template = control_init(jax.random.key(0), **m["control"])
+            leaves, treedef = jax.tree_util.tree_flatten(template)
+            new = [jnp.asarray(z[f"control_{i}"]) for i in range(len(leaves))]
+            for a, b in zip(leaves, new, strict=True):
+                if a.shape != b.shape:
+                    raise Stage2Error(f"{p}: control parameter shape {b.shape} != {a.shape}")
+            control = jax.tree_util.tree_unflatten(treedef, new)
+            s2 = Stage2Result(z["labels"], z["dynamic"], z["scores"], z["traj"], z["traj_times"], control, m)
+    except (OSError, ValueError, KeyError) as e:
+        raise Stage2Error(f"{p} is not a readable stage-2 result: {e}") from e
+    if len(s2.labels) != state.params["gaussians"].means.shape[0]:
+        raise Stage2Error(f"{p}: {len(s2.labels)} labels for {state.params['gaussians'].means.shape[0]} Gaussians "
+                          "(stage 1 was re-trained after stage 2; run stage 2 again)")
+    return LoadedRun(run_dir, cfg, state, spec, meta, s2)
+
+
+def cluster_vectors_at(s2: Stage2Result, t: float) -> np.ndarray:
+    """[K, 3] v_c(t, k) = ς(t, k) - ς(t0, k), linear in time between the stored samples."""
+    tt = s2.traj_times
+    out = np.zeros((s2.num_objects, 3))
+    for k in range(s2.num_objects):
+        for d in range(3):
+            out[k, d] = np.interp(t, tt, s2.traj[k, :, d]) - s2.traj[k, 0, d]
+    return out
+
+
+def snap_vector(s2: Stage2Result, k: int, vector) -> tuple[np.ndarray, float]:
+    """Snap a user displacement for object k (0-based) to its trajectory: (vector on ς(·, k), time)."""
+    if not 0 <= k < s2.num_objects:
+        raise ValueError(f"object {k + 1} out of range: the run has {s2.num_objects} object(s) (1..{s2.num_objects})")
+    snap = cluster.snap_to_trajectory(s2.traj[k], np.asarray(vector, np.float64), times=s2.traj_times)
+    return snap.point - s2.traj[k, 0], snap.t
+
+
+def render_controlled(run: LoadedRun, vectors, viewmat, K, width: int, height: int) -> np.ndarray:
+    """Image [H, W, 3] of the controlled scene for per-cluster vectors [K, 3] (used as given, not snapped)."""
+    s2 = run.s2
+    if s2 is None:
+        raise Stage2Error("render_controlled needs stage-2 results")
+    base = run.deformed(s2.t0)
+    canonical = run.state.params["gaussians"].means
+    vec = np.zeros((max(s2.num_objects, 1), 3)) if s2.num_objects == 0 else np.asarray(vectors, np.float64)
+    geo = controlled_gaussians(s2.control, base, canonical, jnp.asarray(s2.labels), jnp.asarray(vec, jnp.float32))
+    img, _, _ = run.render_geometry(*geo, viewmat, K, width, height)
+    return np.clip(np.asarray(img), 0.0, 1.0)
+
+
+def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: float | None = None,
+                    vectors=None, alpha_threshold: float = 0.5) -> np.ndarray:
+    """Per-pixel object ids [H, W] int (0 = static or background, k = cluster k - 1 + 1).
+
+    One-hot cluster features (channel 0 for every Gaussian outside the clusters, channel k for
+    cluster k - 1) are composited like colour; a pixel takes the argmax channel, and 0 where the
+    rendered alpha is below `alpha_threshold`. Geometry: the stage-1 model at time `t`
+    (default: the reference time), or the controlled scene for `vectors` [K, 3] when given.
+    """
+    s2 = run.s2
+    if s2 is None:
+        raise Stage2Error("render_clusters needs stage-2 results")
+    if vectors is not None:
+        geo = controlled_gaussians(s2.control, run.deformed(s2.t0), run.state.params["gaussians"].means,
+                                   jnp.asarray(s2.labels), jnp.asarray(np.asarray(vectors).reshape(-1, 3), jnp.float32))
+    else:
+        geo = run.deformed(s2.t0 if t is None else float(t))
+    kk = s2.num_objects
+    onehot = np.zeros((len(s2.labels), kk + 1), np.float32)  # [N, K + 1]
+    onehot[np.arange(len(s2.labels)), np.where(s2.labels >= 0, s2.labels + 1, 0)] = 1.0
+    feat, alpha, _ = run.render_geometry(*geo, viewmat, K, width, height, colors=onehot)
+    ids = np.argmax(np.asarray(feat), axis=-1)
+    return np.where(np.asarray(alpha) >= alpha_threshold, ids, 0).astype(np.int64)
+
+
+def write_cluster_maps(run_dir: str | Path, cams, out: str | Path, log=print) -> int:
+    """``fgjax render --clusters``: per camera (name, viewmat, K, time, w, h) write OUT/{name}_ids.npy
+    (int32 object ids, 0 = static) and OUT/{name}_ids.png (colour-coded). Returns the exit status."""
+    import imageio.v3 as iio
+
+    from fgjax.pipeline.demo import ids_to_color
+    from fgjax.train.checkpoint import CheckpointError
+
+    try:
+        run = load_stage2(run_dir)
+    except (FileNotFoundError, CheckpointError, Stage2Error) as e:
+        print(f"fgjax render: {e}", file=sys.stderr)
+        return 2
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, vm, K, t, w, h in cams:
+        ids = render_clusters(run, vm, K, w, h, t=t)
+        np.save(out / f"{name}_ids.npy", ids.astype(np.int32))
+        iio.imwrite(out / f"{name}_ids.png", ids_to_color(ids))
+    log(f"rendered {len(cams)} object-id maps ({run.s2.num_objects} object(s)) to {out}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# stage 2
+# ---------------------------------------------------------------------------------------------
+
+
+def _to_u8(img: np.ndarray) -> np.ndarray:
+    return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=print):
+    """Step 5 on a stage-1 run: returns (`Discovery`, deformed centres [T, N, 3] in time order, times [T])."""
+    from fgjax.data.loaders import viewmat_to_c2w
+    from fgjax.data.opticalflow import estimate_flow
+    from fgjax.pipeline.discover import camera_flow_from_depth, discover
+    from fgjax.render.api import rasterization
+
+    order = np.argsort(scene.times, kind="stable")
+    times = scene.times[order]
+    alive = run.state.densify.alive
+    w, h = scene.width, scene.height
+    means_t, quats_t, centres = [], [], []
+    depths, alphas = [], []
+    g = run.state.params["gaussians"]
+    for i in order:
+        m, q, ls = run.deformed(float(scene.times[i]))
+        centres.append(np.asarray(m))
+        params = _with_geometry(run.state.params, m, q, ls)
+        qa, sa, oa = activate(params["gaussians"], alive)
+        means_t.append(np.asarray(m))
+        quats_t.append(np.asarray(qa))
+        _, alpha, info = rasterization(m, qa, sa, oa, jnp.zeros((m.shape[0], 1), jnp.float32),
+                                       jnp.asarray(scene.viewmats[i], jnp.float32),
+                                       jnp.asarray(scene.Ks[i], jnp.float32), w, h, render_depth=True,
+                                       tile_size=run.cfg.train.tile_size)
+        depths.append(np.asarray(info["depth"]))
+        alphas.append(np.asarray(alpha))
+    _, sa, oa = activate(g, alive)
+    c2w = viewmat_to_c2w(scene.viewmats[order])
+    flows, cams, valid = [], [], []
+    t_flow = time.perf_counter()
+    for j in range(len(order) - 1):
+        a, b = order[j], order[j + 1]
+        flows.append(estimate_flow(_to_u8(scene.images[a]), _to_u8(scene.images[b]), cfg.flow_method,
+                                   cache_dir=cache_dir))
+        cf, ok = camera_flow_from_depth(depths[j], scene.Ks[a], c2w[j], c2w[j + 1])
+        cams.append(cf)
+        valid.append(ok & (alphas[j] >= cfg.min_alpha))
+    log(f"stage 2: optical flow of {len(flows)} pairs ({time.perf_counter() - t_flow:.1f} s)")
+    n = len(order) - 1
+    thr = cfg.threshold_px if isinstance(cfg.threshold_px, str) else float(cfg.threshold_px)
+    # the deformed scales differ from canonical ones only by ds; discovery uses the canonical ones
+    disc = discover(np.stack(means_t[:n]), np.stack(quats_t[:n]), np.asarray(sa), np.asarray(oa),
+                    scene.viewmats[order][:n], scene.Ks[order][:n], np.stack(flows), np.stack(cams),
+                    valid=np.stack(valid), threshold_px=thr, min_px=cfg.min_px,
+                    score_threshold=cfg.score_threshold, min_score=cfg.min_score)
+    dyn = disc.dynamic & np.asarray(alive)
+    return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))
+
+
+def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.ndarray, cfg: Stage2Config,
+                   centres_q_s, log=print) -> tuple[ControlNet, dict[str, Any]]:
+    """Fit Θ: distillation from the deformation field, then the photometric loss (module docstring)."""
+    from fgjax.train.losses import photometric_loss
+
+    k = traj.shape[0]
+    params = run.state.params
+    canonical = params["gaussians"].means
+    sel = np.flatnonzero(labels >= 0)
+    ext = float(np.max(np.abs(np.asarray(canonical)[sel] - np.asarray(canonical)[sel].mean(0)))) if len(sel) else 1.0
+    v_all = traj - traj[:, :1]  # [K, T, 3]
+    v_scale = float(max(np.max(np.linalg.norm(v_all, axis=-1), initial=0.0), 1e-3))
+    hp = _control_hparams(cfg, x_scale=max(2.0 * ext, 1e-3), v_scale=v_scale)
+    control = control_init(jax.random.key(cfg.seed), **hp)
+    stats: dict[str, Any] = {"control": hp}
+    if len(sel) == 0 or k == 0:
+        return control, stats
+    means_t, quats_t, ls_t = centres_q_s  # [T, N, ...] in time order
+    lab_sel = jnp.asarray(labels[sel])
+    x_sel = canonical[sel]
+    tgt = (jnp.asarray(means_t[:, sel] - means_t[:1, sel]), jnp.asarray(quats_t[:, sel] - quats_t[:1, sel]),
+           jnp.asarray(ls_t[:, sel] - ls_t[:1, sel]))  # [T, M, ...]
+    v_t = jnp.asarray(v_all.transpose(1, 0, 2), jnp.float32)  # [T, K, 3]
+    opt = optax.adam(cfg.lr)
+
+    def offsets(ctrl, vecs):  # vecs [K, 3] -> offsets of the selected Gaussians
+        z = jnp.zeros((len(sel), 3), jnp.float32)
+        v = vecs[lab_sel]
+        a = control_apply(ctrl, v, x_sel)
+        b = control_apply(ctrl, z, x_sel)
+        return tuple(u - w for u, w in zip(a, b, strict=True))
+
+    def distill_loss(ctrl):
+        d = jax.vmap(lambda vv: offsets(ctrl, vv))(v_t)
+        scale2 = v_scale ** 2
+        return (jnp.mean(jnp.sum((d[0] - tgt[0]) ** 2, -1)) / scale2 + jnp.mean(jnp.sum((d[1] - tgt[1]) ** 2, -1))
+                + jnp.mean(jnp.sum((d[2] - tgt[2]) ** 2, -1)))
+
+    @jax.jit
+    def distill_step(ctrl, st):
+        loss, gr = jax.value_and_grad(distill_loss)(ctrl)
+        up, st = opt.update(gr, st, ctrl)
+        return optax.apply_updates(ctrl, up), st, loss
+
+    t0 = time.perf_counter()
+    st = opt.init(control)
+    loss = jnp.nan
+    first = None
+    for i in range(cfg.distill_steps):
+        control, st, loss = distill_step(control, st)
+        if i == 0:
+            first = float(loss)
+    stats["distill"] = {"steps": cfg.distill_steps, "loss_first": first, "loss_last": float(loss),
+                        "time_s": time.perf_counter() - t0}
+    log(f"stage 2: distillation {cfg.distill_steps} steps, loss {first} -> {float(loss):.3g} "
+        f"({time.perf_counter() - t0:.1f} s)")
+    if cfg.photo_steps <= 0:
+        return control, stats
+    # photometric fine-tuning of Θ only
+    from fgjax.pipeline.stage1 import render_params
+
+    base = (jnp.asarray(means_t[0]), jnp.asarray(quats_t[0]), jnp.asarray(ls_t[0]))
+    labels_j = jnp.asarray(labels)
+    bg = jnp.asarray(run.cfg.model.background, jnp.float32)
+    cap = int(run.meta.get("capacity") or 0) or None
+    if cap is not None:
+        cap = int(cap * 1.5)
+    images = jnp.asarray(scene.images[order])
+    vms = jnp.asarray(scene.viewmats[order], jnp.float32)
+    Ks = jnp.asarray(scene.Ks[order], jnp.float32)
+    lam = float(run.cfg.train.lambda_dssim)
+    opt2 = optax.adam(cfg.lr * 0.25)
+
+    def photo_loss(ctrl, i):
+        geo = controlled_gaussians(ctrl, base, canonical, labels_j, v_t[i])
+        p = _with_geometry(params, *geo)
+        img, _, info, _ = render_params(p, run.state.densify.alive, vms[i], Ks[i], 0.0, spec=None,
+                                        sh_degree=run.cfg.model.sh_degree, width=scene.width, height=scene.height,
+                                        background=bg, capacity=cap, tile_size=run.cfg.train.tile_size)
+        return photometric_loss(img, images[i], lam), info["overflow"]
+
+    @jax.jit
+    def photo_step(ctrl, st, i):
+        (loss, over), gr = jax.value_and_grad(photo_loss, has_aux=True)(ctrl, i)
+        up, st2 = opt2.update(gr, st, ctrl)
+        new = optax.apply_updates(ctrl, up)
+        bad = over | ~jnp.isfinite(loss)
+        keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(bad, y, x), a, b)
+        return keep(new, ctrl), keep(st2, st), loss, bad
+
+    t1 = time.perf_counter()
+    st = opt2.init(control)
+    rng = np.random.default_rng(cfg.seed)
+    losses, n_bad = [], 0
+    for _ in range(cfg.photo_steps):
+        control, st, loss, bad = photo_step(control, st, jnp.asarray(rng.integers(len(order)), jnp.int32))
+        losses.append(loss)
+        n_bad += int(bad)
+    losses = [float(x) for x in losses]
+    stats["photometric"] = {"steps": cfg.photo_steps, "loss_first": losses[0], "loss_last_10": float(np.mean(losses[-10:])),
+                            "skipped_steps": n_bad, "time_s": time.perf_counter() - t1}
+    log(f"stage 2: photometric {cfg.photo_steps} steps, loss {losses[0]:.4f} -> {np.mean(losses[-10:]):.4f} "
+        f"({n_bad} skipped, {time.perf_counter() - t1:.1f} s)")
+    return control, stats
+
+
+def save_stage2(run_dir: Path, s2: Stage2Result) -> Path:
+    """Write RUN/stage2.npz (atomic) and RUN/stage2.json (atomic, readable summary)."""
+    leaves = jax.tree_util.tree_leaves(s2.control)
+    arrays = {"labels": s2.labels.astype(np.int32), "dynamic": s2.dynamic, "scores": s2.scores.astype(np.float32),
+              "traj": s2.traj.astype(np.float64), "traj_times": s2.traj_times,
+              "meta": np.array(json.dumps(s2.meta))}
+    for i, a in enumerate(leaves):
+        arrays[f"control_{i}"] = np.asarray(a)
+    p = run_dir / STAGE2_NAME
+    _atomic_bytes(p, lambda f: np.savez(f, **arrays))
+    summary = {k: v for k, v in s2.meta.items()}
+    summary["trajectories"] = s2.traj.tolist()
+    summary["traj_times"] = s2.traj_times.tolist()
+    _atomic_bytes(run_dir / "stage2.json", lambda f: f.write(json.dumps(summary, indent=1).encode()))
+    return p
+
+
+def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = Stage2Config(), *,
+               log=print) -> Stage2Result:
+    """Steps 5-7 on a trained stage-1 run; writes RUN/stage2.npz and RUN/stage2.json.
+
+    Args:
+        run_dir: stage-1 run folder (`fgjax train`).
+        data_dir: the dataset the run was trained on (training split only is read; never gt/).
+        cfg: `Stage2Config`.
+
+    Returns:
+        `Stage2Result`.
+    """
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+
+    t_start = time.perf_counter()
+    run_dir, data_dir = Path(run_dir), Path(data_dir)
+    run = load_stage2(run_dir, require_stage2=False)
+    scene = load_scene(data_dir, "train", normalize=Normalization.from_dict(run.meta["normalization"]),
+                       downscale=run.cfg.data.downscale)
+    if (scene.width, scene.height) != (run.meta["width"], run.meta["height"]):
+        raise Stage2Error(f"{data_dir}: images are {scene.width}x{scene.height} but the run was trained on "
+                          f"{run.meta['width']}x{run.meta['height']}")
+    if scene.num_frames < 2:
+        raise Stage2Error(f"{data_dir}: stage 2 needs at least 2 training frames, got {scene.num_frames}")
+    cache = Path(cfg.flow_cache) if cfg.flow_cache else run_dir / "flow_cache"
+    disc, centres, times, (order, _, _) = discover_run(run, scene, cfg, cache, log)
+    n_dyn = int(disc.dynamic.sum())
+    canonical = np.asarray(run.state.params["gaussians"].means)
+    idx = np.flatnonzero(disc.dynamic)
+    lab_d = cluster.cluster_dynamic(canonical[idx], cfg.cluster_method, eps=cfg.eps, min_samples=cfg.min_samples,
+                                    min_fraction=cfg.min_fraction, auto_eps=cfg.auto_eps)
+    labels = np.full(len(canonical), -1, np.int64)
+    labels[idx] = lab_d
+    report = cluster.cluster_report(lab_d)
+    log(f"stage 2: {n_dyn} dynamic Gaussians (score threshold {disc.threshold:.3f}); {report}")
+    # trajectories and the teacher geometry over all training times (time order)
+    qs, ls = [], []
+    for t in times:
+        _, q, s = run.deformed(float(t))
+        qs.append(np.asarray(q))
+        ls.append(np.asarray(s))
+    traj = cluster.trajectories(centres, labels) if report.n_clusters else np.zeros((0, len(times), 3))
+    control, stats = _train_control(run, scene, order, labels, traj, cfg, (centres, np.stack(qs), np.stack(ls)),
+                                    log)
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "data_dir": str(data_dir.resolve()),
+        "config": dataclasses.asdict(cfg),
+        "num_dynamic": n_dyn,
+        "score_threshold": disc.threshold,
+        "num_objects": report.n_clusters,
+        "cluster_sizes": list(report.sizes),
+        "num_noise": report.n_noise,
+        "moving_pixel_fraction": float(disc.masks.mean()),
+        "flow_loss": False,
+        "time_s": time.perf_counter() - t_start,
+        **stats,
+    }
+    res = Stage2Result(labels, disc.dynamic, disc.scores.score, traj, times, control, meta)
+    save_stage2(run_dir, res)
+    log(f"stage 2: wrote {run_dir / STAGE2_NAME} ({meta['time_s']:.1f} s)")
+    return res
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="fgjax stage2", description="Stage 2: discovery, clustering, control network.")
+    p.add_argument("--run", required=True, help="stage-1 run folder")
+    p.add_argument("--data", required=True, help="the dataset the run was trained on")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a Stage2Config field, e.g. --set eps=0.08 (repeatable)")
+    return p
+
+
+def config_from_overrides(items: list[str]) -> Stage2Config:
+    fields = {f.name: f for f in dataclasses.fields(Stage2Config)}
+    kw: dict[str, Any] = {}
+    for it in items:
+        if "=" not in it:
+            raise ValueError(f"--set {it!r}: expected KEY=VALUE")
+        key, val = it.split("=", 1)
+        if key not in fields:
+            raise ValueError(f"--set {key}: unknown stage-2 option (choose from {', '.join(fields)})")
+        default = getattr(Stage2Config(), key)
+        if isinstance(default, bool):
+            kw[key] = val.lower() in ("1", "true", "yes")
+        elif isinstance(default, int):
+            kw[key] = int(val)
+        elif isinstance(default, float):
+            kw[key] = float(val)
+        elif key in ("threshold_px", "score_threshold"):
+            kw[key] = val if val == "otsu" else float(val)
+        else:
+            kw[key] = val
+    return Stage2Config(**kw)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        cfg = config_from_overrides(args.overrides)
+        run_stage2(args.run, args.data, cfg, log=lambda m: print(m, file=sys.stderr, flush=True))
+    except (ValueError, FileNotFoundError, Stage2Error) as e:
+        print(f"fgjax stage2: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

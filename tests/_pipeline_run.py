@@ -1,0 +1,31 @@
+"""A tiny trained stage-1 + stage-2 run shared by the pipeline tests (built once per session)."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+QUICK = ["train.steps=8", "train.warmup_steps=2", "densify.enabled=false", "train.video_frames=0",
+         "train.log_every=4", "train.checkpoint_every=0", "static.detect=false"]
+
+
+def tiny_run(base: Path, *, stage2: bool = True) -> tuple[Path, Path]:
+    """(run_dir, data_dir) under `base` (48x36, 8 frames, 8 stage-1 steps); cached on disk."""
+    from fgjax.config import load_config
+    from fgjax.data import synth
+    from fgjax.pipeline import stage1
+    from fgjax.pipeline import stage2 as s2
+
+    data, run = base / "scene", base / "run"
+    if not (data / "gt" / "meta.json").exists():
+        synth.generate(synth.SynthConfig(width=48, height=36, frames=8, test_views=1, test_states=1), data,
+                       overwrite=True, progress=None)
+    if not (run / "model.json").exists():
+        shutil.rmtree(run, ignore_errors=True)
+        cfg = load_config(Path(__file__).resolve().parents[1] / "experiments" / "quick.toml", QUICK)
+        from fgjax.data.loaders import load_scene
+
+        stage1.train_stage1(cfg, load_scene(data, "train"), run, progress=False, log=lambda m: None)
+    if stage2 and not (run / s2.STAGE2_NAME).exists():
+        s2.run_stage2(run, data, s2.Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2), log=lambda m: None)
+    return run, data

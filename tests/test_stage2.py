@@ -1,0 +1,98 @@
+"""Stage 2 on a tiny synthetic run: outputs, reload, cluster maps, controlled renders, errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fgjax.pipeline import stage2
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    import sys
+
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+    from _pipeline_run import tiny_run
+
+    return tiny_run(tmp_path_factory.getbasetemp() / "pipeline")
+
+
+def test_stage2_outputs(tiny):
+    run_dir, data = tiny
+    summary = json.loads((run_dir / "stage2.json").read_text())
+    assert summary["data_dir"] == str(data.resolve())
+    assert not list(run_dir.glob("*.tmp"))  # atomic writes leave no temporaries
+    run = stage2.load_stage2(run_dir)
+    s2 = run.s2
+    n = run.state.params["gaussians"].means.shape[0]
+    assert s2.labels.shape == (n,) and s2.dynamic.shape == (n,)
+    # clustered Gaussians are dynamic and alive; labels are compact 0..K-1
+    assert np.all(s2.dynamic[s2.labels >= 0])
+    assert np.all(np.asarray(run.state.densify.alive)[s2.labels >= 0])
+    assert set(np.unique(s2.labels[s2.labels >= 0])) == set(range(s2.num_objects))
+    assert s2.traj.shape == (s2.num_objects, 8, 3) and np.all(np.diff(s2.traj_times) >= 0)
+    assert summary["num_objects"] == s2.num_objects
+
+
+def test_controlled_render_zero_vector_is_stage1_at_t0(tiny):
+    from fgjax.pipeline.stage1 import render_frame
+
+    run = stage2.load_stage2(tiny[0])
+    m = run.meta
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+
+    sc = load_scene(tiny[1], "train", normalize=Normalization.from_dict(m["normalization"]))
+    k = max(run.s2.num_objects, 1)
+    img = stage2.render_controlled(run, np.zeros((k, 3)), sc.viewmats[0], sc.Ks[0], m["width"], m["height"])
+    ref = render_frame(run.state, run.spec, run.cfg, sc.viewmats[0], sc.Ks[0], run.s2.t0, m["width"], m["height"])
+    # v = 0 gives exactly the stage-1 scene at t0 (f(0) - f(0) = 0); float32 rendering tolerance
+    np.testing.assert_allclose(img, ref, atol=1e-5)
+    ids = stage2.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"])
+    assert ids.shape == (m["height"], m["width"]) and ids.min() >= 0 and ids.max() <= run.s2.num_objects
+
+
+def test_write_cluster_maps(tiny, tmp_path):
+    from fgjax.data.scene import Normalization
+    from fgjax.pipeline.render import read_cameras
+
+    run_dir, data = tiny
+    meta = json.loads((run_dir / "model.json").read_text())
+    cams = read_cameras(data / "transforms_test.json", Normalization.from_dict(meta["normalization"]),
+                        meta["width"], meta["height"])[:1]
+    assert stage2.write_cluster_maps(run_dir, cams, tmp_path / "ids", log=lambda m: None) == 0
+    ids = np.load(tmp_path / "ids" / f"{cams[0][0]}_ids.npy")
+    assert ids.shape == (meta["height"], meta["width"]) and (tmp_path / "ids" / f"{cams[0][0]}_ids.png").is_file()
+    assert stage2.write_cluster_maps(tmp_path / "nope", cams, tmp_path / "ids") == 2
+
+
+def test_snap_and_vectors(tiny):
+    run = stage2.load_stage2(tiny[0])
+    s2 = run.s2
+    if s2.num_objects == 0:
+        pytest.skip("no clusters in the tiny run")
+    v_end = s2.traj[0, -1] - s2.traj[0, 0]
+    v, t = stage2.snap_vector(s2, 0, v_end)  # a point on the trajectory snaps to itself
+    np.testing.assert_allclose(v, v_end, atol=1e-9)
+    np.testing.assert_allclose(stage2.cluster_vectors_at(s2, s2.t0), 0.0, atol=1e-12)
+    with pytest.raises(ValueError, match="out of range"):
+        stage2.snap_vector(s2, s2.num_objects, np.zeros(3))
+
+
+def test_missing_stage2_is_a_clear_error(tiny, tmp_path):
+    import shutil
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(tiny[0], run_dir)
+    (run_dir / stage2.STAGE2_NAME).unlink()
+    with pytest.raises(stage2.Stage2Error, match="no stage-2 results"):
+        stage2.load_stage2(run_dir)
+    (run_dir / stage2.STAGE2_NAME).write_bytes(b"not a zip")
+    with pytest.raises(stage2.Stage2Error, match="not a readable"):
+        stage2.load_stage2(run_dir)
+    with pytest.raises(ValueError, match="unknown stage-2 option"):
+        stage2.config_from_overrides(["nope=1"])
+    assert stage2.config_from_overrides(["eps=0.1", "auto_eps=true"]) == stage2.Stage2Config(eps=0.1, auto_eps=True)

@@ -8,6 +8,7 @@ this file only maps names to those modules, so that ``fgjax --help`` stays fast
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 
 # command -> (module, one-line help)
@@ -46,7 +47,15 @@ def _dispatch(table: dict[str, tuple[str, str]], name: str, argv: list[str], pro
             print(f"fgjax: '{prog}' is not implemented yet in this version.", file=sys.stderr)
             return 2
         raise
-    return int(module.main(argv) or 0)
+    try:
+        return int(module.main(argv) or 0)
+    except (FileNotFoundError, NotADirectoryError, IsADirectoryError, ValueError) as e:
+        # Bad input (a missing file, a malformed field): one clear line, no traceback.
+        # FGJAX_DEBUG=1 shows the traceback.
+        if os.environ.get("FGJAX_DEBUG"):
+            raise
+        print(f"fgjax {prog}: error: {e}", file=sys.stderr)
+        return 2
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -584,3 +584,13 @@ def test_writer_failure_midway_leaves_nothing_new(tmp_path, monkeypatch):
     assert _listing(out) == before  # no temp files, no depth/ folder, no new images
     assert (out / "transforms_train.json").read_text() == old_json
     assert not (tmp_path / "fresh").exists()
+
+
+def test_cli_reports_bad_input_without_traceback(tmp_path, capsys):
+    from fgjax import cli
+
+    missing = tmp_path / "nope"
+    assert cli.main(["train", "--data", str(missing), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "fgjax train: error:" in err and str(missing) in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()

@@ -144,8 +144,11 @@ class FlowConfig:
     """beta."""
     method: str = "dis_deepflow"
     threshold: float = 0.5
-    """Flow-target magnitude threshold (pixels) below which motion counts as static."""
+    """Flow-target magnitude threshold (pixels) below which motion counts as static (0: off)."""
     start: int = 1000
+    """First step with the flow loss (it also needs the deformation field on, i.e. after the warm-up).
+    Training flows come from ``method`` (OpenCV, cached under RUN/flow_cache) unless passed to
+    ``train_stage1(flows=...)``; the camera flow is the exact reprojection of the rendered depth of frame t-1."""
 
 
 @dataclasses.dataclass(frozen=True)

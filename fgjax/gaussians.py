@@ -146,8 +146,8 @@ def init_from_points(
 def init_random(
     key: jax.Array,
     num: int,
-    lo: Float[ArrayLike, "3"],
-    hi: Float[ArrayLike, "3"],
+    lo: Float[ArrayLike, 3],
+    hi: Float[ArrayLike, 3],
     *,
     capacity: int | None = None,
     sh_degree: int = 3,

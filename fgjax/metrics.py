@@ -94,7 +94,7 @@ def ssim(a: Float[ArrayLike, "H W C"], b: Float[ArrayLike, "H W C"], **kw) -> Fl
 
 
 def epe(
-    flow: Float[ArrayLike, "... 2"], ref: Float[ArrayLike, "... 2"], valid: Bool[ArrayLike, "..."] | None = None
+    flow: Float[ArrayLike, "... 2"], ref: Float[ArrayLike, "... 2"], valid: Bool[ArrayLike, ...] | None = None
 ) -> Float[Array, ""]:
     """Mean end-point error ||flow - ref||_2 over valid entries."""
     d = jnp.asarray(flow) - jnp.asarray(ref)

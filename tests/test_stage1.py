@@ -206,3 +206,117 @@ def test_data_parallel_two_devices_matches_one():
     assert len(res["two"]) == 4
     # float32; the cross-device mean may sum in a different order
     np.testing.assert_allclose(res["two"], res["one"], rtol=1e-5, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# flow loss (beta L_uGS) and pose refinement
+# ---------------------------------------------------------------------------------------------
+
+
+def _flow_inputs(scene, cfg, frame=3):
+    state, spec, _ = stage1.initial_state(cfg, scene)
+    prev = stage1.previous_frames(scene.times)
+    flows = np.full((scene.num_frames, scene.height, scene.width, 2), np.nan, np.float32)
+    flows[1:] = np.array([1.5, -0.5], np.float32)  # a constant observed flow: the target is not zero
+    f32 = lambda x: np.asarray(x, np.float32)
+    fb = stage1._flow_batch(np.array([frame]), prev, flows, f32(scene.viewmats), f32(scene.times))
+    fb = stage1.FlowBatch(*(jnp.asarray(x)[0] for x in fb))
+    return state, spec, fb
+
+
+def test_flow_loss_is_finite_and_reaches_the_deformation():
+    scene = _tiny_scene(True)
+    cfg = _cfg("flow.enabled=true", "flow.weight=0.5")
+    state, spec, fb = _flow_inputs(scene, cfg)
+    ss = stage1.StepSpec(spec, 1, scene.width, scene.height, 16384, 8, 0.2, 0.0, 0.05, False, 0.5, 0.0)
+    params = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), state.params)
+    vm = jnp.asarray(scene.viewmats[3], jnp.float32)
+    K = jnp.asarray(scene.Ks[3], jnp.float32)
+    t = jnp.float32(scene.times[3])
+
+    def f(p):
+        return stage1._flow_term(ss, p, state.densify.alive, vm, K, t, fb)[0]
+
+    loss, g = jax.jit(jax.value_and_grad(f))(params)
+    assert np.isfinite(float(loss)) and float(loss) > 0.1  # the constant target is not explained at init
+    head = np.asarray(g["deform"]["head"]["w"])
+    assert np.all(np.isfinite(head)) and np.abs(head).max() > 0  # the gradient reaches the field
+    # no previous frame: weight 0, loss 0
+    fb0 = fb._replace(weight=jnp.float32(0.0))
+    assert float(stage1._flow_term(ss, params, state.densify.alive, vm, K, t, fb0)[0]) == 0.0
+
+
+def test_training_step_with_flow_loss_runs():
+    scene = _tiny_scene(True)
+    flows = np.full((scene.num_frames, scene.height, scene.width, 2), np.nan, np.float32)
+    flows[1:] = 0.5
+    cfg = _cfg("flow.enabled=true", "flow.weight=0.1", "flow.start=0", "train.warmup_steps=0",
+               "static.force=dynamic", "densify.enabled=false")
+    res = stage1.train_stage1(cfg, scene, None, stop_at=3, progress=False, log=lambda *_: None, flows=flows)
+    assert len(res["losses"]) == 3 and np.all(np.isfinite(res["losses"]))
+    g = res["state"].params["gaussians"]
+    assert np.all(np.isfinite(np.asarray(g.means)))
+    assert np.abs(np.asarray(res["state"].params["deform"]["head"]["w"])).max() > 0  # the field was updated
+    with pytest.raises(ValueError, match="flows must have shape"):
+        stage1.train_stage1(cfg, scene, None, stop_at=1, progress=False, log=lambda *_: None, flows=flows[1:])
+
+
+def test_training_flows_from_opencv_are_cached(tmp_path):
+    scene = _tiny_scene(True, frames=3, w=48, h=32)
+    f = stage1.estimate_training_flows(scene, "dis", tmp_path / "c", log=lambda *_: None)
+    assert f.shape == (3, 32, 48, 2) and np.all(np.isnan(f[0])) and np.all(np.isfinite(f[1:]))
+    assert any((tmp_path / "c").rglob("*"))
+
+
+def test_pose_refinement_off_by_default_and_moves_noisy_poses_towards_truth():
+    from fgjax.geometry import se3_exp
+    from fgjax.train.optim import OptimSpec
+
+    assert C.Config().pose.enabled is False
+    scene = _tiny_scene(False, frames=4)
+    state, _, _ = stage1.initial_state(_cfg(), scene)
+    assert "pose" not in state.params
+    # the true Gaussians of the scene, noisy poses; only the pose deltas learn (other rates ~0)
+    rng = np.random.default_rng(0)  # the draws of _tiny_scene
+    n = 200
+    means = rng.uniform(-0.5, 0.5, (n, 3))
+    cols = rng.uniform(0, 1, (n, 3))
+    rng = np.random.default_rng(1)
+    from fgjax.gaussians import init_from_points
+
+    g, alive = init_from_points(means, cols, capacity=n, sh_degree=1, init_opacity=0.8)
+    g = type(g)(g.means, jnp.full((n, 3), np.log(0.08), jnp.float32), g.quats, g.opacity_logits, g.sh)
+    noise = np.concatenate([rng.normal(0, 0.02, (4, 3)), rng.normal(0, 0.03, (4, 3))], -1).astype(np.float32)
+    true_vm = np.asarray(scene.viewmats, np.float32)
+    noisy_vm = np.asarray(se3_exp(jnp.asarray(noise)), np.float32) @ true_vm
+    tiny = 1e-12
+    ospec = OptimSpec(steps=60, lr_means=tiny, lr_means_final=tiny, lr_deform=tiny, lr_deform_final=tiny,
+                      lr_opacity=tiny, lr_scales=tiny, lr_quats=tiny, lr_sh=tiny, lr_pose=3e-3, lr_pose_final=1e-3)
+    ss = stage1.StepSpec(None, 1, scene.width, scene.height, 16384, 8, 0.0, 0.0, 0.05, True)
+    step = stage1._make_step(ss, ospec, 4, (1.0, 1.0, 1.0))
+    params = {"gaussians": g, "deform": state.params["deform"], "pose": jnp.zeros((4, 6), jnp.float32)}
+    params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), params)
+    from fgjax.train.optim import make_optimizer
+
+    opt_state = make_optimizer(ospec, 4).init(params)
+    ds = densify_init(alive)
+    sh_mask = jnp.ones(4, jnp.float32)
+    imgs = np.asarray(scene.images, np.float32)
+    Ks = np.asarray(scene.Ks, np.float32)
+    times = np.asarray(scene.times, np.float32)
+
+    def err(p):
+        vm = np.asarray(se3_exp(p["pose"])) @ noisy_vm
+        return float(np.abs(vm[:, :3, :] - true_vm[:, :3, :]).mean())
+
+    e0 = err(params)
+    losses = []
+    for s in range(60):
+        i = np.array([s % 4])
+        params, opt_state, ds, loss, _, bad = step(params, opt_state, ds, sh_mask, imgs[i], noisy_vm[i], Ks[i],
+                                                   times[i], i.astype(np.int32))
+        assert not bool(bad)
+        losses.append(float(loss))
+    assert np.all(np.isfinite(np.asarray(params["pose"])))
+    assert np.mean(losses[-4:]) < 0.7 * np.mean(losses[:4])
+    assert err(params) < 0.6 * e0

@@ -58,9 +58,10 @@ def main(argv: list[str] | None = None) -> int:
         cpu0 = time.process_time()
         res = train_stage1(cfg, scene, None, test_scene=test, progress=False, log=lambda *_: None)
         for h in res["eval_history"]:
-            row = {"field": field, **{k: h[k] for k in ("step", "time_s", "psnr", "ssim")}}
+            row = {"field": field, **{k: h[k] for k in ("step", "time_s", "cpu_s", "psnr", "ssim")}}
             rows.append(row)
-            print(f"{field:<10} {h['step']:>6} {h['time_s']:>8.1f} {'':>8} {h['psnr']:>7.2f} {h['ssim']:>7.4f}")
+            print(f"{field:<10} {h['step']:>6} {h['time_s']:>8.1f} {h['cpu_s']:>8.1f} {h['psnr']:>7.2f} "
+                  f"{h['ssim']:>7.4f}", flush=True)
         print(f"{field:<10} total  {res['time_s']:>8.1f} {time.process_time() - cpu0:>8.1f}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))

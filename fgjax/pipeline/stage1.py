@@ -14,10 +14,11 @@ import dataclasses
 import functools
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -32,7 +33,8 @@ from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply,
 from fgjax.train.losses import photometric_loss, scale_regularizer
 from fgjax.train.optim import OptimSpec, active_sh_degree, make_optimizer
 
-__all__ = ["train_stage1", "TrainState", "render_params", "scene_box", "main", "deform_spec_from_config"]
+__all__ = ["train_stage1", "TrainState", "render_params", "scene_box", "main", "deform_spec_from_config", "FlowBatch",
+           "estimate_training_flows", "previous_frames"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -190,6 +192,50 @@ class StepSpec:
     scale_reg: float
     scale_reg_max: float
     pose: bool
+    flow_weight: float = 0.0  # beta of L_uGS (0: no flow pass; the step then takes no flow batch)
+    flow_threshold: float = 0.0  # |u - u_cam| below this (pixels) counts as static (0: off)
+
+
+class FlowBatch(NamedTuple):
+    """Per-camera inputs of the flow loss (leading axis: the cameras of the batch)."""
+
+    flow: Any  # [B, H, W, 2] observed optical flow frame t-1 -> t on frame t-1's grid (NaN = unknown)
+    viewmat_prev: Any  # [B, 4, 4] world-to-camera of frame t-1
+    t_prev: Any  # [B] time of frame t-1
+    idx_prev: Any  # [B] int32 index of frame t-1 (pose deltas)
+    weight: Any  # [B] 1 where frame t-1 exists, else 0
+
+
+def _flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
+    """L_uGS of one camera (DESIGN section 1, step 4): ||u - u_cam - u~_GS|| over valid pixels.
+
+    u~_GS is the dynamic Gaussian flow (``fgjax.flow.dynamic_gaussian_flow``: both frames' deformed centres
+    projected with camera t-1); u_cam the exact reprojection flow (``fgjax.flow.reprojection_flow``) of the
+    composited depth of frame t-1 from camera t-1 to camera t, held fixed (stop-gradient); valid pixels are
+    covered (alpha > 0.5), have a known observed flow and reproject in front of camera t.
+    Returns (weighted loss, overflow flag)."""
+    from fgjax.flow import dynamic_gaussian_flow, flow_loss, reprojection_flow
+    from fgjax.geometry import se3_inverse
+
+    vm_prev = fl.viewmat_prev
+    if ss.pose:
+        from fgjax.geometry import se3_exp
+
+        vm_prev = se3_exp(params["pose"][fl.idx_prev]) @ vm_prev
+    m0, q0, s0, o0, _ = _deformed(params, alive, fl.t_prev, ss.spec)
+    m1 = _deformed(params, alive, t, ss.spec)[0]
+    maps = dynamic_gaussian_flow(m0, q0, s0, o0, m1, vm_prev, K, ss.width, ss.height, capacity=ss.capacity,
+                                 tile_size=ss.tile_size)
+    inv_d = jax.lax.stop_gradient(maps.inv_depth)
+    ok = inv_d > 1e-6
+    depth = jnp.where(ok, 1.0 / jnp.where(ok, inv_d, 1.0), 0.0)  # composited inverse depth (Lemma 1: Delta = 0)
+    u_cam, cam_ok = reprojection_flow(depth, K, se3_inverse(vm_prev), se3_inverse(viewmat))
+    u_obs = fl.flow
+    known = jnp.all(jnp.isfinite(u_obs), axis=-1)
+    valid = cam_ok & known & (jax.lax.stop_gradient(maps.alpha) > 0.5)
+    loss = flow_loss(jnp.where(known[..., None], u_obs, 0.0), jax.lax.stop_gradient(u_cam), maps.flow, valid,
+                     threshold=ss.flow_threshold if ss.flow_threshold > 0 else None)
+    return fl.weight * loss, maps.overflow
 
 
 @functools.lru_cache(maxsize=16)
@@ -199,7 +245,7 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
     optimizer = make_optimizer(ospec, num_sh)
     bg = jnp.asarray(background, jnp.float32)
 
-    def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx):
+    def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx, fl):
         if ss.pose:
             from fgjax.geometry import se3_exp
 
@@ -212,20 +258,26 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
         loss = photometric_loss(img, image, ss.lambda_dssim)
         if ss.scale_reg > 0:
             loss = loss + ss.scale_reg * scale_regularizer(log_scales, alive, ss.scale_reg_max)
+        overflow = info["overflow"]
+        if fl is not None:
+            lf, of = _flow_term(ss, params, alive, viewmat, K, t, fl)
+            loss = loss + ss.flow_weight * lf
+            overflow = overflow | of
         mse = jnp.mean((img - image) ** 2)
-        return loss, (mse, info["overflow"], info["valid"])
+        return loss, (mse, overflow, info["valid"])
 
-    def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx):
-        losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0))(
-            params, alive, sh_mask, delta2d, images, viewmats, Ks, times, idx)
+    def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx, fl):
+        losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0))(
+            params, alive, sh_mask, delta2d, images, viewmats, Ks, times, idx, fl)
         return jnp.mean(losses), aux
 
-    def step(params, opt_state, dstate: DensifyState, sh_mask, images, viewmats, Ks, times, idx):
+    def step(params, opt_state, dstate: DensifyState, sh_mask, images, viewmats, Ks, times, idx, flow_batch=None):
         b = images.shape[0]
         n = params["gaussians"].means.shape[0]
         delta2d = jnp.zeros((b, n, 2), jnp.float32)
+        fl = flow_batch if (ss.flow_weight > 0 and ss.spec is not None) else None
         (loss, (mse, overflow, valid)), (grads, g2d) = jax.value_and_grad(batch_loss, argnums=(0, 1), has_aux=True)(
-            params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx)
+            params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx, fl)
         bad = jnp.any(overflow) | ~jnp.isfinite(loss)
         updates, new_opt = optimizer.update(grads, opt_state, params)
         new_params = optax.apply_updates(params, updates)
@@ -259,6 +311,39 @@ def _compute_capacity(params, alive, viewmats, Ks, width, height, tile_size, mar
                                                    jnp.asarray(K, jnp.float32), width=width, height=height,
                                                    tile_size=tile_size)))
     return _round_capacity(int(worst * margin) + 1024)
+
+
+def previous_frames(times: np.ndarray) -> np.ndarray:
+    """Index of the previous frame in time order for each frame (-1 for the first)."""
+    order = np.argsort(np.asarray(times), kind="stable")
+    prev = np.full(len(order), -1, np.int64)
+    prev[order[1:]] = order[:-1]
+    return prev
+
+
+def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str | Path | None = None,
+                            log=print) -> np.ndarray:
+    """Observed optical flow into each training frame from its predecessor in time, on the predecessor's
+    grid: [T, H, W, 2] float32, NaN for the first frame (``fgjax.data.opticalflow.estimate_flow``, cached
+    on disk under `cache_dir`)."""
+    from fgjax.data.opticalflow import estimate_flow
+
+    prev = previous_frames(scene.times)
+    imgs = (np.clip(np.asarray(scene.images), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    out = np.full((scene.num_frames, scene.height, scene.width, 2), np.nan, np.float32)
+    t0 = time.time()
+    for i, j in enumerate(prev):
+        if j >= 0:
+            out[i] = estimate_flow(imgs[j], imgs[i], method, cache_dir=cache_dir)
+    log(f"optical flow ({method}): {int(np.sum(prev >= 0))} pairs in {time.time() - t0:.1f} s")
+    return out
+
+
+def _flow_batch(idx: np.ndarray, prev: np.ndarray, flows: np.ndarray, viewmats, times) -> FlowBatch:
+    p = prev[idx]
+    has = p >= 0
+    pi = np.where(has, p, idx)
+    return FlowBatch(flows[idx], viewmats[pi], times[pi], pi.astype(np.int32), has.astype(np.float32))
 
 
 def _batch_indices(seed: int, step: int, num_frames: int, batch: int) -> np.ndarray:
@@ -355,6 +440,7 @@ def train_stage1(
     progress: bool = True,
     log=print,
     devices=None,
+    flows: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Train stage 1. Returns {"state", "spec", "losses" (per step), "static", "time_s", "capacity"}.
 
@@ -367,13 +453,17 @@ def train_stage1(
         stop_at: stop (and checkpoint) after this step, as if interrupted (tests).
         devices: devices of the data-parallel mesh over cameras (default all; used when there are >= 2
             and train.batch_size is a multiple of their number).
+        flows: observed optical flow into each frame from its predecessor in time, [T, H, W, 2] on the
+            predecessor's grid (NaN = unknown), for the flow loss (flow.enabled and flow.weight > 0);
+            None: estimated with ``flow.method`` (cached under out_dir/flow_cache).
     """
     out = None if out_dir is None else Path(out_dir)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        (out / "config.toml").write_text(to_toml(cfg))
+        tmp = out / "config.toml.tmp"
+        tmp.write_text(to_toml(cfg))
+        os.replace(tmp, out / "config.toml")  # atomic: never a half-written config
     state, spec, ospec = initial_state(cfg, scene)
-    opt = make_optimizer(ospec, state.params["gaussians"].sh.shape[1])
     if resume:
         if out is None or not (out / ckpt.CHECKPOINT_NAME).exists():
             raise FileNotFoundError(f"--resume: no checkpoint at {out}/{ckpt.CHECKPOINT_NAME}")
@@ -396,10 +486,20 @@ def train_stage1(
         state.opt_state = jax.device_put(state.opt_state, repl_sh)
         state.densify = jax.device_put(state.densify, repl_sh)
     steps_cache: dict[StepSpec, Any] = {}
+    fc = cfg.flow
+    use_flow = fc.enabled and fc.weight > 0
+    prev = previous_frames(times)
+    if use_flow and flows is None:
+        flows = estimate_training_flows(scene, fc.method, None if out is None else out / "flow_cache", log=log)
+    if use_flow:
+        flows = np.asarray(flows, np.float32)
+        if flows.shape != (scene.num_frames, h, w, 2):
+            raise ValueError(f"flows must have shape [{scene.num_frames}, {h}, {w}, 2]; got {list(flows.shape)}")
 
-    def get_step(use_deform: bool, sh_deg: int):
+    def get_step(use_deform: bool, sh_deg: int, flow_on: bool = False):
         ss = StepSpec(spec if use_deform else None, sh_deg, w, h, state.capacity, t.tile_size, t.lambda_dssim,
-                      t.scale_reg, t.scale_reg_max, "pose" in state.params)
+                      t.scale_reg, t.scale_reg_max, "pose" in state.params,
+                      fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0)
         if ss not in steps_cache:
             steps_cache[ss] = _make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
@@ -411,6 +511,7 @@ def train_stage1(
     pending: list[tuple[Any, Any, Any]] = []
     end = t.steps if stop_at is None else min(int(stop_at), t.steps)
     t_start = time.time()
+    cpu_start = time.process_time()
     t_last, s_last = t_start, state.step
     warned_full = False
     metrics_hist = []
@@ -424,10 +525,13 @@ def train_stage1(
             else:
                 state.static = False
         use_deform = s >= t.warmup_steps and not bool(state.static)
-        step_fn = get_step(use_deform, cfg.model.sh_degree)
+        flow_on = use_flow and use_deform and s >= fc.start
+        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on)
         sh_mask = _sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         idx = _batch_indices(cfg.model.seed, s, n_frames, t.batch_size)
         batch = (images[idx], viewmats[idx], Ks[idx], times[idx], idx.astype(np.int32))
+        if flow_on:
+            batch = (*batch, _flow_batch(idx, prev, flows, viewmats, times))
         if batch_sh is not None:
             batch = jax.device_put(batch, batch_sh)
         state.params, state.opt_state, state.densify, loss, mse, bad = step_fn(
@@ -472,7 +576,8 @@ def train_stage1(
                     f"alive {int(jnp.sum(state.densify.alive))}  ETA {eta:6.0f} s")
         if test_scene is not None and t.eval_every and s1 % t.eval_every == 0:
             m = evaluate(state, spec, cfg, test_scene)
-            metrics_hist.append({"step": s1, "time_s": time.time() - t_start, **m})
+            metrics_hist.append({"step": s1, "time_s": time.time() - t_start,
+                                 "cpu_s": time.process_time() - cpu_start, **m})
             log(f"eval step {s1}: PSNR {m['psnr']:.2f} SSIM {m['ssim']:.4f} ({time.time() - t_start:.0f} s)")
         if out is not None and t.checkpoint_every and s1 % t.checkpoint_every == 0 and s1 < end:
             ckpt.save_checkpoint(out / ckpt.CHECKPOINT_NAME, state, config_toml=to_toml(cfg))
@@ -483,7 +588,8 @@ def train_stage1(
                 "normalization": scene.normalization.to_dict(), "scene_extent": extent}
         (out / "model.json").write_text(json.dumps(meta, indent=1))
     return {"state": state, "spec": spec, "losses": losses, "static": state.static,
-            "time_s": time.time() - t_start, "capacity": state.capacity, "eval_history": metrics_hist}
+            "time_s": time.time() - t_start, "cpu_s": time.process_time() - cpu_start, "capacity": state.capacity,
+            "eval_history": metrics_hist}
 
 
 def _sh_mask(active: int, max_degree: int) -> jax.Array:

@@ -241,7 +241,7 @@ def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
     for a, b in zip(order[:-1], order[1:], strict=True):
         estimate_flow(u8(train.images[a]), u8(train.images[b]), "dis_deepflow", cache_dir=cache)
     say(f"demo: optical flow of {len(order) - 1} pairs ({time.perf_counter() - t0:.1f} s)")
-    toml = repo / "experiments" / ("quick.toml" if quick else "default.toml")
+    toml = repo / "experiments" / ("demo_quick.toml" if quick else "default.toml")
     cfg = load_config(toml if toml.exists() else None, ["train.video_frames=0"] if quick else [])
     run_dir = out / "run"
     stage1.run(cfg, scene_dir, run_dir, log=say)
@@ -258,12 +258,13 @@ def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
              _label(_up(ids_to_color(ids), max(1, 240 // w)), f"{s2.num_objects} object(s) found")]
     frames = []
     for k in range(s2.num_objects):
+        raw = []
         for t in np.concatenate([np.linspace(0, 1, 9), np.linspace(1, 0, 9)[1:]]):
             vec = np.zeros((s2.num_objects, 3))
             vec[k] = stage2.cluster_vectors_at(s2, s2.traj_times[0] + t * (s2.traj_times[-1] - s2.traj_times[0]))[k]
-            frames.append(_pad16(_up(u8(stage2.render_controlled(run, vec, vm, K, w, h)), max(1, 320 // w))))
-        tiles.append(_label(_up(frames[-9], max(1, 240 // w))[: h * max(1, 240 // w), : w * max(1, 240 // w)],
-                            f"object {k + 1} moved"))
+            raw.append(u8(stage2.render_controlled(run, vec, vm, K, w, h)))
+            frames.append(_pad16(_up(raw[-1], max(1, 320 // w))))
+        tiles.append(_label(_up(raw[8], max(1, 240 // w)), f"object {k + 1} moved"))  # t = 1: end of its range
     sheet = out / "control_sheet.png"
     iio.imwrite(sheet, np.concatenate([np.pad(x, ((2, 2), (2, 2), (0, 0)), constant_values=255) for x in tiles], 1))
     print(f"run:           {run_dir} (stage 1 + stage2.npz)")

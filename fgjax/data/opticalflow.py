@@ -39,7 +39,6 @@ import json
 import math
 import os
 import re
-import secrets
 import shutil
 import sys
 import tempfile
@@ -52,6 +51,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
+
+from fgjax.io import atomic_write
 
 if TYPE_CHECKING:  # annotations only: jaxtyping costs ~0.5 s to import and the CLI should start fast
     from jaxtyping import Bool, Float, Float32, UInt8
@@ -700,21 +701,7 @@ def flow_cache_key(image0: np.ndarray, image1: np.ndarray, method: str = DEFAULT
     return h.hexdigest()
 
 
-def _atomic_write(path: Path, write: Callable[[Any], None]) -> None:
-    """Write `path` via a temporary file in the same folder and os.replace; no partial file is ever
-    visible, and nothing is left behind on failure."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
-    try:
-        with open(tmp, "xb") as f:  # 'x': never clobber; permissions follow the umask
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+_atomic_write = atomic_write  # the shared mechanism (fgjax/io.py)
 
 
 def _cache_path(cache_dir: Path, method: str, key: str) -> Path:

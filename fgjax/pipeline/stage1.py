@@ -14,7 +14,6 @@ import dataclasses
 import functools
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -27,6 +26,7 @@ import optax
 
 from fgjax.config import Config, ConfigError, load_config, to_toml
 from fgjax.gaussians import Gaussians, activate, init_from_points
+from fgjax.io import atomic_write
 from fgjax.models.deform import DeformSpec, deform_apply, deform_init
 from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
@@ -460,9 +460,7 @@ def train_stage1(
     out = None if out_dir is None else Path(out_dir)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        tmp = out / "config.toml.tmp"
-        tmp.write_text(to_toml(cfg))
-        os.replace(tmp, out / "config.toml")  # atomic: never a half-written config
+        atomic_write(out / "config.toml", lambda f: f.write(to_toml(cfg).encode()))
     state, spec, ospec = initial_state(cfg, scene)
     if resume:
         if out is None or not (out / ckpt.CHECKPOINT_NAME).exists():

@@ -37,9 +37,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -51,6 +49,7 @@ import optax
 
 from fgjax import cluster
 from fgjax.gaussians import Gaussians, activate
+from fgjax.io import atomic_write
 from fgjax.models.control_net import ControlNet, control_apply, control_init
 
 __all__ = [
@@ -151,23 +150,7 @@ class Stage2Result:
 
 def _atomic_bytes(path: Path, write) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        _unlink_quietly(tmp)
-        raise
-
-
-def _unlink_quietly(p) -> None:
-    try:
-        os.unlink(p)
-    except OSError:
-        pass
+    atomic_write(path, write)
 
 
 def _deformed_fn(spec, static: bool):

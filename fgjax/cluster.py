@@ -18,6 +18,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 __all__ = [
+    "grow_clusters",
     "otsu_threshold",
     "select_dynamic",
     "k_distances",
@@ -269,6 +270,38 @@ class ClusterReport:
     def __str__(self) -> str:
         return (f"{self.n_clusters} cluster(s) of sizes {list(self.sizes)} among {self.n_points} dynamic "
                 f"Gaussians, {self.n_noise} noise")
+
+
+def grow_clusters(
+    points: Float[np.ndarray, "M D"], labels: Int[np.ndarray, " M"], candidates: Bool[np.ndarray, " M"], eps: float,
+    *, max_rounds: int = 50,
+) -> Int[np.ndarray, " M"]:
+    """Hysteresis region growing: unlabelled `candidates` within `eps` of a labelled point join its cluster.
+
+    Repeats until nothing changes (or `max_rounds`), so chains of candidates connected to a cluster join
+    it; a candidate joins the cluster of its nearest labelled point. Labels -1 = none; non-candidates
+    never change. Returns the new labels [M]."""
+    pts = _points(points, "points")
+    lab = np.asarray(labels, np.int64).copy()
+    cand = np.asarray(candidates, bool)
+    if lab.shape != (len(pts),) or cand.shape != (len(pts),):
+        raise ValueError(f"grow_clusters: labels and candidates must have shape [{len(pts)}], got {lab.shape}, "
+                         f"{cand.shape}")
+    if not eps > 0:
+        raise ValueError(f"grow_clusters: eps must be > 0, got {eps}")
+    from scipy.spatial import cKDTree
+
+    for _ in range(max_rounds):
+        have = np.flatnonzero(lab >= 0)
+        todo = np.flatnonzero(cand & (lab < 0))
+        if len(have) == 0 or len(todo) == 0:
+            break
+        d, j = cKDTree(pts[have]).query(pts[todo], k=1, distance_upper_bound=eps)
+        hit = np.isfinite(d)
+        if not np.any(hit):
+            break
+        lab[todo[hit]] = lab[have[j[hit]]]
+    return lab
 
 
 def cluster_report(labels: Int[np.ndarray, " M"]) -> ClusterReport:

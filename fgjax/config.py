@@ -38,7 +38,14 @@ class ModelConfig:
     sh_degree: int = 3
     """Highest SH degree (0..3)."""
     init_points: int = 20000
-    """Random initial Gaussians in the scene box (no SfM points needed)."""
+    """Initial Gaussians (no SfM points needed; see `init`)."""
+    init: str = "flow"
+    """"flow": points triangulated from optical flow between posed frames (`fgjax.pipeline.init_points`),
+    topped up with random points; "random": random points in the scene box that some camera sees."""
+    init_random_fraction: float = 0.2
+    """With init = "flow": this fraction of the initial points is random (covers untextured regions)."""
+    init_flow_gap: int = 4
+    """With init = "flow": frame offset of the triangulated pairs."""
     capacity: int = 60000
     """Fixed number of Gaussian slots (densification stops when full)."""
     init_opacity: float = 0.1
@@ -102,8 +109,16 @@ class TrainConfig:
     """Weight of the scale regulariser mean(relu(max scale - scale_reg_max))."""
     scale_reg_max: float = 0.05
     """Scales above this (scene units) are penalised."""
+    rigid_weight: float = 0.0
+    """Weight of the isometry regulariser on the deformation (``fgjax.train.losses.isometry_loss``: neighbour
+    distances keep their canonical length; 0: off)."""
+    rigid_scale_weight: float = 0.0
+    """Weight of ``fgjax.train.losses.scale_change_loss`` (deformed Gaussians keep their sizes; 0: off)."""
+    rigid_neighbours: int = 8
+    """Neighbours per Gaussian in that regulariser (graph rebuilt after each densification)."""
     coarse_to_fine: int = 0
-    """If > 0: render at half resolution for this many steps first."""
+    """If > 0: the first this-many steps train on 2x2-averaged images at half resolution (cheaper steps;
+    the flow loss waits for full resolution)."""
     log_every: int = 100
     """Host sync / progress line every n steps."""
     eval_every: int = 0

@@ -52,6 +52,7 @@ __all__ = [
     "composited_inverse_depth",
     "lemma1_residual",
     "flow_loss",
+    "gaussian_flow_loss",
     "warp_backward",
 ]
 
@@ -742,6 +743,48 @@ def flow_loss(
             raise ValueError(f"valid must have shape {list(err.shape)}; got {list(valid.shape)}.")
         w = valid.astype(err.dtype)
     return jnp.sum(w * err) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def gaussian_flow_loss(
+    means0: Float[ArrayLike, "N 3"],
+    quats0: Float[ArrayLike, "N 4"],
+    scales0: Float[ArrayLike, "N 3"],
+    opacities: Float[ArrayLike, " N"],
+    means1: Float[ArrayLike, "N 3"],
+    viewmat0: Float[ArrayLike, "4 4"],
+    viewmat1: Float[ArrayLike, "4 4"],
+    K: Float[ArrayLike, "3 3"],
+    flow: Float[ArrayLike, "H W 2"],
+    width: int,
+    height: int,
+    *,
+    threshold: float | None = None,
+    min_alpha: float = 0.5,
+    capacity: int | None = None,
+    tile_size: int = 8,
+) -> tuple[Float[Array, ""], Bool[Array, ""]]:
+    """L_uGS of one frame pair from Gaussians (DESIGN section 1, step 4): (loss, overflow flag).
+
+    u~_GS is ``dynamic_gaussian_flow`` of the frame t-1 Gaussians (``means0, quats0, scales0``,
+    activated) moving to ``means1``, both projected with camera t-1 (``viewmat0``); u_cam is the exact
+    ``reprojection_flow`` of their composited depth (1 / composited inverse depth, so Lemma 1's Delta
+    vanishes) from camera t-1 to camera t (``viewmat1``), held fixed (stop-gradient), as are the alpha
+    and depth maps. Valid pixels: rendered alpha > ``min_alpha``, a finite observed ``flow`` (NaN =
+    unknown) and a reprojection in front of camera t. Gradients reach the Gaussians through u~_GS.
+    """
+    maps = dynamic_gaussian_flow(means0, quats0, scales0, opacities, means1, viewmat0, K, width, height,
+                                 capacity=capacity, tile_size=tile_size)
+    inv_d = jax.lax.stop_gradient(maps.inv_depth)
+    ok = inv_d > 1e-6
+    depth = jnp.where(ok, 1.0 / jnp.where(ok, inv_d, 1.0), 0.0)  # [H, W]
+    u_cam, cam_ok = reprojection_flow(depth, K, geometry.se3_inverse(_float(viewmat0)),
+                                      geometry.se3_inverse(_float(viewmat1)))
+    u_obs = _float(flow)
+    known = jnp.all(jnp.isfinite(u_obs), axis=-1)
+    valid = cam_ok & known & (jax.lax.stop_gradient(maps.alpha) > min_alpha)
+    loss = flow_loss(jnp.where(known[..., None], u_obs, 0.0), jax.lax.stop_gradient(u_cam), maps.flow, valid,
+                     threshold=threshold)
+    return loss, maps.overflow
 
 
 @jax.jit

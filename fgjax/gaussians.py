@@ -23,6 +23,7 @@ __all__ = [
     "init_random",
     "init_from_points",
     "rgb_to_sh0",
+    "knn_graph",
     "SH_C0",
 ]
 
@@ -93,6 +94,27 @@ def _knn_scale(points: np.ndarray, k: int = 3) -> np.ndarray:
         return np.full(len(points), 0.01)
     d, _ = cKDTree(points).query(points, k=k + 1)
     return np.maximum(d[:, 1:].mean(axis=1), 1e-4)
+
+
+def knn_graph(means: Float[ArrayLike, "N 3"], alive: Bool[ArrayLike, " N"], k: int = 8
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The k nearest live neighbours of every live slot (host-side, scipy KD-tree), with static shapes.
+
+    Returns (indices [N, k] int32, weights [N, k] float32): weight 1 for a real pair of live slots, 0 for
+    dead slots and padding (index 0). Used by the isometry regulariser (``fgjax.train.losses``)."""
+    pts = np.asarray(means, np.float64)
+    live = np.flatnonzero(np.asarray(alive))
+    n = len(pts)
+    idx = np.zeros((n, k), np.int32)
+    w = np.zeros((n, k), np.float32)
+    kk = min(k, len(live) - 1)
+    if kk >= 1:
+        from scipy.spatial import cKDTree
+
+        _, nb = cKDTree(pts[live]).query(pts[live], k=kk + 1)
+        idx[live, :kk] = live[nb[:, 1:]]
+        w[live, :kk] = 1.0
+    return idx, w
 
 
 def init_from_points(

@@ -610,6 +610,43 @@ def test_one_moving_gaussian_dynamic_flow():
 
 
 @needs_rasterizer
+def test_gaussian_flow_loss_composes_camera_and_object_flow():
+    """fgjax.flow.gaussian_flow_loss on test_one_moving_gaussian_dynamic_flow's case (a), where the observed
+    flow is exactly the composited centre flow: the loss is 0 (1e-7 px) when the model moves the Gaussian
+    as observed, equals mean |u - u_cam| over valid pixels when it does not move it, ignores NaN (unknown)
+    flow, and its gradient reaches the moving centres (finite, non-zero)."""
+    c2w0, means, p_cam, quats, scales, opac = _scene()
+    view0 = g.se3_inverse(c2w0)
+    k = int(jnp.argmin(p_cam[:, 2]))
+    c2w1 = c2w0 @ g.make_pose(jnp.eye(3), jnp.array([0.3, -0.2, 0.0]))
+    view1 = g.se3_inverse(c2w1)
+    d_world = jnp.zeros((N, 3)).at[k].set(c2w0[:3, :3] @ jnp.array([0.2, 0.1, 0.0]))
+    d_i = _centre_flow(means, view0, view1, means + d_world)
+    img, alpha, _ = _render(means, quats, scales, opac, d_i, view0)
+    u_obs = img[..., :2]  # composited centre flow (background at infinity: no flow under pure translation)
+    kw = dict(capacity=CAP, tile_size=16)
+    lf = lambda m1, obs: fl.gaussian_flow_loss(means, quats, scales, opac, m1, view0, view1, K_SMALL, obs, W, H, **kw)
+    loss, overflow = lf(means + d_world, u_obs)
+    assert not bool(overflow)
+    assert float(loss) < 1e-7, float(loss)
+    # the model does not move: the loss is the observed object flow's mean L1 over valid pixels
+    still, _ = lf(means, u_obs)
+    maps = fl.dynamic_gaussian_flow(means, quats, scales, opac, means + d_world, view0, K_SMALL, W, H, **kw)
+    depth = 1.0 / maps.inv_depth
+    u_cam, cam_ok = fl.reprojection_flow(depth, K_SMALL, c2w0, c2w1)
+    valid = cam_ok & (maps.alpha > 0.5)
+    expect = jnp.sum(jnp.where(valid, jnp.abs(u_obs - u_cam).sum(-1), 0.0)) / jnp.sum(valid)
+    assert float(still) > 0.05
+    np.testing.assert_allclose(float(still), float(expect), rtol=1e-6)
+    # unknown flow (NaN) is ignored, not propagated
+    nan_obs = u_obs.at[: H // 2].set(jnp.nan)
+    l_nan, _ = lf(means, nan_obs)
+    assert np.isfinite(float(l_nan)) and float(l_nan) > 0
+    grad = jax.grad(lambda m1: lf(m1, nan_obs)[0])(means)
+    assert bool(jnp.all(jnp.isfinite(grad))) and float(jnp.abs(grad[k]).max()) > 0
+
+
+@needs_rasterizer
 def test_anisotropic_flow_single_gaussian_is_affine():
     """One visible Gaussian (others at opacity 0) that moves and grows: the anisotropic map divided by alpha is
     the affine GaussianFlow term (M - I)(m - mu0) + dmu at every pixel centre it paints (1e-8 px), with M

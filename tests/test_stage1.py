@@ -320,3 +320,52 @@ def test_pose_refinement_off_by_default_and_moves_noisy_poses_towards_truth():
     assert np.all(np.isfinite(np.asarray(params["pose"])))
     assert np.mean(losses[-4:]) < 0.7 * np.mean(losses[:4])
     assert err(params) < 0.6 * e0
+
+
+def test_coarse_to_fine_and_no_recompilation_as_the_count_changes(monkeypatch):
+    """The first `coarse_to_fine` steps run a half-resolution step; with a fixed tile capacity each step
+    function compiles exactly once although densification changes the number of live Gaussians."""
+    made = []
+    orig = stage1._make_step
+
+    def recording(ss, *a):
+        fn = orig(ss, *a)
+        made.append((ss, fn))
+        return fn
+
+    monkeypatch.setattr(stage1, "_make_step", recording)
+    scene = _tiny_scene(True)
+    logs = []
+    cfg = _cfg("train.steps=24", "train.coarse_to_fine=6", "train.warmup_steps=4", "densify.start=2",
+               "densify.stop=22", "densify.every=2", "densify.grad_threshold=0", "static.force=dynamic",
+               "train.tile_capacity=32768", "train.log_every=4")
+    res = stage1.train_stage1(cfg, scene, None, progress=False, log=logs.append)
+    assert np.all(np.isfinite(res["losses"]))
+    sizes = {(ss.width, ss.height) for ss, _ in made}
+    assert sizes == {(16, 12), (32, 24)}, sizes
+    n0 = cfg.model.init_points
+    assert int(jnp.sum(res["state"].densify.alive)) != n0  # densification changed the count...
+    assert res["capacity"] == 32768
+    for ss, fn in made:  # ...and no step function was traced twice
+        assert fn._cache_size() == 1, (ss.width, ss.spec is None)
+    # tiny images are not halved: one clear line, then full-resolution steps only
+    made.clear()
+    small = _tiny_scene(True, w=20, h=14)
+    logs = []
+    stage1.train_stage1(_cfg("train.steps=4", "train.coarse_to_fine=2", "densify.enabled=false"), small, None,
+                        progress=False, log=logs.append)
+    assert any("coarse-to-fine skipped" in m for m in logs)
+    assert {(ss.width, ss.height) for ss, _ in made} == {(20, 14)}
+
+
+def test_isometry_regulariser_enters_the_deformation_steps():
+    """train.rigid_weight > 0 adds the isometry loss once the deformation is on (not in the warm-up)."""
+    scene = _tiny_scene(True)
+    common = ["train.steps=10", "train.warmup_steps=4", "densify.enabled=false", "static.force=dynamic"]
+    a = stage1.train_stage1(_cfg(*common), scene, None, progress=False, log=lambda *_: None)
+    b = stage1.train_stage1(_cfg(*common, "train.rigid_weight=10", "train.rigid_scale_weight=1"), scene, None, progress=False,
+                            log=lambda *_: None)
+    la, lb = np.asarray(a["losses"]), np.asarray(b["losses"])
+    assert np.all(np.isfinite(lb))
+    np.testing.assert_array_equal(la[:4], lb[:4])  # warm-up: identical
+    assert np.any(la[5:] != lb[5:])

@@ -25,12 +25,12 @@ import numpy as np
 import optax
 
 from fgjax.config import Config, ConfigError, load_config, to_toml
-from fgjax.gaussians import Gaussians, activate, init_from_points
+from fgjax.gaussians import Gaussians, activate, init_from_points, knn_graph
 from fgjax.io import atomic_write
 from fgjax.models.deform import DeformSpec, deform_apply, deform_init
 from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
-from fgjax.train.losses import photometric_loss, scale_regularizer
+from fgjax.train.losses import isometry_loss, photometric_loss, scale_change_loss, scale_regularizer
 from fgjax.train.optim import OptimSpec, active_sh_degree, make_optimizer
 
 __all__ = ["train_stage1", "TrainState", "render_params", "scene_box", "main", "deform_spec_from_config", "FlowBatch",
@@ -88,19 +88,18 @@ def _visible_any(points, viewmats, Ks, width, height):
     return vis
 
 
-def init_gaussians(cfg: Config, scene, key) -> tuple[Gaussians, jax.Array]:
-    """Random points in the scene box that some training camera sees; colours from that camera's pixel."""
-    lo, hi = scene_box(scene.viewmats, scene.Ks, scene.width, scene.height)
-    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).astype(np.uint64).tolist())
-    want = cfg.model.init_points
+def _random_points(rng, want: int, lo, hi, scene) -> np.ndarray:
     pts = np.zeros((0, 3))
     for _ in range(20):
         cand = lo + rng.uniform(size=(want * 2, 3)) * (hi - lo)
         pts = np.concatenate([pts, cand[_visible_any(cand, scene.viewmats, scene.Ks, scene.width, scene.height)]])
         if len(pts) >= want:
             break
-    pts = pts[:want]
-    # colour: the pixel of the first camera that sees the point (a cheap, depth-free guess)
+    return pts[:want]
+
+
+def _first_view_colors(pts, scene) -> np.ndarray:
+    """Colour of each point: the pixel of the first camera that sees it (a cheap, depth-free guess)."""
     cols = np.full((len(pts), 3), 0.5)
     vm, K = scene.viewmats[0], scene.Ks[0]
     p = pts @ vm[:3, :3].T + vm[:3, 3]
@@ -109,6 +108,34 @@ def init_gaussians(cfg: Config, scene, key) -> tuple[Gaussians, jax.Array]:
     v = np.floor(K[1, 1] * p[:, 1] / z + K[1, 2]).astype(np.int64)
     ok = np.isfinite(z) & (u >= 0) & (u < scene.width) & (v >= 0) & (v < scene.height)
     cols[ok] = scene.images[0][v[ok], u[ok]]
+    return cols
+
+
+def init_gaussians(cfg: Config, scene, key, log=print, cache_dir=None) -> tuple[Gaussians, jax.Array]:
+    """Initial Gaussians: points triangulated from optical flow (``model.init = "flow"``, with a fraction of
+    random points), or random points in the scene box that some training camera sees."""
+    lo, hi = scene_box(scene.viewmats, scene.Ks, scene.width, scene.height)
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).astype(np.uint64).tolist())
+    want = cfg.model.init_points
+    pts, cols = np.zeros((0, 3)), np.zeros((0, 3))
+    if cfg.model.init not in ("flow", "random"):
+        raise ConfigError(f"config key 'model.init' must be 'flow' or 'random'; got {cfg.model.init!r}")
+    flow_ok = scene.num_frames > 1 and min(scene.width, scene.height) >= 16  # optical flow needs 16x16
+    if cfg.model.init == "flow" and not flow_ok:
+        log(f"model.init = flow: {scene.num_frames} frame(s) of {scene.width}x{scene.height} are too few or too "
+            "small for optical flow; using random points")
+    if cfg.model.init == "flow" and flow_ok:
+        from fgjax.pipeline.init_points import flow_point_cloud
+
+        pc = flow_point_cloud(scene, gap=cfg.model.init_flow_gap, cache_dir=cache_dir, log=log)
+        c, r = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        inside = np.all(np.abs(pc["points"] - c) <= 2.0 * r, axis=-1)  # drop far-off mismatches
+        n_flow = min(int(inside.sum()), int(round(want * (1.0 - cfg.model.init_random_fraction))))
+        sel = rng.choice(np.flatnonzero(inside), size=n_flow, replace=False) if n_flow else np.zeros(0, int)
+        pts, cols = pc["points"][sel], pc["colors"][sel]
+    rnd = _random_points(rng, want - len(pts), lo, hi, scene)
+    pts = np.concatenate([pts, rnd])
+    cols = np.concatenate([cols, _first_view_colors(rnd, scene)])
     cap = max(cfg.model.capacity, len(pts))
     return init_from_points(pts, cols, capacity=cap, sh_degree=cfg.model.sh_degree,
                             init_opacity=cfg.model.init_opacity, scale_factor=cfg.model.init_scale)
@@ -150,7 +177,8 @@ def render_params(
     params, alive, viewmat, K, t, *, spec: DeformSpec | None, sh_degree: int, width: int, height: int,
     background, capacity: int | None, tile_size: int = 8, delta2d=None, render_depth: bool = False, sh_mask=None,
 ):
-    """Render the model at time t from one camera: (image [H, W, 3], alpha, info, log_scales).
+    """Render the model at time t from one camera: (image [H, W, 3], alpha, info, geometry) with geometry =
+    {"means": deformed centres [N, 3], "log_scales": deformed log-scales [N, 3]}.
 
     ``delta2d`` [N, 2] (zeros) shifts each Gaussian by that many pixels on screen (a camera-space
     offset proportional to depth); its gradient is the screen-space gradient densification needs.
@@ -158,6 +186,7 @@ def render_params(
     from fgjax.render.api import rasterization, spherical_harmonics
 
     means, q, s, o, log_scales = _deformed(params, alive, t, spec)
+    geometry = {"means": means, "log_scales": log_scales}
     rot = viewmat[:3, :3]
     if delta2d is not None:
         z = means @ rot[2] + viewmat[2, 3]  # [N]
@@ -172,7 +201,7 @@ def render_params(
         means, q, s, o, colors, viewmat, K, width, height, background=background, capacity=capacity,
         tile_size=tile_size, render_depth=render_depth,
     )
-    return img, alpha, info, log_scales
+    return img, alpha, info, geometry
 
 
 # ---------------------------------------------------------------------------------------------
@@ -194,6 +223,8 @@ class StepSpec:
     pose: bool
     flow_weight: float = 0.0  # beta of L_uGS (0: no flow pass; the step then takes no flow batch)
     flow_threshold: float = 0.0  # |u - u_cam| below this (pixels) counts as static (0: off)
+    rigid_weight: float = 0.0  # weight of the isometry regulariser (needs the neighbour graph; deformation only)
+    rigid_scale_weight: float = 0.0  # weight of the scale-change regulariser (deformation only)
 
 
 class FlowBatch(NamedTuple):
@@ -207,15 +238,9 @@ class FlowBatch(NamedTuple):
 
 
 def _flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
-    """L_uGS of one camera (DESIGN section 1, step 4): ||u - u_cam - u~_GS|| over valid pixels.
-
-    u~_GS is the dynamic Gaussian flow (``fgjax.flow.dynamic_gaussian_flow``: both frames' deformed centres
-    projected with camera t-1); u_cam the exact reprojection flow (``fgjax.flow.reprojection_flow``) of the
-    composited depth of frame t-1 from camera t-1 to camera t, held fixed (stop-gradient); valid pixels are
-    covered (alpha > 0.5), have a known observed flow and reproject in front of camera t.
-    Returns (weighted loss, overflow flag)."""
-    from fgjax.flow import dynamic_gaussian_flow, flow_loss, reprojection_flow
-    from fgjax.geometry import se3_inverse
+    """L_uGS of one camera (``fgjax.flow.gaussian_flow_loss``): the model deformed to t-1 and t, both seen
+    by camera t-1. Returns (weighted loss, overflow flag)."""
+    from fgjax.flow import gaussian_flow_loss
 
     vm_prev = fl.viewmat_prev
     if ss.pose:
@@ -224,18 +249,10 @@ def _flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
         vm_prev = se3_exp(params["pose"][fl.idx_prev]) @ vm_prev
     m0, q0, s0, o0, _ = _deformed(params, alive, fl.t_prev, ss.spec)
     m1 = _deformed(params, alive, t, ss.spec)[0]
-    maps = dynamic_gaussian_flow(m0, q0, s0, o0, m1, vm_prev, K, ss.width, ss.height, capacity=ss.capacity,
-                                 tile_size=ss.tile_size)
-    inv_d = jax.lax.stop_gradient(maps.inv_depth)
-    ok = inv_d > 1e-6
-    depth = jnp.where(ok, 1.0 / jnp.where(ok, inv_d, 1.0), 0.0)  # composited inverse depth (Lemma 1: Delta = 0)
-    u_cam, cam_ok = reprojection_flow(depth, K, se3_inverse(vm_prev), se3_inverse(viewmat))
-    u_obs = fl.flow
-    known = jnp.all(jnp.isfinite(u_obs), axis=-1)
-    valid = cam_ok & known & (jax.lax.stop_gradient(maps.alpha) > 0.5)
-    loss = flow_loss(jnp.where(known[..., None], u_obs, 0.0), jax.lax.stop_gradient(u_cam), maps.flow, valid,
-                     threshold=ss.flow_threshold if ss.flow_threshold > 0 else None)
-    return fl.weight * loss, maps.overflow
+    loss, overflow = gaussian_flow_loss(m0, q0, s0, o0, m1, vm_prev, viewmat, K, fl.flow, ss.width, ss.height,
+                                        threshold=ss.flow_threshold if ss.flow_threshold > 0 else None,
+                                        capacity=ss.capacity, tile_size=ss.tile_size)
+    return fl.weight * loss, overflow
 
 
 @functools.lru_cache(maxsize=16)
@@ -245,19 +262,24 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
     optimizer = make_optimizer(ospec, num_sh)
     bg = jnp.asarray(background, jnp.float32)
 
-    def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx, fl):
+    def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx, fl, nbr):
         if ss.pose:
             from fgjax.geometry import se3_exp
 
             viewmat = se3_exp(params["pose"][idx]) @ viewmat
-        img, _, info, log_scales = render_params(
+        img, _, info, geo = render_params(
             params, alive, viewmat, K, t, spec=ss.spec, sh_degree=ss.sh_degree, width=ss.width,
             height=ss.height, background=bg, capacity=ss.capacity, tile_size=ss.tile_size, delta2d=delta2d,
             sh_mask=sh_mask,
         )
         loss = photometric_loss(img, image, ss.lambda_dssim)
         if ss.scale_reg > 0:
-            loss = loss + ss.scale_reg * scale_regularizer(log_scales, alive, ss.scale_reg_max)
+            loss = loss + ss.scale_reg * scale_regularizer(geo["log_scales"], alive, ss.scale_reg_max)
+        if nbr is not None:  # rigidity: neighbour distances keep their canonical lengths
+            loss = loss + ss.rigid_weight * isometry_loss(geo["means"], params["gaussians"].means, *nbr)
+        if ss.rigid_scale_weight > 0 and ss.spec is not None:  # ... and Gaussian sizes their canonical values
+            loss = loss + ss.rigid_scale_weight * scale_change_loss(geo["log_scales"], params["gaussians"].log_scales,
+                                                                    alive)
         overflow = info["overflow"]
         if fl is not None:
             lf, of = _flow_term(ss, params, alive, viewmat, K, t, fl)
@@ -266,18 +288,20 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
         mse = jnp.mean((img - image) ** 2)
         return loss, (mse, overflow, info["valid"])
 
-    def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx, fl):
-        losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0))(
-            params, alive, sh_mask, delta2d, images, viewmats, Ks, times, idx, fl)
+    def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx, fl, nbr):
+        losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0, None))(
+            params, alive, sh_mask, delta2d, images, viewmats, Ks, times, idx, fl, nbr)
         return jnp.mean(losses), aux
 
-    def step(params, opt_state, dstate: DensifyState, sh_mask, images, viewmats, Ks, times, idx, flow_batch=None):
+    def step(params, opt_state, dstate: DensifyState, sh_mask, images, viewmats, Ks, times, idx, flow_batch=None,
+             nbr=None):
         b = images.shape[0]
         n = params["gaussians"].means.shape[0]
         delta2d = jnp.zeros((b, n, 2), jnp.float32)
         fl = flow_batch if (ss.flow_weight > 0 and ss.spec is not None) else None
+        nbr = nbr if (ss.rigid_weight > 0 and ss.spec is not None) else None
         (loss, (mse, overflow, valid)), (grads, g2d) = jax.value_and_grad(batch_loss, argnums=(0, 1), has_aux=True)(
-            params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx, fl)
+            params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx, fl, nbr)
         bad = jnp.any(overflow) | ~jnp.isfinite(loss)
         updates, new_opt = optimizer.update(grads, opt_state, params)
         new_params = optax.apply_updates(params, updates)
@@ -361,10 +385,10 @@ def _mesh_shardings(batch: int, devices=None):
     return NamedSharding(mesh, PartitionSpec("cams")), NamedSharding(mesh, PartitionSpec())
 
 
-def initial_state(cfg: Config, scene) -> tuple[TrainState, DeformSpec, OptimSpec]:
+def initial_state(cfg: Config, scene, log=print, cache_dir=None) -> tuple[TrainState, DeformSpec, OptimSpec]:
     key = jax.random.key(cfg.model.seed)
     k_init, k_def, key = jax.random.split(key, 3)
-    g, alive = init_gaussians(cfg, scene, k_init)
+    g, alive = init_gaussians(cfg, scene, k_init, log=log, cache_dir=cache_dir)
     lo, hi = scene_box(scene.viewmats, scene.Ks, scene.width, scene.height)
     spec = deform_spec_from_config(cfg, np.concatenate([lo, hi]))
     params: dict[str, Any] = {"gaussians": g, "deform": deform_init(k_def, spec)}
@@ -461,7 +485,7 @@ def train_stage1(
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         atomic_write(out / "config.toml", lambda f: f.write(to_toml(cfg).encode()))
-    state, spec, ospec = initial_state(cfg, scene)
+    state, spec, ospec = initial_state(cfg, scene, log=log, cache_dir=None if out is None else out / "flow_cache")
     if resume:
         if out is None or not (out / ckpt.CHECKPOINT_NAME).exists():
             raise FileNotFoundError(f"--resume: no checkpoint at {out}/{ckpt.CHECKPOINT_NAME}")
@@ -494,10 +518,23 @@ def train_stage1(
         if flows.shape != (scene.num_frames, h, w, 2):
             raise ValueError(f"flows must have shape [{scene.num_frames}, {h}, {w}, 2]; got {list(flows.shape)}")
 
-    def get_step(use_deform: bool, sh_deg: int, flow_on: bool = False):
-        ss = StepSpec(spec if use_deform else None, sh_deg, w, h, state.capacity, t.tile_size, t.lambda_dssim,
+    # coarse-to-fine: the first `train.coarse_to_fine` steps see 2x2-averaged images and halved intrinsics
+    # (pixel centres at +0.5 map exactly: new pixel j covers old pixels 2j, 2j + 1)
+    w2, h2 = w // 2, h // 2
+    coarse = t.coarse_to_fine > 0 and w2 >= 8 and h2 >= 8
+    if coarse:
+        images_lo = images[:, :2 * h2, :2 * w2].reshape(-1, h2, 2, w2, 2, 3).mean(axis=(2, 4))
+        Ks_lo = Ks.copy()
+        Ks_lo[:, :2, :] *= 0.5
+    elif t.coarse_to_fine > 0:
+        log(f"coarse-to-fine skipped: {w}x{h} images are too small to halve")
+
+    def get_step(use_deform: bool, sh_deg: int, flow_on: bool = False, lo: bool = False):
+        sw, sh_ = (w2, h2) if lo else (w, h)
+        ss = StepSpec(spec if use_deform else None, sh_deg, sw, sh_, state.capacity, t.tile_size, t.lambda_dssim,
                       t.scale_reg, t.scale_reg_max, "pose" in state.params,
-                      fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0)
+                      fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
+                      t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0)
         if ss not in steps_cache:
             steps_cache[ss] = _make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
@@ -513,6 +550,7 @@ def train_stage1(
     t_last, s_last = t_start, state.step
     warned_full = False
     metrics_hist = []
+    graph = None  # (indices [N, k], weights [N, k]) for the isometry regulariser
     while state.step < end:
         s = state.step
         if state.static is None and s >= t.warmup_steps:
@@ -523,17 +561,26 @@ def train_stage1(
             else:
                 state.static = False
         use_deform = s >= t.warmup_steps and not bool(state.static)
-        flow_on = use_flow and use_deform and s >= fc.start
-        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on)
+        lo = coarse and s < t.coarse_to_fine
+        flow_on = use_flow and use_deform and s >= fc.start and not lo
+        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo)
         sh_mask = _sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         idx = _batch_indices(cfg.model.seed, s, n_frames, t.batch_size)
-        batch = (images[idx], viewmats[idx], Ks[idx], times[idx], idx.astype(np.int32))
+        batch = ((images_lo if lo else images)[idx], viewmats[idx], (Ks_lo if lo else Ks)[idx], times[idx],
+                 idx.astype(np.int32))
         if flow_on:
             batch = (*batch, _flow_batch(idx, prev, flows, viewmats, times))
         if batch_sh is not None:
             batch = jax.device_put(batch, batch_sh)
+        nbr = None
+        if use_deform and t.rigid_weight > 0:
+            if graph is None:  # the canonical neighbour graph, rebuilt when densification changes the set
+                graph = knn_graph(state.params["gaussians"].means, state.densify.alive, t.rigid_neighbours)
+                if repl_sh is not None:
+                    graph = jax.device_put(graph, repl_sh)
+            nbr = graph
         state.params, state.opt_state, state.densify, loss, mse, bad = step_fn(
-            state.params, state.opt_state, state.densify, sh_mask, *batch)
+            state.params, state.opt_state, state.densify, sh_mask, *batch, nbr=nbr)
         pending.append((loss, mse, bad))
         state.step += 1
         s1 = state.step
@@ -546,6 +593,7 @@ def train_stage1(
                 prune_max_scale=d.max_world_scale * extent if 0 < d.reset_every < s1 else 1e9,
             )
             state.params = {**state.params, "gaussians": g}
+            graph = None
             if bool(state.densify.full) and not warned_full:
                 warned_full = True
                 log(f"densify: capacity reached ({g.means.shape[0]} Gaussian slots all in use); "

@@ -25,8 +25,9 @@ The pipeline never reads ground truth (no ``gt/``): only the training images, po
    Opacities and colours are stage 1's and are not trained. Θ is fitted in two phases:
    (a) distillation: ||ΔG_i(v(t)) - (G_i(t) - G_i(t0))||² over the training times, the stage-1
    deformation as teacher (cheap: no rendering); (b) the photometric loss 0.8 L1 + 0.2 (1 - SSIM)
-   of controlled renders with v = v_c(t, ·) against the training images. The flow loss L_uGS is
-   not used here yet (see the report in stage2.json: ``"flow_loss": false``).
+   of controlled renders with v = v_c(t, ·) against the training images, plus beta L_uGS
+   (`fgjax.flow.gaussian_flow_loss`) of consecutive frames: the controlled scene at v_c(t-1, ·) and
+   v_c(t, ·), both seen by camera t-1, against the observed flow minus the camera flow.
 
 Outputs are written atomically: RUN/stage2.npz (the authoritative result: labels, scores,
 trajectories, control parameters, metadata as JSON) and RUN/stage2.json (a readable summary).
@@ -102,12 +103,25 @@ class Stage2Config:
     """Clusters smaller than this fraction of D are dropped."""
     auto_eps: bool = False
     """Choose eps from the k-distance curve."""
+    grow_fraction: float = 0.3
+    """Hysteresis: Gaussians scoring at least this fraction of the score threshold join a cluster they touch
+    (within eps, chained; `fgjax.cluster.grow_clusters`); 0: off. Discovery scores only the fastest-moving
+    pixels of a part (a door near its hinge barely moves), so a part's cluster starts as its fast edge."""
+    trajectories: str = "flow"
+    """Where the objects' motion comes from: "flow" (rigid poses tracked from optical flow,
+    `fgjax.pipeline.track`) or "deformation" (the stage-1 deformation field)."""
     hidden: int = 64
     depth: int = 3
     n_freqs_x: int = 6
     n_freqs_v: int = 4
     distill_steps: int = 500
+    distill_batch: int = 8
+    """Training times per distillation step (a random minibatch)."""
     photo_steps: int = 200
+    flow_weight: float = 0.01
+    """beta of L_uGS in the photometric phase (0: photometric loss only)."""
+    flow_threshold: float = 0.5
+    """|u - u_cam| below this (pixels) counts as static in L_uGS (0: off)."""
     lr: float = 2e-3
     seed: int = 0
 
@@ -329,12 +343,15 @@ def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: f
 
     One-hot cluster features (channel 0 for every Gaussian outside the clusters, channel k for
     cluster k - 1) are composited like colour; a pixel takes the argmax channel, and 0 where the
-    rendered alpha is below `alpha_threshold`. Geometry: the stage-1 model at time `t`
-    (default: the reference time), or the controlled scene for `vectors` [K, 3] when given.
+    rendered alpha is below `alpha_threshold`. Geometry: the controlled scene for `vectors` [K, 3]
+    when given, else for the objects' trajectory vectors v_c(t, k) at time `t` (default: the reference
+    time); the stage-1 model at `t` when no object was found.
     """
     s2 = run.s2
     if s2 is None:
         raise Stage2Error("render_clusters needs stage-2 results")
+    if vectors is None and s2.num_objects > 0:  # the stage-2 scene at time t: each object at v_c(t, k)
+        vectors = cluster_vectors_at(s2, s2.t0 if t is None else float(t))
     if vectors is not None:
         geo = controlled_gaussians(s2.control, run.deformed(s2.t0), run.state.params["gaussians"].means,
                                    jnp.asarray(s2.labels), jnp.asarray(np.asarray(vectors).reshape(-1, 3), jnp.float32))
@@ -430,9 +447,29 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
     return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))
 
 
+def _tracked_geometry(run: LoadedRun, scene, order, labels: np.ndarray, num_objects: int, flows, log=print):
+    """The reference scene (stage 1 at t0) with each object moved by its tracked rigid pose, per training
+    time (time order): (means [T, N, 3], raw quats [T, N, 4], log-scales [T, N, 3])."""
+    from fgjax.pipeline.track import track_objects, transform_gaussians
+
+    t0 = float(scene.times[order[0]])
+    m0, q0, ls0 = run.deformed(t0)
+    qa, sa, oa = activate(_with_geometry(run.state.params, m0, q0, ls0)["gaussians"], run.state.densify.alive)
+    poses = track_objects(m0, qa, sa, oa, labels, num_objects, scene.viewmats[order], scene.Ks[order], flows,
+                          scene.width, scene.height, tile_size=run.cfg.train.tile_size, log=log)
+    ms, qs = [], []
+    for j in range(len(order)):
+        m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses[:, j], jnp.float32))
+        ms.append(np.asarray(m))
+        qs.append(np.asarray(q))
+    return np.stack(ms), np.stack(qs), np.repeat(np.asarray(ls0)[None], len(order), axis=0)
+
+
 def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.ndarray, cfg: Stage2Config,
-                   centres_q_s, log=print) -> tuple[ControlNet, dict[str, Any]]:
-    """Fit Θ: distillation from the deformation field, then the photometric loss (module docstring)."""
+                   centres_q_s, flows=None, log=print) -> tuple[ControlNet, dict[str, Any]]:
+    """Fit Θ: distillation from the deformation field, then the photometric loss plus beta L_uGS (module
+    docstring). `flows` [T-1, H, W, 2]: observed flow between consecutive frames in time order (None: no
+    flow term)."""
     from fgjax.train.losses import photometric_loss
 
     k = traj.shape[0]
@@ -462,15 +499,15 @@ def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.nd
         b = control_apply(ctrl, z, x_sel)
         return tuple(u - w for u, w in zip(a, b, strict=True))
 
-    def distill_loss(ctrl):
-        d = jax.vmap(lambda vv: offsets(ctrl, vv))(v_t)
+    def distill_loss(ctrl, ti):  # ti [B]: a minibatch of training times
+        d = jax.vmap(lambda vv: offsets(ctrl, vv))(v_t[ti])
         scale2 = v_scale ** 2
-        return (jnp.mean(jnp.sum((d[0] - tgt[0]) ** 2, -1)) / scale2 + jnp.mean(jnp.sum((d[1] - tgt[1]) ** 2, -1))
-                + jnp.mean(jnp.sum((d[2] - tgt[2]) ** 2, -1)))
+        return (jnp.mean(jnp.sum((d[0] - tgt[0][ti]) ** 2, -1)) / scale2
+                + jnp.mean(jnp.sum((d[1] - tgt[1][ti]) ** 2, -1)) + jnp.mean(jnp.sum((d[2] - tgt[2][ti]) ** 2, -1)))
 
     @jax.jit
-    def distill_step(ctrl, st):
-        loss, gr = jax.value_and_grad(distill_loss)(ctrl)
+    def distill_step(ctrl, st, ti):
+        loss, gr = jax.value_and_grad(distill_loss)(ctrl, ti)
         up, st = opt.update(gr, st, ctrl)
         return optax.apply_updates(ctrl, up), st, loss
 
@@ -478,8 +515,12 @@ def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.nd
     st = opt.init(control)
     loss = jnp.nan
     first = None
+    n_t = int(v_t.shape[0])
+    bsz = min(cfg.distill_batch, n_t)
+    rng_d = np.random.default_rng(cfg.seed + 1)
     for i in range(cfg.distill_steps):
-        control, st, loss = distill_step(control, st)
+        ti = jnp.asarray(rng_d.choice(n_t, size=bsz, replace=False), jnp.int32)
+        control, st, loss = distill_step(control, st, ti)
         if i == 0:
             first = float(loss)
     stats["distill"] = {"steps": cfg.distill_steps, "loss_first": first, "loss_last": float(loss),
@@ -503,13 +544,31 @@ def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.nd
     lam = float(run.cfg.train.lambda_dssim)
     opt2 = optax.adam(cfg.lr * 0.25)
 
+    beta = float(cfg.flow_weight) if flows is not None and len(order) > 1 else 0.0
+    if beta > 0:
+        flows_j = jnp.asarray(np.asarray(flows, np.float32))  # [T-1, H, W, 2]: order[j] -> order[j + 1]
+    alive = run.state.densify.alive
+
     def photo_loss(ctrl, i):
         geo = controlled_gaussians(ctrl, base, canonical, labels_j, v_t[i])
         p = _with_geometry(params, *geo)
-        img, _, info, _ = render_params(p, run.state.densify.alive, vms[i], Ks[i], 0.0, spec=None,
+        img, _, info, _ = render_params(p, alive, vms[i], Ks[i], 0.0, spec=None,
                                         sh_degree=run.cfg.model.sh_degree, width=scene.width, height=scene.height,
                                         background=bg, capacity=cap, tile_size=run.cfg.train.tile_size)
-        return photometric_loss(img, images[i], lam), info["overflow"]
+        loss, over = photometric_loss(img, images[i], lam), info["overflow"]
+        if beta > 0:  # L_uGS of the pair (i - 1, i) in time order: the controlled scene at both vectors
+            from fgjax.flow import gaussian_flow_loss
+
+            j = jnp.maximum(i - 1, 0)
+            geo0 = controlled_gaussians(ctrl, base, canonical, labels_j, v_t[j])
+            q0, s0, o0 = activate(_with_geometry(params, *geo0)["gaussians"], alive)
+            lf, of = gaussian_flow_loss(geo0[0], q0, s0, o0, geo[0], vms[j], vms[i], Ks[j], flows_j[j],
+                                        scene.width, scene.height, capacity=cap,
+                                        threshold=cfg.flow_threshold if cfg.flow_threshold > 0 else None,
+                                        tile_size=run.cfg.train.tile_size)
+            loss = loss + beta * jnp.where(i > 0, lf, 0.0)
+            over = over | of
+        return loss, over
 
     @jax.jit
     def photo_step(ctrl, st, i):
@@ -530,7 +589,7 @@ def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.nd
         n_bad += int(bad)
     losses = [float(x) for x in losses]
     stats["photometric"] = {"steps": cfg.photo_steps, "loss_first": losses[0], "loss_last_10": float(np.mean(losses[-10:])),
-                            "skipped_steps": n_bad, "time_s": time.perf_counter() - t1}
+                            "skipped_steps": n_bad, "time_s": time.perf_counter() - t1, "flow_weight": beta}
     log(f"stage 2: photometric {cfg.photo_steps} steps, loss {losses[0]:.4f} -> {np.mean(losses[-10:]):.4f} "
         f"({n_bad} skipped, {time.perf_counter() - t1:.1f} s)")
     return control, stats
@@ -579,7 +638,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     if scene.num_frames < 2:
         raise Stage2Error(f"{data_dir}: stage 2 needs at least 2 training frames, got {scene.num_frames}")
     cache = Path(cfg.flow_cache) if cfg.flow_cache else run_dir / "flow_cache"
-    disc, centres, times, (order, _, _) = discover_run(run, scene, cfg, cache, log)
+    disc, centres, times, (order, flows, _) = discover_run(run, scene, cfg, cache, log)
     n_dyn = int(disc.dynamic.sum())
     canonical = np.asarray(run.state.params["gaussians"].means)
     idx = np.flatnonzero(disc.dynamic)
@@ -589,15 +648,30 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     labels[idx] = lab_d
     report = cluster.cluster_report(lab_d)
     log(f"stage 2: {n_dyn} dynamic Gaussians (score threshold {disc.threshold:.3f}); {report}")
+    if cfg.grow_fraction > 0 and report.n_clusters:
+        eps = cluster.auto_eps(canonical[idx]) if cfg.auto_eps else cfg.eps
+        cand = np.asarray(run.state.densify.alive) & (disc.scores.score >= cfg.grow_fraction * disc.threshold)
+        before = int(np.sum(labels >= 0))
+        labels = cluster.grow_clusters(canonical, labels, cand, eps)
+        disc = disc._replace(dynamic=disc.dynamic | (labels >= 0))
+        n_dyn = int(disc.dynamic.sum())
+        report = cluster.cluster_report(labels[disc.dynamic])
+        log(f"stage 2: grown from {before} to {int(np.sum(labels >= 0))} clustered Gaussians (scores >= "
+            f"{cfg.grow_fraction * disc.threshold:.3f} within {eps:.3f} of a cluster); sizes {list(report.sizes)}")
     # trajectories and the teacher geometry over all training times (time order)
-    qs, ls = [], []
-    for t in times:
-        _, q, s = run.deformed(float(t))
-        qs.append(np.asarray(q))
-        ls.append(np.asarray(s))
+    if cfg.trajectories not in ("flow", "deformation"):
+        raise ValueError(f"Stage2Config.trajectories must be 'flow' or 'deformation'; got {cfg.trajectories!r}")
+    if cfg.trajectories == "flow" and report.n_clusters:
+        centres, qs, ls = _tracked_geometry(run, scene, order, labels, report.n_clusters, flows, log)
+    else:
+        qs, ls = [], []
+        for t in times:
+            _, q, s = run.deformed(float(t))
+            qs.append(np.asarray(q))
+            ls.append(np.asarray(s))
     traj = cluster.trajectories(centres, labels) if report.n_clusters else np.zeros((0, len(times), 3))
     control, stats = _train_control(run, scene, order, labels, traj, cfg, (centres, np.stack(qs), np.stack(ls)),
-                                    log)
+                                    flows, log)
     meta = {
         "format_version": FORMAT_VERSION,
         "data_dir": str(data_dir.resolve()),
@@ -608,7 +682,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
         "cluster_sizes": list(report.sizes),
         "num_noise": report.n_noise,
         "moving_pixel_fraction": float(disc.masks.mean()),
-        "flow_loss": False,
+        "flow_loss": bool(stats.get("photometric", {}).get("flow_weight", 0.0) > 0),
         "time_s": time.perf_counter() - t_start,
         **stats,
     }

@@ -1,4 +1,5 @@
-"""Training losses: photometric (0.8 L1 + 0.2 (1 - SSIM)), scale regulariser; the flow loss is fgjax.flow.flow_loss."""
+"""Training losses: photometric (0.8 L1 + 0.2 (1 - SSIM)), scale and isometry regularisers; the flow loss is
+fgjax.flow.flow_loss."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from fgjax.metrics import ssim
 
-__all__ = ["l1", "photometric_loss", "scale_regularizer"]
+__all__ = ["l1", "photometric_loss", "scale_regularizer", "isometry_loss", "scale_change_loss"]
 
 
 def l1(a: Float[ArrayLike, "H W C"], b: Float[ArrayLike, "H W C"]) -> Float[Array, ""]:
@@ -32,3 +33,40 @@ def scale_regularizer(
     s = jnp.exp(jnp.max(jnp.asarray(log_scales), axis=-1))
     w = jnp.asarray(weights).astype(s.dtype)
     return jnp.sum(w * jax.nn.relu(s - max_scale)) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def _safe_norm(x: Array) -> Array:
+    sq = jnp.sum(x * x, axis=-1)
+    pos = sq > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def isometry_loss(
+    means_t: Float[ArrayLike, "N 3"], means_c: Float[ArrayLike, "N 3"], nbr_idx, nbr_w: Float[ArrayLike, "N K"],
+    eps: float = 1e-6,
+) -> Float[Array, ""]:
+    """Local rigidity of a deformation: mean over neighbour pairs (i, j) of | |x_i(t) - x_j(t)| / |X_i - X_j| - 1 |.
+
+    ``means_c`` are the canonical centres X, ``means_t`` the deformed ones; ``nbr_idx`` [N, K] int and
+    ``nbr_w`` [N, K] (0 = no pair) from ``fgjax.gaussians.knn_graph``. Rigid motion (static parts, a
+    rotating door, a sliding drawer) costs nothing; stretching or shrinking a part does. In a monocular
+    video a moving part is seen from about one viewpoint per state, so its depth is ambiguous up to
+    scale; the part's size, known from the frames where it rests, then fixes it."""
+    xt = jnp.asarray(means_t)
+    xc = jax.lax.stop_gradient(jnp.asarray(means_c))
+    w = jnp.asarray(nbr_w).astype(xt.dtype)
+    d_t = _safe_norm(xt[:, None, :] - xt[nbr_idx])  # [N, K]
+    d_c = _safe_norm(xc[:, None, :] - xc[nbr_idx])
+    err = jnp.abs(d_t / (d_c + eps) - d_c / (d_c + eps))
+    return jnp.sum(w * err) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def scale_change_loss(
+    log_scales_t: Float[ArrayLike, "N 3"], log_scales_c: Float[ArrayLike, "N 3"], weights: Float[ArrayLike, " N"]
+) -> Float[Array, ""]:
+    """mean_i w_i mean_k |s_ik(t) - s_ik| in log-scale: rigid parts keep their Gaussians' sizes. Without it a
+    deformation field can fake motion by shrinking Gaussians to nothing at one place and growing others
+    elsewhere (appearance by scale), which leaves no trajectory to control."""
+    d = jnp.mean(jnp.abs(jnp.asarray(log_scales_t) - jax.lax.stop_gradient(jnp.asarray(log_scales_c))), axis=-1)
+    w = jnp.asarray(weights).astype(d.dtype)
+    return jnp.sum(w * d) / jnp.maximum(jnp.sum(w), 1.0)

@@ -1,0 +1,83 @@
+"""Training losses (fgjax.train.losses) against closed forms and finite differences."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fgjax.gaussians import knn_graph
+from fgjax.train.losses import isometry_loss, photometric_loss, scale_regularizer
+
+
+def _cloud(seed=0, n=60):
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 3))
+    alive = np.ones(n, bool)
+    alive[-7:] = False
+    return rng, x, alive
+
+
+def test_knn_graph_matches_brute_force_and_masks_dead_slots():
+    _, x, alive = _cloud()
+    idx, w = knn_graph(x, alive, 5)
+    assert idx.shape == (60, 5) and w.shape == (60, 5) and idx.dtype == np.int32
+    live = np.flatnonzero(alive)
+    d = np.linalg.norm(x[live, None] - x[None, live], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    brute = live[np.argsort(d, axis=1)[:, :5]]
+    np.testing.assert_array_equal(np.sort(idx[live], 1), np.sort(brute, 1))
+    assert np.all(w[live] == 1) and np.all(w[~alive] == 0) and np.all(alive[idx[live]])
+    # fewer live slots than k: padded with weight 0; one or none: no pairs
+    few = np.zeros(60, bool)
+    few[:3] = True
+    idx, w = knn_graph(x, few, 5)
+    assert w.sum() == 3 * 2 and np.all(w[:3, 2:] == 0)
+    assert knn_graph(x, np.zeros(60, bool), 5)[1].sum() == 0
+
+
+def test_isometry_loss_zero_for_rigid_motion_and_exact_for_scaling():
+    rng, x, alive = _cloud(1)
+    idx, w = knn_graph(x, alive, 6)
+    r = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    assert float(isometry_loss(x @ r.T + np.array([0.3, -1.0, 2.0]), x, idx, w)) < 1e-6
+    assert float(isometry_loss(1.1 * x, x, idx, w)) == pytest.approx(0.1, rel=1e-5)
+    # a dead slot moving anywhere costs nothing
+    far = x.copy()
+    far[~alive] += 100.0
+    assert float(isometry_loss(far, x, idx, w)) < 1e-9
+    # gradients: finite where points coincide, and match central differences elsewhere (float64)
+    x2 = x.copy()
+    x2[1] = x2[0]
+    g = jax.grad(lambda m: isometry_loss(m, x2, idx, w))(jnp.asarray(x2))
+    assert bool(jnp.all(jnp.isfinite(g)))
+    xt = x + 0.05 * rng.normal(size=x.shape)
+    f = lambda m: isometry_loss(m, x, idx, w)
+    g = np.asarray(jax.grad(f)(jnp.asarray(xt)))
+    d = rng.normal(size=x.shape)
+    h = 1e-6
+    fd = (float(f(xt + h * d)) - float(f(xt - h * d))) / (2 * h)
+    assert np.sum(g * d) == pytest.approx(fd, rel=1e-5)
+
+
+def test_photometric_and_scale_regulariser_values():
+    a = jnp.zeros((16, 16, 3))
+    b = jnp.full((16, 16, 3), 0.5)
+    assert float(photometric_loss(a, a)) == pytest.approx(0.0, abs=1e-12)
+    assert float(photometric_loss(a, b, 0.0)) == pytest.approx(0.5)
+    ls = jnp.log(jnp.array([[0.01, 0.02, 0.03], [0.2, 0.01, 0.01], [0.5, 0.5, 0.5]]))
+    w = jnp.array([1.0, 1.0, 0.0])
+    assert float(scale_regularizer(ls, w, 0.05)) == pytest.approx((0.0 + 0.15) / 2)
+
+
+def test_scale_change_loss():
+    from fgjax.train.losses import scale_change_loss
+
+    ls = jnp.log(jnp.full((4, 3), 0.02))
+    w = jnp.array([1.0, 1.0, 1.0, 0.0])
+    assert float(scale_change_loss(ls, ls, w)) == 0.0
+    shrunk = ls.at[0].add(-2.0).at[3].add(5.0)  # the dead slot's change is ignored
+    assert float(scale_change_loss(shrunk, ls, w)) == pytest.approx(2.0 / 3)
+    g = jax.grad(lambda x: scale_change_loss(x, ls, w))(shrunk)
+    assert bool(jnp.all(jnp.isfinite(g))) and float(jnp.abs(g[3]).max()) == 0.0

@@ -6,6 +6,7 @@ import os
 import pathlib
 
 import jax
+import numpy as np
 import pytest
 
 jax.config.update("jax_enable_x64", True)
@@ -29,3 +30,18 @@ def key():
 
 
 os.environ.setdefault("FGJAX_TEST", "1")
+
+
+def look_at(centre, target=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """OpenCV world-to-camera 4x4 of a camera at `centre` looking at `target`, world z up."""
+    c = np.asarray(centre, float)
+    z = np.asarray(target, float) - c
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    vm = np.eye(4)
+    vm[:3, :3] = np.stack([x, y, z])
+    vm[:3, 3] = -vm[:3, :3] @ c
+    return vm
+

@@ -4,20 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import look_at
 
 from fgjax.pipeline.init_points import flow_point_cloud, pixel_rays, triangulate_midpoint
-
-
-def _cam(centre, target):
-    z = np.asarray(target, float) - centre
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    vm = np.eye(4)
-    vm[:3, :3] = np.stack([x, y, z])
-    vm[:3, 3] = -vm[:3, :3] @ centre
-    return vm
 
 
 def _proj(vm, K, p):
@@ -28,7 +17,7 @@ def _proj(vm, K, p):
 def test_triangulation_recovers_points_exactly():
     rng = np.random.default_rng(0)
     K = np.array([[100.0, 0, 40], [0, 110.0, 30], [0, 0, 1]])
-    vm0, vm1 = _cam(np.array([0.0, -3.0, 0.5]), [0, 0, 0]), _cam(np.array([0.8, -2.8, 0.3]), [0.1, 0, 0])
+    vm0, vm1 = look_at(np.array([0.0, -3.0, 0.5]), [0, 0, 0]), look_at(np.array([0.8, -2.8, 0.3]), [0.1, 0, 0])
     pts = rng.uniform(-0.5, 0.5, (200, 3))
     m0, z0 = _proj(vm0, K, pts)
     m1, z1 = _proj(vm1, K, pts)

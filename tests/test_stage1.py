@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import look_at
 
 from fgjax import config as C
 from fgjax.data.scene import Scene
@@ -21,19 +22,6 @@ from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import densify_apply, densify_init
 
 QUICK = str(stage1.Path(__file__).resolve().parents[1] / "experiments" / "quick.toml")
-
-
-def _look_at(c, target=(0.0, 0.0, 0.0)):
-    z = np.asarray(target, float) - c
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    r = np.stack([x, y, z])  # world -> camera rows
-    vm = np.eye(4)
-    vm[:3, :3] = r
-    vm[:3, 3] = -r @ c
-    return vm
 
 
 def _tiny_scene(dynamic: bool, frames: int = 6, w: int = 32, h: int = 24) -> Scene:
@@ -52,7 +40,7 @@ def _tiny_scene(dynamic: bool, frames: int = 6, w: int = 32, h: int = 24) -> Sce
     times = np.linspace(0, 1, frames)
     for i, t in enumerate(times):
         a = 0.4 * (i / max(frames - 1, 1) - 0.5)
-        vm = _look_at(np.array([2.0 * np.sin(a), -2.0 * np.cos(a), 0.3]))
+        vm = look_at(np.array([2.0 * np.sin(a), -2.0 * np.cos(a), 0.3]))
         m = means.copy()
         if dynamic:
             m[:30] += np.array([0.4 * t, 0.0, 0.0])

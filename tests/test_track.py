@@ -4,24 +4,13 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+from conftest import look_at
 
 from fgjax import geometry
 from fgjax.pipeline.track import quat_multiply, rigid_increment, track_objects, transform_gaussians
 
 K = np.array([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])
 W, H = 64, 48
-
-
-def _look_at(c, target=(0.0, 0.0, 0.0)):
-    z = np.asarray(target, float) - c
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    vm = np.eye(4)
-    vm[:3, :3] = np.stack([x, y, z])
-    vm[:3, 3] = -vm[:3, :3] @ c
-    return vm
 
 
 def _project(vm, p):
@@ -57,7 +46,7 @@ def test_quaternion_product_and_transform_match_rotation_matrices():
 
 def test_rigid_increment_recovers_a_motion_despite_outliers():
     rng = np.random.default_rng(1)
-    vm = _look_at(np.array([0.0, -3.0, 0.5]))
+    vm = look_at(np.array([0.0, -3.0, 0.5]))
     pts = rng.uniform(-0.3, 0.3, (400, 3))
     true = _pose([0.05, -0.1, 0.08], [0.04, -0.02, 0.06])
     target = _project(vm, pts @ true[:3, :3].T + true[:3, 3])
@@ -110,7 +99,7 @@ def test_track_objects_recovers_rigid_poses_from_exact_flow():
     scales = np.concatenate([np.full((len(wall), 3), 0.07), np.full((len(obj), 3), 0.04)])
     opac = np.full(n, 0.9)
     t = 5
-    vms = np.stack([_look_at(np.array([0.3 * (i - 2) / 2, -3.0, 0.4])) for i in range(t)])
+    vms = np.stack([look_at(np.array([0.3 * (i - 2) / 2, -3.0, 0.4])) for i in range(t)])
     poses = np.stack([np.eye(4)] + [_pose([0.0, 0.0, 0.06 * i], [0.03 * i, 0.0, 0.02 * i]) for i in range(1, t)])
     flows = np.stack([_rendered_flow(means, quats, scales, opac, labels, poses[i], poses[i + 1], vms[i], vms[i + 1])
                       for i in range(t - 1)])

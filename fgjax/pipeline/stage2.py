@@ -103,10 +103,14 @@ class Stage2Config:
     """Clusters smaller than this fraction of D are dropped."""
     auto_eps: bool = False
     """Choose eps from the k-distance curve."""
-    grow_fraction: float = 0.3
+    grow_fraction: float = 0.0
     """Hysteresis: Gaussians scoring at least this fraction of the score threshold join a cluster they touch
-    (within eps, chained; `fgjax.cluster.grow_clusters`); 0: off. Discovery scores only the fastest-moving
-    pixels of a part (a door near its hinge barely moves), so a part's cluster starts as its fast edge."""
+    (within `grow_eps`, chained; `fgjax.cluster.grow_clusters`); 0: off (default). Discovery scores only the
+    fastest-moving pixels of a part (a door near its hinge barely moves), so a part's cluster starts as its
+    fast edge. Measured (docs/benchmarks.md): 0.3 helps the default scene a little (ARI +0.02) but lets the
+    quick demo's clusters spread into static surfaces (ARI 0.72 -> 0.33), so it is off by default."""
+    grow_eps: float = 0.05
+    """Growth radius in scene units (not the automatic DBSCAN eps, which can be much larger)."""
     trajectories: str = "flow"
     """Where the objects' motion comes from: "flow" (rigid poses tracked from optical flow,
     `fgjax.pipeline.track`) or "deformation" (the stage-1 deformation field)."""
@@ -649,7 +653,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     report = cluster.cluster_report(lab_d)
     log(f"stage 2: {n_dyn} dynamic Gaussians (score threshold {disc.threshold:.3f}); {report}")
     if cfg.grow_fraction > 0 and report.n_clusters:
-        eps = cluster.auto_eps(canonical[idx]) if cfg.auto_eps else cfg.eps
+        eps = cfg.grow_eps
         cand = np.asarray(run.state.densify.alive) & (disc.scores.score >= cfg.grow_fraction * disc.threshold)
         before = int(np.sum(labels >= 0))
         labels = cluster.grow_clusters(canonical, labels, cand, eps)

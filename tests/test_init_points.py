@@ -85,3 +85,37 @@ def test_flow_point_cloud_degenerate_inputs(synth_scene):
     pc = flow_point_cloud(same, gap=1, log=lambda m: None)
     assert np.all(np.isfinite(pc["points"]))
     assert len(pc["points"]) < 0.01 * scene.width * scene.height
+
+
+def test_ghost_filter_pairs_each_depth_map_with_its_own_camera(synth_scene, monkeypatch):
+    """A pair with no consistent match still counts as a (empty) reference: the free-space test must get
+    each reference's own depth map, never a neighbour pair's map under the wrong camera."""
+    import fgjax.data.opticalflow as of
+    import fgjax.pipeline.init_points as ip
+
+    scene, _ = synth_scene
+    orig_mask, calls, seen = of.forward_backward_mask, [0], []
+
+    def first_pair_empty(a, b, **kw):
+        calls[0] += 1
+        m = orig_mask(a, b, **kw)
+        return np.zeros_like(m) if calls[0] == 1 else m
+
+    orig_fsv = ip.free_space_violations
+
+    def recording(points, depth_maps, viewmats, Ks, **kw):
+        seen.append((depth_maps, viewmats))
+        return orig_fsv(points, depth_maps, viewmats, Ks, **kw)
+
+    monkeypatch.setattr(of, "forward_backward_mask", first_pair_empty)
+    monkeypatch.setattr(ip, "free_space_violations", recording)
+    pc = flow_point_cloud(scene, gap=2, stride=1, log=lambda m: None)
+    first = pc["pairs"][0][0]
+    assert not np.any(pc["frames"] == first) and len(pc["points"]) > 0
+    assert seen
+    for maps, vms in seen:
+        for dm, vm in zip(maps, vms):
+            if np.allclose(vm, scene.viewmats[first]):
+                assert np.all(np.isnan(dm))  # the empty pair's own (empty) map
+            else:
+                assert np.any(np.isfinite(dm))

@@ -138,8 +138,8 @@ def flow_point_cloud(scene, *, gap: int = 4, stride: int = 2, method: str = "dis
         m0 = pix[ok]  # [P, 2]
         m1 = m0 + fw[ok].astype(np.float64)
         total += h * w
-        if len(m0) == 0:
-            continue
+        # every pair appends one entry to each list below (empty when nothing matched), so that list index k
+        # stays pair k: the ghost filter looks up reference pairs by index
         c0, d0 = pixel_rays(scene.viewmats[i], scene.Ks[i], m0)
         c1, d1 = pixel_rays(scene.viewmats[j], scene.Ks[j], m1)
         p, s, u, sin = triangulate_midpoint(c0, d0, c1, d1)

@@ -123,6 +123,9 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
         dominance: a pixel belongs to object k when k's share of the composited weight exceeds this.
         erode: pixels within this many pixels of the edge of object k's mask are not used.
     """
+    import cv2
+
+    from fgjax.pipeline.init_points import pixel_rays
     from fgjax.render.api import rasterization
 
     t = len(viewmats)
@@ -146,13 +149,9 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
         share = feat / np.maximum(alpha, 1e-9)[..., None]
         flow = np.asarray(flows[j]).reshape(-1, 2)
         known = np.all(np.isfinite(flow), -1) & (alpha.reshape(-1) > 0.5) & (depth.reshape(-1) > 0)
-        c2w = np.linalg.inv(viewmats[j])
-        kinv = np.linalg.inv(Ks[j])
         for k in range(num_objects):
             own = share[..., k + 1] > dominance
             if erode > 0:  # flow is smoothed across object edges (towards the background's): keep the interior
-                import cv2
-
                 own = cv2.erode(own.astype(np.uint8), np.ones((2 * erode + 1, 2 * erode + 1), np.uint8)) > 0
             sel = known & own.reshape(-1)
             if sel.sum() < min_pixels:
@@ -160,9 +159,9 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
                 continue
             idx = np.flatnonzero(sel)
             m = _bucket(len(idx))  # padded to a power of two: a handful of compiled sizes
-            ray = np.concatenate([pix[idx], np.ones((len(idx), 1))], 1) @ kinv.T  # z = 1
+            centre, rays = pixel_rays(viewmats[j], Ks[j], pix[idx])  # ray parameter = camera z-depth
             p_w = np.zeros((m, 3))
-            p_w[:len(idx)] = (ray * depth.reshape(-1)[idx, None]) @ c2w[:3, :3].T + c2w[:3, 3]
+            p_w[:len(idx)] = centre + depth.reshape(-1)[idx, None] * rays
             target = np.zeros((m, 2))
             target[:len(idx)] = pix[idx] + flow[idx]
             w = np.zeros(m, np.float32)

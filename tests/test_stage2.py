@@ -128,3 +128,12 @@ def test_control_training_uses_the_flow_loss(tiny):
         assert all(np.all(np.isfinite(np.asarray(a))) for a in out[beta])
     diff = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) for a, b in zip(out[0.0], out[1.0]))
     assert diff > 0
+
+
+def test_bad_trajectory_source_is_rejected_before_any_work(tiny, monkeypatch):
+    def no_discovery(*a, **k):
+        raise AssertionError("discovery ran before the config was checked")
+
+    monkeypatch.setattr(stage2, "discover_run", no_discovery)
+    with pytest.raises(ValueError, match="trajectories"):
+        stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(trajectories="bogus"), log=lambda m: None)

@@ -631,6 +631,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
 
+    if cfg.trajectories not in ("flow", "deformation"):  # checked before any work is done
+        raise ValueError(f"Stage2Config.trajectories must be 'flow' or 'deformation'; got {cfg.trajectories!r}")
     t_start = time.perf_counter()
     run_dir, data_dir = Path(run_dir), Path(data_dir)
     run = load_stage2(run_dir, require_stage2=False)
@@ -663,8 +665,6 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
         log(f"stage 2: grown from {before} to {int(np.sum(labels >= 0))} clustered Gaussians (scores >= "
             f"{cfg.grow_fraction * disc.threshold:.3f} within {eps:.3f} of a cluster); sizes {list(report.sizes)}")
     # trajectories and the teacher geometry over all training times (time order)
-    if cfg.trajectories not in ("flow", "deformation"):
-        raise ValueError(f"Stage2Config.trajectories must be 'flow' or 'deformation'; got {cfg.trajectories!r}")
     if cfg.trajectories == "flow" and report.n_clusters:
         centres, qs, ls = _tracked_geometry(run, scene, order, labels, report.n_clusters, flows, log)
     else:

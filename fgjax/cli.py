@@ -28,6 +28,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "flow": ("fgjax.bench.flow", "flow derivatives: time and end-point error vs reprojection"),
     "opticalflow": ("fgjax.bench.opticalflow", "OpenCV optical flow: EPE and time on Middlebury/Sintel"),
     "train": ("fgjax.bench.train", "stage-1 PSNR against wall time"),
+    "motion": ("fgjax.bench.motion", "stage-1 run: object vs static PSNR, learned vs true object motion"),
 }
 
 

@@ -114,11 +114,21 @@ class TrainConfig:
     distances keep their canonical length; 0: off)."""
     rigid_scale_weight: float = 0.0
     """Weight of ``fgjax.train.losses.scale_change_loss`` (deformed Gaussians keep their sizes; 0: off)."""
+    rigid_cap: float = 0.0
+    """Saturation of one neighbour pair's relative stretch in that regulariser (cap tanh(stretch / cap)), so
+    that pairs spanning a moving part's boundary break instead of holding the part in place (0: linear)."""
     rigid_neighbours: int = 8
     """Neighbours per Gaussian in that regulariser (graph rebuilt after each densification)."""
     coarse_to_fine: int = 0
     """If > 0: the first this-many steps train on 2x2-averaged images at half resolution (cheaper steps;
     the flow loss waits for full resolution)."""
+    time_curriculum: int = 0
+    """If > 0: frames are drawn only from the earliest part of the video, a window that starts at
+    `time_window_start` of the frames (in time order) during the warm-up and opens linearly to all frames
+    over this many steps after it. Parts then move a little at a time, so the local photometric and flow
+    gradients can follow them (0: all frames from the start)."""
+    time_window_start: float = 0.1
+    """Fraction of the frames (earliest first) in the window during the warm-up (with time_curriculum)."""
     log_every: int = 100
     """Host sync / progress line every n steps."""
     eval_every: int = 0

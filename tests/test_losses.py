@@ -61,6 +61,30 @@ def test_isometry_loss_zero_for_rigid_motion_and_exact_for_scaling():
     assert np.sum(g * d) == pytest.approx(fd, rel=1e-5)
 
 
+def test_isometry_loss_cap_is_quadratic_at_rest_bounded_and_matches_central_differences():
+    rng, x, alive = _cloud(2)
+    idx, w = knn_graph(x, alive, 6)
+    cap = 0.5
+    r = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    assert float(isometry_loss(x @ r.T + 1.0, x, idx, w, cap=cap)) < 1e-9  # rigid motion is still free
+    # a uniform 1.1x stretch: every pair has e = 0.1, so the cost is cap e^2 / (e^2 + cap^2) exactly
+    assert float(isometry_loss(1.1 * x, x, idx, w, cap=cap)) == pytest.approx(cap * 0.01 / (0.01 + cap**2), rel=1e-4)
+    # at rest the capped loss has no gradient (the plain one has |grad| ~ 1 / pair length: it pins parts)
+    g0 = np.asarray(jax.grad(lambda m: isometry_loss(m, x, idx, w, cap=cap))(jnp.asarray(x)))
+    g1 = np.asarray(jax.grad(lambda m: isometry_loss(m, x, idx, w))(jnp.asarray(x + 1e-4 * rng.normal(size=x.shape))))
+    assert np.abs(g0).max() < 1e-6 < np.abs(g1).max()
+    # bounded: tearing the cloud apart costs at most cap per pair
+    assert float(isometry_loss(1000.0 * x, x, idx, w, cap=cap)) <= cap + 1e-6
+    # finite differences (float64) away from rest
+    xt = x + 0.05 * rng.normal(size=x.shape)
+    f = lambda m: isometry_loss(m, x, idx, w, cap=cap)
+    g = np.asarray(jax.grad(f)(jnp.asarray(xt)))
+    d = rng.normal(size=x.shape)
+    h = 1e-6
+    fd = (float(f(xt + h * d)) - float(f(xt - h * d))) / (2 * h)
+    assert np.sum(g * d) == pytest.approx(fd, rel=1e-5)
+
+
 def test_photometric_and_scale_regulariser_values():
     a = jnp.zeros((16, 16, 3))
     b = jnp.full((16, 16, 3), 0.5)

@@ -357,3 +357,39 @@ def test_isometry_regulariser_enters_the_deformation_steps():
     assert np.all(np.isfinite(lb))
     np.testing.assert_array_equal(la[:4], lb[:4])  # warm-up: identical
     assert np.any(la[5:] != lb[5:])
+
+
+def test_time_curriculum_window_opens_from_the_earliest_frames():
+    times = np.array([0.5, 0.0, 1.0, 0.25, 0.75, 0.1, 0.9, 0.6, 0.3, 0.4])  # not in time order
+    order = np.argsort(times)
+    # off: every frame
+    np.testing.assert_array_equal(np.sort(stage1.time_window(0, times, 10, 0, 0.1)), np.arange(10))
+    # warm-up: the earliest 20%; then linear opening over 100 steps; then all
+    np.testing.assert_array_equal(stage1.time_window(5, times, 10, 100, 0.2), order[:2])
+    np.testing.assert_array_equal(stage1.time_window(10, times, 10, 100, 0.2), order[:2])
+    np.testing.assert_array_equal(stage1.time_window(60, times, 10, 100, 0.2), order[:6])
+    np.testing.assert_array_equal(stage1.time_window(500, times, 10, 100, 0.2), order)
+    assert len(stage1.time_window(0, times, 10, 100, 0.0)) == 1  # never empty
+    for bad in (["train.time_window_start=0"], ["train.time_curriculum=-1"], ["train.rigid_cap=-0.5"]):
+        with pytest.raises(C.ConfigError, match=bad[0].split("=")[0]):
+            stage1.train_stage1(_cfg(*bad), _tiny_scene(False))
+    # the batch is drawn from the window only, and depends on (seed, step) alone
+    win = stage1.time_window(30, times, 10, 100, 0.2)
+    for s in range(20):
+        idx = stage1._batch_indices(0, s, 10, 3, win)
+        assert set(idx.tolist()) <= set(win.tolist())
+        np.testing.assert_array_equal(idx, stage1._batch_indices(0, s, 10, 3, win))
+
+
+def test_refined_viewmats_apply_the_learned_pose_deltas():
+    vms = np.stack([look_at(np.array([2.0, -1.0, 0.5])), look_at(np.array([0.0, -2.0, 0.3]))])
+    np.testing.assert_array_equal(stage1.refined_viewmats({"gaussians": None}, vms), vms)  # no refinement
+    deltas = np.zeros((2, 6))
+    deltas[1, 3:] = [0.01, -0.02, 0.03]  # twist [omega, v]: a pure translation of camera 1
+    out = stage1.refined_viewmats({"pose": jnp.asarray(deltas)}, vms)
+    np.testing.assert_allclose(out[0], vms[0], atol=1e-12)
+    shift = np.eye(4)
+    shift[:3, 3] = deltas[1, 3:]
+    np.testing.assert_allclose(out[1], shift @ vms[1], atol=1e-12)
+    with pytest.raises(ValueError, match="refined 2 camera poses but the scene has 1"):
+        stage1.refined_viewmats({"pose": jnp.asarray(deltas)}, vms[:1])

@@ -137,3 +137,33 @@ def test_bad_trajectory_source_is_rejected_before_any_work(tiny, monkeypatch):
     monkeypatch.setattr(stage2, "discover_run", no_discovery)
     with pytest.raises(ValueError, match="trajectories"):
         stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(trajectories="bogus"), log=lambda m: None)
+
+
+def test_camera_correction_config_is_checked_and_wired_into_discovery(tiny, monkeypatch, tmp_path):
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+    from fgjax.pipeline import track
+
+    with pytest.raises(ValueError, match="camera_correction"):
+        stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(camera_correction="yes"), log=lambda m: None)
+    run = stage2.load_stage2(tiny[0], require_stage2=False)
+    scene = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
+    calls = []
+    real = track.camera_correction
+
+    def spy(*a, **k):
+        out = real(*a, **k)
+        calls.append(out)
+        return out
+
+    monkeypatch.setattr(track, "camera_correction", spy)
+    base = stage2.discover_run(run, scene, stage2.Stage2Config(), tmp_path, log=lambda m: None)
+    assert calls == []  # "auto" and a run without pose refinement: no correction
+    logs = []
+    on = stage2.discover_run(run, scene, stage2.Stage2Config(camera_correction="on"), tmp_path, log=logs.append)
+    assert len(calls) == scene.num_frames - 1 and any("corrected" in m for m in logs)
+    # the correction fits the camera to the observed flow of the (mostly static) frame: the residual
+    # |u - u_cam| that discovery thresholds shrinks (this 8-step run's depth is poor, so it is large)
+    flows = on[3][1]
+    res = lambda cams: np.nanmedian(np.linalg.norm(flows - cams, axis=-1))
+    assert res(on[3][2]) < 0.8 * res(base[3][2])

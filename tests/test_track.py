@@ -112,3 +112,42 @@ def test_track_objects_recovers_rigid_poses_from_exact_flow():
     # no objects / one frame: identities, no work
     assert track_objects(means, quats, scales, opac, np.full(n, -1), 0, vms, np.stack([K] * t), flows, W, H,
                          log=lambda m: None).shape == (0, t, 4, 4)
+
+
+def test_camera_correction_removes_a_pose_error_from_u_cam_despite_moving_pixels():
+    from fgjax import flow as fl
+    from fgjax.pipeline.track import camera_correction
+
+    rng = np.random.default_rng(3)
+    h, w = 48, 64
+    K = np.array([[60.0, 0, w / 2], [0, 60.0, h / 2], [0, 0, 1]])
+    vm0 = look_at(np.array([0.0, -3.0, 0.4]))
+    vm1 = look_at(np.array([0.15, -2.95, 0.42]))
+    ys, xs = np.mgrid[0:h, 0:w]
+    depth = 2.5 + 0.5 * np.sin(xs / 9.0) + 0.3 * np.cos(ys / 7.0)  # a smooth surface in front of camera 0
+    c2w = lambda v: np.linalg.inv(v)
+    u_true, ok = fl.reprojection_flow(depth, K, c2w(vm0), c2w(vm1))
+    u_obs = np.array(u_true, np.float64)
+    moving = np.zeros((h, w), bool)
+    moving[10:25, 30:50] = True  # a part moving 3-6 px: outliers of the camera fit
+    u_obs[moving] += rng.uniform(3, 6, size=(moving.sum(), 2))
+    # the written pose of camera 1 is off by 0.5 degree and 2 cm
+    xi = np.concatenate([rng.normal(size=3), rng.normal(size=3)])
+    xi[:3] *= np.radians(0.5) / np.linalg.norm(xi[:3])
+    xi[3:] *= 0.02 / np.linalg.norm(xi[3:])
+    noisy = np.asarray(geometry.se3_exp(jnp.asarray(xi))) @ vm1
+    err = lambda v: np.abs(np.asarray(fl.reprojection_flow(depth, K, c2w(vm0), c2w(v))[0]) - np.asarray(u_true))
+    static = np.asarray(ok) & ~moving
+    assert np.median(err(noisy)[static]) > 0.2  # the pose error shows up as flow on static pixels
+    fixed, rms, used = camera_correction(depth, np.asarray(ok), u_obs, vm0, noisy, K)
+    assert used == int(np.asarray(ok).sum()) and rms < 1e-6
+    assert np.max(err(fixed)[static]) < 1e-6  # u_cam is right again on every static pixel
+    r = np.linalg.norm(u_obs - np.asarray(fl.reprojection_flow(depth, K, c2w(vm0), c2w(fixed))[0]), axis=-1)
+    assert np.all(r[moving] > 2.5)  # ... and the moving part still stands out
+    # a strided subset gives the same exact answer
+    sub, rms3, n3 = camera_correction(depth, np.asarray(ok), u_obs, vm0, noisy, K, max_pixels=500)
+    assert n3 == 500 and np.max(err(sub)[static]) < 1e-6
+    # too few usable pixels: the pose is returned unchanged
+    out, rms2, n = camera_correction(depth, np.zeros((h, w), bool), u_obs, vm0, noisy, K)
+    np.testing.assert_array_equal(out, noisy)
+    assert n == 0 and np.isnan(rms2)

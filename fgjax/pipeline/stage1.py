@@ -225,6 +225,7 @@ class StepSpec:
     flow_threshold: float = 0.0  # |u - u_cam| below this (pixels) counts as static (0: off)
     rigid_weight: float = 0.0  # weight of the isometry regulariser (needs the neighbour graph; deformation only)
     rigid_scale_weight: float = 0.0  # weight of the scale-change regulariser (deformation only)
+    rigid_cap: float = 0.0  # saturation of a pair's stretch in the isometry regulariser (0: none)
 
 
 class FlowBatch(NamedTuple):
@@ -276,7 +277,8 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
         if ss.scale_reg > 0:
             loss = loss + ss.scale_reg * scale_regularizer(geo["log_scales"], alive, ss.scale_reg_max)
         if nbr is not None:  # rigidity: neighbour distances keep their canonical lengths
-            loss = loss + ss.rigid_weight * isometry_loss(geo["means"], params["gaussians"].means, *nbr)
+            loss = loss + ss.rigid_weight * isometry_loss(geo["means"], params["gaussians"].means, *nbr,
+                                                                cap=ss.rigid_cap)
         if ss.rigid_scale_weight > 0 and ss.spec is not None:  # ... and Gaussian sizes their canonical values
             loss = loss + ss.rigid_scale_weight * scale_change_loss(geo["log_scales"], params["gaussians"].log_scales,
                                                                     alive)
@@ -370,9 +372,26 @@ def _flow_batch(idx: np.ndarray, prev: np.ndarray, flows: np.ndarray, viewmats, 
     return FlowBatch(flows[idx], viewmats[pi], times[pi], pi.astype(np.int32), has.astype(np.float32))
 
 
-def _batch_indices(seed: int, step: int, num_frames: int, batch: int) -> np.ndarray:
+def _batch_indices(seed: int, step: int, num_frames: int, batch: int, window: np.ndarray | None = None) -> np.ndarray:
+    """Frame indices of one step (a function of (seed, step) only, so a resumed run draws the same ones);
+    with `window` (frame indices) they are drawn from it."""
     rng = np.random.default_rng([seed, step])
-    return rng.choice(num_frames, size=batch, replace=batch > num_frames)
+    if window is None:
+        return rng.choice(num_frames, size=batch, replace=batch > num_frames)
+    return window[rng.choice(len(window), size=batch, replace=batch > len(window))]
+
+
+def time_window(step: int, times: np.ndarray, warmup: int, curriculum: int, start_fraction: float) -> np.ndarray:
+    """Frames (indices, earliest first) that step `step` may draw under the time curriculum: the earliest
+    `start_fraction` of them up to the end of the warm-up, then a window opening linearly to all frames
+    over `curriculum` steps."""
+    order = np.argsort(np.asarray(times), kind="stable")
+    n = len(order)
+    if curriculum <= 0:
+        return order
+    open_ = min(1.0, max(0.0, (step - warmup) / curriculum))
+    frac = start_fraction + (1.0 - start_fraction) * open_
+    return order[:max(1, min(n, int(math.ceil(frac * n - 1e-9))))]
 
 
 def _mesh_shardings(batch: int, devices=None):
@@ -453,6 +472,16 @@ def detect_static(params, alive, scene, cfg: Config, capacity: int) -> tuple[boo
     return score < cfg.static.threshold, score
 
 
+def _check_train_config(cfg: Config) -> None:
+    """Range checks of the stage-1 keys that would otherwise fail late or silently (ConfigError)."""
+    t = cfg.train
+    if not 0.0 < t.time_window_start <= 1.0:
+        raise ConfigError(f"config key 'train.time_window_start' must be in (0, 1]; got {t.time_window_start}")
+    for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "coarse_to_fine"):
+        if getattr(t, k) < 0:
+            raise ConfigError(f"config key 'train.{k}' must be >= 0; got {getattr(t, k)}")
+
+
 def train_stage1(
     cfg: Config,
     scene,
@@ -481,6 +510,7 @@ def train_stage1(
             predecessor's grid (NaN = unknown), for the flow loss (flow.enabled and flow.weight > 0);
             None: estimated with ``flow.method`` (cached under out_dir/flow_cache).
     """
+    _check_train_config(cfg)
     out = None if out_dir is None else Path(out_dir)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -534,7 +564,8 @@ def train_stage1(
         ss = StepSpec(spec if use_deform else None, sh_deg, sw, sh_, state.capacity, t.tile_size, t.lambda_dssim,
                       t.scale_reg, t.scale_reg_max, "pose" in state.params,
                       fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
-                      t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0)
+                      t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
+                      t.rigid_cap if use_deform else 0.0)
         if ss not in steps_cache:
             steps_cache[ss] = _make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
@@ -565,7 +596,9 @@ def train_stage1(
         flow_on = use_flow and use_deform and s >= fc.start and not lo
         step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo)
         sh_mask = _sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
-        idx = _batch_indices(cfg.model.seed, s, n_frames, t.batch_size)
+        window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)
+                  if t.time_curriculum > 0 else None)
+        idx = _batch_indices(cfg.model.seed, s, n_frames, t.batch_size, window)
         batch = ((images_lo if lo else images)[idx], viewmats[idx], (Ks_lo if lo else Ks)[idx], times[idx],
                  idx.astype(np.int32))
         if flow_on:
@@ -655,6 +688,20 @@ def _maybe_grow_capacity(state: TrainState, viewmats, Ks, w, h, t, log, force: b
 # ---------------------------------------------------------------------------------------------
 # evaluation and outputs
 # ---------------------------------------------------------------------------------------------
+
+
+def refined_viewmats(params, viewmats: np.ndarray) -> np.ndarray:
+    """The training cameras as stage 1 last saw them: se3_exp(delta_i) @ viewmat_i [T, 4, 4] (OpenCV
+    world-to-camera) when the run refined poses (``pose.enabled``), else ``viewmats`` unchanged."""
+    if "pose" not in params:
+        return np.asarray(viewmats)
+    from fgjax.geometry import se3_exp
+
+    deltas = np.asarray(params["pose"], np.float64)  # [T, 6]
+    vm = np.asarray(viewmats, np.float64)
+    if deltas.shape[0] != vm.shape[0]:
+        raise ValueError(f"the run refined {deltas.shape[0]} camera poses but the scene has {vm.shape[0]} frames")
+    return np.stack([np.asarray(se3_exp(d)) @ v for d, v in zip(deltas, vm, strict=True)]).astype(vm.dtype)
 
 
 def render_frame(state: TrainState, spec: DeformSpec, cfg: Config, viewmat, K, t, width, height):

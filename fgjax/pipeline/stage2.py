@@ -111,6 +111,10 @@ class Stage2Config:
     quick demo's clusters spread into static surfaces (ARI 0.72 -> 0.33), so it is off by default."""
     grow_eps: float = 0.05
     """Growth radius in scene units (not the automatic DBSCAN eps, which can be much larger)."""
+    camera_correction: str = "auto"
+    """Correct each frame pair's relative camera pose from the flow of the static majority of pixels before
+    u - u_cam is thresholded (`fgjax.pipeline.track.camera_correction`): "on", "off", or "auto" = on when
+    stage 1 refined the poses (``pose.enabled``: the poses are known to be noisy)."""
     trajectories: str = "flow"
     """Where the objects' motion comes from: "flow" (rigid poses tracked from optical flow,
     `fgjax.pipeline.track`) or "deformation" (the stage-1 deformation field)."""
@@ -431,15 +435,27 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
     _, sa, oa = activate(g, alive)
     c2w = viewmat_to_c2w(scene.viewmats[order])
     flows, cams, valid = [], [], []
+    correct = cfg.camera_correction == "on" or (cfg.camera_correction == "auto" and "pose" in run.state.params)
+    if correct:
+        from fgjax.pipeline.track import camera_correction
+    rms_all: list[float] = []
     t_flow = time.perf_counter()
     for j in range(len(order) - 1):
         a, b = order[j], order[j + 1]
         flows.append(estimate_flow(_to_u8(scene.images[a]), _to_u8(scene.images[b]), cfg.flow_method,
                                    cache_dir=cache_dir))
-        cf, ok = camera_flow_from_depth(depths[j], scene.Ks[a], c2w[j], c2w[j + 1])
+        c2w_b = c2w[j + 1]
+        if correct:
+            vm_b, rms, _ = camera_correction(depths[j], alphas[j] >= cfg.min_alpha, flows[-1], scene.viewmats[a],
+                                             scene.viewmats[b], scene.Ks[a])
+            c2w_b = viewmat_to_c2w(vm_b[None])[0]
+            rms_all.append(rms)
+        cf, ok = camera_flow_from_depth(depths[j], scene.Ks[a], c2w[j], c2w_b)
         cams.append(cf)
         valid.append(ok & (alphas[j] >= cfg.min_alpha))
-    log(f"stage 2: optical flow of {len(flows)} pairs ({time.perf_counter() - t_flow:.1f} s)")
+    log(f"stage 2: optical flow of {len(flows)} pairs ({time.perf_counter() - t_flow:.1f} s)"
+        + (f"; camera poses corrected from the static flow (median inlier RMS {np.nanmedian(rms_all):.2f} px)"
+           if correct and rms_all and np.any(np.isfinite(rms_all)) else ""))
     n = len(order) - 1
     thr = cfg.threshold_px if isinstance(cfg.threshold_px, str) else float(cfg.threshold_px)
     # the deformed scales differ from canonical ones only by ds; discovery uses the canonical ones
@@ -633,6 +649,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
 
     if cfg.trajectories not in ("flow", "deformation"):  # checked before any work is done
         raise ValueError(f"Stage2Config.trajectories must be 'flow' or 'deformation'; got {cfg.trajectories!r}")
+    if cfg.camera_correction not in ("auto", "on", "off"):
+        raise ValueError(f"Stage2Config.camera_correction must be 'auto', 'on' or 'off'; got {cfg.camera_correction!r}")
     t_start = time.perf_counter()
     run_dir, data_dir = Path(run_dir), Path(data_dir)
     run = load_stage2(run_dir, require_stage2=False)
@@ -643,6 +661,15 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                           f"{run.meta['width']}x{run.meta['height']}")
     if scene.num_frames < 2:
         raise Stage2Error(f"{data_dir}: stage 2 needs at least 2 training frames, got {scene.num_frames}")
+    if "pose" in run.state.params:  # discovery's u_cam and the tracking need the cameras stage 1 refined
+        from fgjax.pipeline.stage1 import refined_viewmats
+
+        try:
+            vms = refined_viewmats(run.state.params, scene.viewmats)
+        except ValueError as e:
+            raise Stage2Error(f"{data_dir}: {e}") from None
+        scene = dataclasses.replace(scene, viewmats=vms.astype(scene.viewmats.dtype))
+        log("stage 2: using stage 1's refined camera poses")
     cache = Path(cfg.flow_cache) if cfg.flow_cache else run_dir / "flow_cache"
     disc, centres, times, (order, flows, _) = discover_run(run, scene, cfg, cache, log)
     n_dyn = int(disc.dynamic.sum())

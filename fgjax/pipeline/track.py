@@ -30,7 +30,7 @@ import optimistix as optx
 
 from fgjax import geometry
 
-__all__ = ["rigid_increment", "track_objects", "transform_gaussians", "quat_multiply"]
+__all__ = ["rigid_increment", "track_objects", "transform_gaussians", "quat_multiply", "camera_correction"]
 
 
 def quat_multiply(a, b):
@@ -172,3 +172,45 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
     log(f"tracking: {num_objects} object(s) over {t} frames in {time.perf_counter() - t0:.1f} s "
         f"(median inlier reprojection RMS {np.median(rms_all) if rms_all else float('nan'):.2f} px)")
     return poses
+
+
+def camera_correction(depth, valid, flow, viewmat0, viewmat1, K, *, huber_px: float = 1.0, irls: int = 5,
+                      min_pixels: int = 100, max_pixels: int = 4096) -> tuple[np.ndarray, float, int]:
+    """Camera t's pose corrected so that the static scene explains the observed flow t-1 -> t.
+
+    With noisy poses, u_cam (the flow the camera alone causes) inherits the pose error, about one pixel
+    per 0.5 degree here, and u - u_cam then marks static pixels as moving. Most pixels are static, so
+    the rigid motion of the whole back-projected frame (pixels of frame t-1 at their rendered ``depth``
+    [H, W], where ``valid`` [H, W] and the ``flow`` [H, W, 2] is finite) that best moves them onto
+    m + u(m) in camera t (`rigid_increment`: Huber IRLS, then a fit on the inliers; moving parts are its
+    outliers) is the pose error: viewmat1' = viewmat1 @ Delta. Returns (viewmat1' [4, 4] OpenCV
+    world-to-camera, inlier RMS in pixels, pixels used); fewer than ``min_pixels`` usable pixels
+    return viewmat1 unchanged (RMS NaN). Six unknowns need few pixels: at most ``max_pixels``, evenly
+    strided over the usable ones, enter the fit."""
+    from fgjax.pipeline.init_points import pixel_rays
+
+    depth = np.asarray(depth, np.float64)
+    flow = np.asarray(flow, np.float64)
+    h, w = depth.shape
+    ok = np.asarray(valid, bool) & np.all(np.isfinite(flow), -1) & np.isfinite(depth) & (depth > 0)
+    idx = np.flatnonzero(ok.reshape(-1))
+    vm1 = np.asarray(viewmat1, np.float64)
+    if len(idx) < min_pixels:
+        return vm1, float("nan"), int(len(idx))
+    if len(idx) > max_pixels:
+        idx = idx[np.linspace(0, len(idx) - 1, max_pixels).round().astype(int)]
+    ys, xs = np.divmod(idx, w)
+    xy = np.stack([xs + 0.5, ys + 0.5], -1)  # pixel centres at +0.5
+    centre, rays = pixel_rays(np.asarray(viewmat0, np.float64), np.asarray(K, np.float64), xy)
+    m = _bucket(len(idx))
+    pts = np.zeros((m, 3))
+    pts[:len(idx)] = centre + depth.reshape(-1)[idx, None] * rays
+    target = np.zeros((m, 2))
+    target[:len(idx)] = xy + flow.reshape(-1, 2)[idx]
+    wts = np.zeros(m)
+    wts[:len(idx)] = 1.0
+    # more reweighting rounds than for one object: a quarter of the frame may move, and the first
+    # (unweighted) fit is pulled far enough that some moving pixels look like inliers after two rounds
+    delta, rms = rigid_increment(pts, target, wts, jnp.asarray(vm1), jnp.asarray(np.asarray(K, np.float64)),
+                                 irls=irls, huber_px=huber_px)
+    return vm1 @ np.asarray(delta, np.float64), float(rms), int(len(idx))

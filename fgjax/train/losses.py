@@ -43,7 +43,7 @@ def _safe_norm(x: Array) -> Array:
 
 def isometry_loss(
     means_t: Float[ArrayLike, "N 3"], means_c: Float[ArrayLike, "N 3"], nbr_idx, nbr_w: Float[ArrayLike, "N K"],
-    eps: float = 1e-6,
+    eps: float = 1e-6, cap: float = 0.0,
 ) -> Float[Array, ""]:
     """Local rigidity of a deformation: mean over neighbour pairs (i, j) of | |x_i(t) - x_j(t)| / |X_i - X_j| - 1 |.
 
@@ -51,13 +51,21 @@ def isometry_loss(
     ``nbr_w`` [N, K] (0 = no pair) from ``fgjax.gaussians.knn_graph``. Rigid motion (static parts, a
     rotating door, a sliding drawer) costs nothing; stretching or shrinking a part does. In a monocular
     video a moving part is seen from about one viewpoint per state, so its depth is ambiguous up to
-    scale; the part's size, known from the frames where it rests, then fixes it."""
+    scale; the part's size, known from the frames where it rests, then fixes it.
+
+    With ``cap`` > 0 each pair costs the robust (Geman-McClure) cap e^2 / (e^2 + cap^2) of its stretch e:
+    quadratic near 0, so a part can start to move before it moves as one piece (the plain |e| has a
+    gradient of 1 / |X_i - X_j| at rest and holds every Gaussian in place), and bounded by cap, so a pair
+    that spans a part's boundary (a door Gaussian and its static frame) breaks once the part moves,
+    instead of pulling it back with a cost that grows without bound."""
     xt = jnp.asarray(means_t)
     xc = jax.lax.stop_gradient(jnp.asarray(means_c))
     w = jnp.asarray(nbr_w).astype(xt.dtype)
     d_t = _safe_norm(xt[:, None, :] - xt[nbr_idx])  # [N, K]
     d_c = _safe_norm(xc[:, None, :] - xc[nbr_idx])
     err = jnp.abs(d_t / (d_c + eps) - d_c / (d_c + eps))
+    if cap > 0:
+        err = cap * err**2 / (err**2 + cap**2)
     return jnp.sum(w * err) / jnp.maximum(jnp.sum(w), 1.0)
 
 

@@ -127,6 +127,9 @@ class TrainConfig:
     `time_window_start` of the frames (in time order) during the warm-up and opens linearly to all frames
     over this many steps after it. Parts then move a little at a time, so the local photometric and flow
     gradients can follow them (0: all frames from the start)."""
+    error_sampling: float = 0.0
+    """Fraction of the steps that draw their frames with probability proportional to each frame's squared
+    last MSE (the frames where a part has moved are the worst ones); the rest draw uniformly (0: off)."""
     time_window_start: float = 0.1
     """Fraction of the frames (earliest first) in the window during the warm-up (with time_curriculum)."""
     log_every: int = 100

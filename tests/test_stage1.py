@@ -54,9 +54,10 @@ def _cfg(*extra):
     return C.load_config(QUICK, ["train.video_frames=0", *extra])
 
 
-def test_training_reduces_loss_and_resume_reproduces_trajectory(tmp_path):
+@pytest.mark.parametrize("sampling", [0.0, 0.7])
+def test_training_reduces_loss_and_resume_reproduces_trajectory(tmp_path, sampling):
     scene = _tiny_scene(True)
-    cfg = _cfg()
+    cfg = _cfg(f"train.error_sampling={sampling}")
     full = stage1.train_stage1(cfg, scene, tmp_path / "a", progress=False, log=lambda *_: None)
     losses = np.asarray(full["losses"])
     assert len(losses) == cfg.train.steps and np.all(np.isfinite(losses))
@@ -69,6 +70,12 @@ def test_training_reduces_loss_and_resume_reproduces_trajectory(tmp_path):
     a = full["state"].params["gaussians"].means
     b = rest["state"].params["gaussians"].means
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6)
+    if sampling:  # the per-frame errors that steer the sampling were checkpointed and resumed
+        fe = full["state"].frame_err
+        assert fe.shape == (scene.num_frames,) and np.all(np.isfinite(fe)) and np.all(fe > 0)
+        np.testing.assert_allclose(rest["state"].frame_err, fe, atol=1e-6)
+    else:
+        assert full["state"].frame_err is None
 
 
 def test_checkpoint_errors(tmp_path):
@@ -373,6 +380,8 @@ def test_time_curriculum_window_opens_from_the_earliest_frames():
     for bad in (["train.time_window_start=0"], ["train.time_curriculum=-1"], ["train.rigid_cap=-0.5"]):
         with pytest.raises(C.ConfigError, match=bad[0].split("=")[0]):
             stage1.train_stage1(_cfg(*bad), _tiny_scene(False))
+    with pytest.raises(C.ConfigError, match="error_sampling"):
+        stage1.train_stage1(_cfg("train.error_sampling=1.5"), _tiny_scene(False))
     # the batch is drawn from the window only, and depends on (seed, step) alone
     win = stage1.time_window(30, times, 10, 100, 0.2)
     for s in range(20):
@@ -393,3 +402,24 @@ def test_refined_viewmats_apply_the_learned_pose_deltas():
     np.testing.assert_allclose(out[1], shift @ vms[1], atol=1e-12)
     with pytest.raises(ValueError, match="refined 2 camera poses but the scene has 1"):
         stage1.refined_viewmats({"pose": jnp.asarray(deltas)}, vms[:1])
+
+
+def test_error_sampling_draws_the_worst_frames_more_often():
+    err = np.array([0.01, 0.01, 0.01, 0.1, np.nan, 0.01])  # frame 3 is 10x worse; frame 4 not measured yet
+    draws = np.concatenate([stage1._batch_indices(0, s, 6, 1, None, err, 1.0) for s in range(3000)])
+    freq = np.bincount(draws, minlength=6) / len(draws)
+    # p ~ e^2, unmeasured = the worst measured: frames 3 and 4 get 100 / 205 each, the others 1 / 205
+    np.testing.assert_allclose(freq, np.array([1, 1, 1, 100, 100, 1]) / 205, atol=0.02)
+    # mix 0.5: half the steps uniform
+    draws = np.concatenate([stage1._batch_indices(0, s, 6, 1, None, err, 0.5) for s in range(3000)])
+    freq = np.bincount(draws, minlength=6) / len(draws)
+    np.testing.assert_allclose(freq, 0.5 / 6 + 0.5 * np.array([1, 1, 1, 100, 100, 1]) / 205, atol=0.02)
+    # within a time window; nothing measured yet or mix 0: uniform, as without error sampling
+    win = np.array([0, 1, 3])
+    assert set(np.concatenate([stage1._batch_indices(0, s, 6, 1, win, err, 1.0) for s in range(50)])) <= {0, 1, 3}
+    none = np.full(6, np.nan)
+    draws = np.concatenate([stage1._batch_indices(0, s, 6, 1, None, none, 1.0) for s in range(3000)])
+    np.testing.assert_allclose(np.bincount(draws, minlength=6) / len(draws), np.full(6, 1 / 6), atol=0.02)
+    for s in range(5):
+        np.testing.assert_array_equal(stage1._batch_indices(0, s, 6, 2, None, err, 0.0),
+                                      stage1._batch_indices(0, s, 6, 2))

@@ -53,6 +53,7 @@ class TrainState:
     key: jax.Array
     capacity: int
     static: bool | None  # None: not decided yet (before the end of warm-up)
+    frame_err: np.ndarray | None = None  # [T] last measured MSE per frame (NaN: not yet), with train.error_sampling
 
 
 def scene_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -316,7 +317,7 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
         for i in range(b):
             nd = densify_accumulate(nd, g2d[i] * b, valid[i], ss.width, ss.height)
         nd = jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), nd, dstate)
-        return new_params, new_opt, nd, loss, jnp.mean(mse), bad
+        return new_params, new_opt, nd, loss, mse, bad  # mse: [B] per camera
 
     return jax.jit(step, donate_argnums=(0, 1, 2))
 
@@ -372,13 +373,23 @@ def _flow_batch(idx: np.ndarray, prev: np.ndarray, flows: np.ndarray, viewmats, 
     return FlowBatch(flows[idx], viewmats[pi], times[pi], pi.astype(np.int32), has.astype(np.float32))
 
 
-def _batch_indices(seed: int, step: int, num_frames: int, batch: int, window: np.ndarray | None = None) -> np.ndarray:
-    """Frame indices of one step (a function of (seed, step) only, so a resumed run draws the same ones);
-    with `window` (frame indices) they are drawn from it."""
+def _batch_indices(seed: int, step: int, num_frames: int, batch: int, window: np.ndarray | None = None,
+                   frame_err: np.ndarray | None = None, mix: float = 0.0) -> np.ndarray:
+    """Frame indices of one step, a function of (seed, step, frame_err) only, so a resumed run draws the
+    same ones. With `window` (frame indices) they are drawn from it. With `mix` > 0, that fraction of the
+    steps draws frames with probability proportional to their squared last MSE `frame_err` [T] (frames
+    not measured yet, NaN, count as the worst measured one); the other steps draw uniformly."""
     rng = np.random.default_rng([seed, step])
-    if window is None:
-        return rng.choice(num_frames, size=batch, replace=batch > num_frames)
-    return window[rng.choice(len(window), size=batch, replace=batch > len(window))]
+    pool = np.arange(num_frames) if window is None else np.asarray(window)
+    replace = batch > len(pool)
+    if mix > 0 and frame_err is not None and rng.uniform() < mix:
+        e = np.asarray(frame_err, np.float64)[pool]
+        if np.any(np.isfinite(e)):
+            e = np.where(np.isfinite(e), e, np.nanmax(e))
+            p = e * e
+            if p.sum() > 0 and np.count_nonzero(p) >= (batch if not replace else 1):
+                return pool[rng.choice(len(pool), size=batch, replace=replace, p=p / p.sum())]
+    return pool[rng.choice(len(pool), size=batch, replace=replace)]
 
 
 def time_window(step: int, times: np.ndarray, warmup: int, curriculum: int, start_fraction: float) -> np.ndarray:
@@ -421,7 +432,8 @@ def initial_state(cfg: Config, scene, log=print, cache_dir=None) -> tuple[TrainS
         lr_sh=t.lr_sh, lr_pose=cfg.pose.lr, lr_pose_final=cfg.pose.lr_final, warmup_steps=t.warmup_steps,
     )
     opt = make_optimizer(ospec, g.sh.shape[1])
-    state = TrainState(params, opt.init(params), densify_init(alive), 0, key, 0, None)
+    state = TrainState(params, opt.init(params), densify_init(alive), 0, key, 0, None,
+                       np.full(scene.num_frames, np.nan, np.float32) if cfg.train.error_sampling > 0 else None)
     if cfg.static.force in ("static", "dynamic"):
         state.static = cfg.static.force == "static"
     return state, spec, ospec
@@ -439,7 +451,8 @@ def template_state(cfg: Config, spec: DeformSpec, num_frames: int, scene_extent_
     t = cfg.train
     ospec = OptimSpec(steps=t.steps, scene_extent=scene_extent_, warmup_steps=t.warmup_steps)
     opt = make_optimizer(ospec, k)
-    return TrainState(params, opt.init(params), densify_init(jnp.zeros((n,), bool)), 0, jax.random.key(0), 0, None)
+    return TrainState(params, opt.init(params), densify_init(jnp.zeros((n,), bool)), 0, jax.random.key(0), 0, None,
+                      np.zeros(num_frames, np.float32) if t.error_sampling > 0 else None)
 
 
 def load_run(run_dir: str | Path) -> tuple[Config, TrainState, DeformSpec, dict[str, Any]]:
@@ -477,6 +490,8 @@ def _check_train_config(cfg: Config) -> None:
     t = cfg.train
     if not 0.0 < t.time_window_start <= 1.0:
         raise ConfigError(f"config key 'train.time_window_start' must be in (0, 1]; got {t.time_window_start}")
+    if not 0.0 <= t.error_sampling <= 1.0:
+        raise ConfigError(f"config key 'train.error_sampling' must be in [0, 1]; got {t.error_sampling}")
     for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "coarse_to_fine"):
         if getattr(t, k) < 0:
             raise ConfigError(f"config key 'train.{k}' must be >= 0; got {getattr(t, k)}")
@@ -582,6 +597,15 @@ def train_stage1(
     warned_full = False
     metrics_hist = []
     graph = None  # (indices [N, k], weights [N, k]) for the isometry regulariser
+
+    def flush():
+        """Bring the pending steps' losses to the host (one sync)."""
+        nonlocal pending
+        vals = jax.device_get(pending)
+        pending = []
+        losses.extend(float(l) for l, _, _, _ in vals)
+        return vals
+
     while state.step < end:
         s = state.step
         if state.static is None and s >= t.warmup_steps:
@@ -598,7 +622,7 @@ def train_stage1(
         sh_mask = _sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)
                   if t.time_curriculum > 0 else None)
-        idx = _batch_indices(cfg.model.seed, s, n_frames, t.batch_size, window)
+        idx = _batch_indices(cfg.model.seed, s, n_frames, t.batch_size, window, state.frame_err, t.error_sampling)
         batch = ((images_lo if lo else images)[idx], viewmats[idx], (Ks_lo if lo else Ks)[idx], times[idx],
                  idx.astype(np.int32))
         if flow_on:
@@ -614,7 +638,11 @@ def train_stage1(
             nbr = graph
         state.params, state.opt_state, state.densify, loss, mse, bad = step_fn(
             state.params, state.opt_state, state.densify, sh_mask, *batch, nbr=nbr)
-        pending.append((loss, mse, bad))
+        pending.append((loss, mse, bad, idx))
+        if state.frame_err is not None:  # error sampling: the next step's draw needs this one's error (a sync)
+            m_host, bad_host = jax.device_get((mse, bad))
+            if not bool(bad_host):
+                state.frame_err[idx] = np.asarray(m_host, np.float32)
         state.step += 1
         s1 = state.step
         if d.enabled and d.start < s1 <= d.stop and s1 % d.every == 0:
@@ -636,10 +664,8 @@ def train_stage1(
             g, state.opt_state = opacity_reset(state.params["gaussians"], state.opt_state)
             state.params = {**state.params, "gaussians": g}
         if s1 % t.log_every == 0 or s1 == end:
-            vals = jax.device_get(pending)
-            pending = []
-            n_bad = sum(bool(b) for _, _, b in vals)
-            losses.extend(float(l) for l, _, _ in vals)
+            vals = flush()
+            n_bad = sum(bool(b) for _, _, b, _ in vals)
             if n_bad:
                 log(f"warning: {n_bad} step(s) before step {s1} overflowed the tile capacity {state.capacity} "
                     "or had a non-finite loss and were skipped; recomputing the capacity")
@@ -647,7 +673,7 @@ def train_stage1(
             now = time.time()
             rate = (s1 - s_last) / max(now - t_last, 1e-9)
             t_last, s_last = now, s1
-            mse_mean = float(np.mean([float(m) for _, m, _ in vals])) if vals else float("nan")
+            mse_mean = float(np.mean([float(np.mean(m)) for _, m, _, _ in vals])) if vals else float("nan")
             eta = (end - s1) / max(rate, 1e-9)
             if progress:
                 log(f"step {s1:>6}/{t.steps}  {rate:6.1f} it/s  loss {float(vals[-1][0]):.4f}  "
@@ -660,6 +686,7 @@ def train_stage1(
             log(f"eval step {s1}: PSNR {m['psnr']:.2f} SSIM {m['ssim']:.4f} ({time.time() - t_start:.0f} s)")
         if out is not None and t.checkpoint_every and s1 % t.checkpoint_every == 0 and s1 < end:
             ckpt.save_checkpoint(out / ckpt.CHECKPOINT_NAME, state, config_toml=to_toml(cfg))
+    flush()
     if out is not None:
         ckpt.save_checkpoint(out / ckpt.CHECKPOINT_NAME, state, config_toml=to_toml(cfg))
         meta = {"deform_spec": dataclasses.asdict(spec), "static": bool(state.static), "step": state.step,

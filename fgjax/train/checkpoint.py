@@ -33,8 +33,11 @@ class CheckpointError(ValueError):
 
 
 def _state_tree(state) -> dict[str, Any]:
-    return {"params": state.params, "opt_state": state.opt_state, "densify": state.densify,
+    tree = {"params": state.params, "opt_state": state.opt_state, "densify": state.densify,
             "key": jax.random.key_data(state.key)}
+    if getattr(state, "frame_err", None) is not None:  # only with train.error_sampling (older runs load as before)
+        tree["frame_err"] = state.frame_err
+    return tree
 
 
 def save_checkpoint(path: str | Path, state, *, config_toml: str = "") -> Path:
@@ -97,4 +100,5 @@ def load_checkpoint(path: str | Path, template):
         template, params=tree["params"], opt_state=tree["opt_state"], densify=tree["densify"],
         key=jax.random.wrap_key_data(tree["key"]), step=int(meta["step"]), capacity=int(meta["capacity"]),
         static=meta["static"],
+        frame_err=np.array(tree["frame_err"], np.float32) if "frame_err" in tree else None,
     )

@@ -278,8 +278,8 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
         if ss.scale_reg > 0:
             loss = loss + ss.scale_reg * scale_regularizer(geo["log_scales"], alive, ss.scale_reg_max)
         if nbr is not None:  # rigidity: neighbour distances keep their canonical lengths
-            loss = loss + ss.rigid_weight * isometry_loss(geo["means"], params["gaussians"].means, *nbr,
-                                                                cap=ss.rigid_cap)
+            iso = isometry_loss(geo["means"], params["gaussians"].means, *nbr, cap=ss.rigid_cap)
+            loss = loss + ss.rigid_weight * iso
         if ss.rigid_scale_weight > 0 and ss.spec is not None:  # ... and Gaussian sizes their canonical values
             loss = loss + ss.rigid_scale_weight * scale_change_loss(geo["log_scales"], params["gaussians"].log_scales,
                                                                     alive)

@@ -127,6 +127,10 @@ class TrainConfig:
     `time_window_start` of the frames (in time order) during the warm-up and opens linearly to all frames
     over this many steps after it. Parts then move a little at a time, so the local photometric and flow
     gradients can follow them (0: all frames from the start)."""
+    field_only_steps: int = 0
+    """Steps right after the warm-up in which only the deformation field (and camera poses) train, the
+    canonical Gaussians frozen, so that a part's changed state must be explained by moving it rather
+    than by re-colouring it (0: off)."""
     error_sampling: float = 0.0
     """Fraction of the steps that draw their frames with probability proportional to each frame's squared
     last MSE (the frames where a part has moved are the worst ones); the rest draw uniformly (0: off)."""

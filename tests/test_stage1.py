@@ -423,3 +423,18 @@ def test_error_sampling_draws_the_worst_frames_more_often():
     for s in range(5):
         np.testing.assert_array_equal(stage1._batch_indices(0, s, 6, 2, None, err, 0.0),
                                       stage1._batch_indices(0, s, 6, 2))
+
+
+def test_field_only_phase_freezes_the_canonical_gaussians():
+    scene = _tiny_scene(True)
+    cfg = _cfg("train.steps=10", "train.warmup_steps=3", "train.field_only_steps=4", "static.detect=false",
+               "train.checkpoint_every=0")
+    at = lambda n: stage1.train_stage1(cfg, scene, None, stop_at=n, progress=False, log=lambda *_: None)["state"]
+    a, b, c = at(3), at(7), at(9)
+    leaves = lambda st, k: jax.tree_util.tree_leaves(st.params[k])
+    for x, y in zip(leaves(a, "gaussians"), leaves(b, "gaussians"), strict=True):  # frozen in steps 3-6
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert any(not np.array_equal(np.asarray(x), np.asarray(y))  # ... while the field trains
+               for x, y in zip(leaves(a, "deform"), leaves(b, "deform"), strict=True))
+    assert any(not np.array_equal(np.asarray(x), np.asarray(y))  # and after the phase they train again
+               for x, y in zip(leaves(b, "gaussians"), leaves(c, "gaussians"), strict=True))

@@ -227,6 +227,7 @@ class StepSpec:
     rigid_weight: float = 0.0  # weight of the isometry regulariser (needs the neighbour graph; deformation only)
     rigid_scale_weight: float = 0.0  # weight of the scale-change regulariser (deformation only)
     rigid_cap: float = 0.0  # saturation of a pair's stretch in the isometry regulariser (0: none)
+    freeze_gaussians: bool = False  # only the deformation (and poses) update: the canonical Gaussians stay
 
 
 class FlowBatch(NamedTuple):
@@ -307,6 +308,8 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
             params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx, fl, nbr)
         bad = jnp.any(overflow) | ~jnp.isfinite(loss)
         updates, new_opt = optimizer.update(grads, opt_state, params)
+        if ss.freeze_gaussians:  # masked updates (zero gradients alone would still move them by momentum)
+            updates = {**updates, "gaussians": jax.tree_util.tree_map(jnp.zeros_like, updates["gaussians"])}
         new_params = optax.apply_updates(params, updates)
         # An overflowing (or non-finite) step is dropped, and reported to the host loop.
         keep = lambda new, old: jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), new, old)
@@ -492,7 +495,8 @@ def _check_train_config(cfg: Config) -> None:
         raise ConfigError(f"config key 'train.time_window_start' must be in (0, 1]; got {t.time_window_start}")
     if not 0.0 <= t.error_sampling <= 1.0:
         raise ConfigError(f"config key 'train.error_sampling' must be in [0, 1]; got {t.error_sampling}")
-    for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "coarse_to_fine"):
+    for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "coarse_to_fine",
+              "field_only_steps"):
         if getattr(t, k) < 0:
             raise ConfigError(f"config key 'train.{k}' must be >= 0; got {getattr(t, k)}")
 
@@ -574,13 +578,13 @@ def train_stage1(
     elif t.coarse_to_fine > 0:
         log(f"coarse-to-fine skipped: {w}x{h} images are too small to halve")
 
-    def get_step(use_deform: bool, sh_deg: int, flow_on: bool = False, lo: bool = False):
+    def get_step(use_deform: bool, sh_deg: int, flow_on: bool = False, lo: bool = False, freeze: bool = False):
         sw, sh_ = (w2, h2) if lo else (w, h)
         ss = StepSpec(spec if use_deform else None, sh_deg, sw, sh_, state.capacity, t.tile_size, t.lambda_dssim,
                       t.scale_reg, t.scale_reg_max, "pose" in state.params,
                       fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
-                      t.rigid_cap if use_deform else 0.0)
+                      t.rigid_cap if use_deform else 0.0, freeze)
         if ss not in steps_cache:
             steps_cache[ss] = _make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
@@ -618,7 +622,8 @@ def train_stage1(
         use_deform = s >= t.warmup_steps and not bool(state.static)
         lo = coarse and s < t.coarse_to_fine
         flow_on = use_flow and use_deform and s >= fc.start and not lo
-        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo)
+        freeze = use_deform and s < t.warmup_steps + t.field_only_steps
+        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze)
         sh_mask = _sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)
                   if t.time_curriculum > 0 else None)
@@ -645,7 +650,7 @@ def train_stage1(
                 state.frame_err[idx] = np.asarray(m_host, np.float32)
         state.step += 1
         s1 = state.step
-        if d.enabled and d.start < s1 <= d.stop and s1 % d.every == 0:
+        if d.enabled and d.start < s1 <= d.stop and s1 % d.every == 0 and not freeze:
             g, state.opt_state, state.densify, n_alive = densify_apply(
                 state.params["gaussians"], state.opt_state, state.densify, jax.random.fold_in(state.key, s1),
                 grad_threshold=d.grad_threshold, clone_max_scale=d.percent_dense * extent,

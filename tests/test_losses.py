@@ -19,6 +19,17 @@ def _cloud(seed=0, n=60):
     return rng, x, alive
 
 
+def _assert_gradient_matches_central_differences(f, x, rng):
+    """jax.grad of the scalar f at a random point near x, against a central difference along a random
+    direction (float64)."""
+    xt = x + 0.05 * rng.normal(size=x.shape)
+    g = np.asarray(jax.grad(f)(jnp.asarray(xt)))
+    d = rng.normal(size=x.shape)
+    h = 1e-6
+    fd = (float(f(xt + h * d)) - float(f(xt - h * d))) / (2 * h)
+    assert np.sum(g * d) == pytest.approx(fd, rel=1e-5)
+
+
 def test_knn_graph_matches_brute_force_and_masks_dead_slots():
     _, x, alive = _cloud()
     idx, w = knn_graph(x, alive, 5)
@@ -52,13 +63,7 @@ def test_isometry_loss_zero_for_rigid_motion_and_exact_for_scaling():
     x2[1] = x2[0]
     g = jax.grad(lambda m: isometry_loss(m, x2, idx, w))(jnp.asarray(x2))
     assert bool(jnp.all(jnp.isfinite(g)))
-    xt = x + 0.05 * rng.normal(size=x.shape)
-    f = lambda m: isometry_loss(m, x, idx, w)
-    g = np.asarray(jax.grad(f)(jnp.asarray(xt)))
-    d = rng.normal(size=x.shape)
-    h = 1e-6
-    fd = (float(f(xt + h * d)) - float(f(xt - h * d))) / (2 * h)
-    assert np.sum(g * d) == pytest.approx(fd, rel=1e-5)
+    _assert_gradient_matches_central_differences(lambda m: isometry_loss(m, x, idx, w), x, rng)
 
 
 def test_isometry_loss_cap_is_quadratic_at_rest_bounded_and_matches_central_differences():
@@ -76,13 +81,7 @@ def test_isometry_loss_cap_is_quadratic_at_rest_bounded_and_matches_central_diff
     # bounded: tearing the cloud apart costs at most cap per pair
     assert float(isometry_loss(1000.0 * x, x, idx, w, cap=cap)) <= cap + 1e-6
     # finite differences (float64) away from rest
-    xt = x + 0.05 * rng.normal(size=x.shape)
-    f = lambda m: isometry_loss(m, x, idx, w, cap=cap)
-    g = np.asarray(jax.grad(f)(jnp.asarray(xt)))
-    d = rng.normal(size=x.shape)
-    h = 1e-6
-    fd = (float(f(xt + h * d)) - float(f(xt - h * d))) / (2 * h)
-    assert np.sum(g * d) == pytest.approx(fd, rel=1e-5)
+    _assert_gradient_matches_central_differences(lambda m: isometry_loss(m, x, idx, w, cap=cap), x, rng)
 
 
 def test_photometric_and_scale_regulariser_values():

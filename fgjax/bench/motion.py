@@ -29,7 +29,7 @@ def _pooled_psnr(err2: np.ndarray) -> float:
     return float(-10.0 * np.log10(max(float(np.mean(err2)), 1e-12))) if err2.size else float("nan")
 
 
-def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21, log=print) -> dict:
+def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21) -> dict:
     """The measurements above as a dict (see the module docstring)."""
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization

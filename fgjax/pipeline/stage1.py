@@ -733,7 +733,7 @@ def refined_viewmats(params, viewmats: np.ndarray) -> np.ndarray:
     vm = np.asarray(viewmats, np.float64)
     if deltas.shape[0] != vm.shape[0]:
         raise ValueError(f"the run refined {deltas.shape[0]} camera poses but the scene has {vm.shape[0]} frames")
-    return np.stack([np.asarray(se3_exp(d)) @ v for d, v in zip(deltas, vm, strict=True)]).astype(vm.dtype)
+    return (np.asarray(se3_exp(deltas)) @ vm).astype(vm.dtype)  # se3_exp is batched: [T, 4, 4]
 
 
 def render_frame(state: TrainState, spec: DeformSpec, cfg: Config, viewmat, K, t, width, height):

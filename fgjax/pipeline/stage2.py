@@ -444,15 +444,16 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
         a, b = order[j], order[j + 1]
         flows.append(estimate_flow(_to_u8(scene.images[a]), _to_u8(scene.images[b]), cfg.flow_method,
                                    cache_dir=cache_dir))
+        trusted = alphas[j] >= cfg.min_alpha  # pixels with a rendered depth to trust
         c2w_b = c2w[j + 1]
         if correct:
-            vm_b, rms, _ = camera_correction(depths[j], alphas[j] >= cfg.min_alpha, flows[-1], scene.viewmats[a],
-                                             scene.viewmats[b], scene.Ks[a])
+            vm_b, rms, _ = camera_correction(depths[j], trusted, flows[-1], scene.viewmats[a], scene.viewmats[b],
+                                             scene.Ks[a])
             c2w_b = viewmat_to_c2w(vm_b[None])[0]
             rms_all.append(rms)
         cf, ok = camera_flow_from_depth(depths[j], scene.Ks[a], c2w[j], c2w_b)
         cams.append(cf)
-        valid.append(ok & (alphas[j] >= cfg.min_alpha))
+        valid.append(ok & trusted)
     log(f"stage 2: optical flow of {len(flows)} pairs ({time.perf_counter() - t_flow:.1f} s)"
         + (f"; camera poses corrected from the static flow (median inlier RMS {np.nanmedian(rms_all):.2f} px)"
            if correct and rms_all and np.any(np.isfinite(rms_all)) else ""))

@@ -29,6 +29,7 @@ import numpy as np
 import optimistix as optx
 
 from fgjax import geometry
+from fgjax.pipeline.init_points import pixel_rays
 
 __all__ = ["rigid_increment", "track_objects", "transform_gaussians", "quat_multiply", "camera_correction"]
 
@@ -109,6 +110,22 @@ def _bucket(n: int) -> int:
     return max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))
 
 
+def _fit_pixels(xy, depth, flow, viewmat0, K0, viewmat1, K1, **kw):
+    """`rigid_increment` of pixels `xy` [M, 2] of camera 0, back-projected at their camera z-`depth` [M],
+    onto ``xy + flow`` [M, 2] in camera 1: (Delta [4, 4], inlier RMS). The arrays are padded with zero
+    weights to a power-of-two length, so a handful of compiled sizes serve every call."""
+    n = len(xy)
+    m = _bucket(n)
+    centre, rays = pixel_rays(viewmat0, K0, xy)  # ray parameter = camera z-depth
+    pts = np.zeros((m, 3))
+    pts[:n] = centre + depth[:, None] * rays
+    target = np.zeros((m, 2))
+    target[:n] = xy + flow
+    w = np.zeros(m, np.float32)
+    w[:n] = 1.0
+    return rigid_increment(pts, target, w, jnp.asarray(viewmat1), jnp.asarray(K1), **kw)
+
+
 def track_objects(means, quats, scales, opacities, labels, num_objects: int, viewmats, Ks, flows, width: int,
                   height: int, *, min_pixels: int = 30, dominance: float = 0.6, erode: int = 1, tile_size: int = 8,
                   log=print) -> np.ndarray:
@@ -125,7 +142,6 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
     """
     import cv2
 
-    from fgjax.pipeline.init_points import pixel_rays
     from fgjax.render.api import rasterization
 
     t = len(viewmats)
@@ -158,15 +174,8 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
                 poses[k, j + 1] = poses[k, j]
                 continue
             idx = np.flatnonzero(sel)
-            m = _bucket(len(idx))  # padded to a power of two: a handful of compiled sizes
-            centre, rays = pixel_rays(viewmats[j], Ks[j], pix[idx])  # ray parameter = camera z-depth
-            p_w = np.zeros((m, 3))
-            p_w[:len(idx)] = centre + depth.reshape(-1)[idx, None] * rays
-            target = np.zeros((m, 2))
-            target[:len(idx)] = pix[idx] + flow[idx]
-            w = np.zeros(m, np.float32)
-            w[:len(idx)] = 1.0
-            delta, rms = rigid_increment(p_w, target, w, jnp.asarray(viewmats[j + 1]), jnp.asarray(Ks[j + 1]))
+            delta, rms = _fit_pixels(pix[idx], depth.reshape(-1)[idx], flow[idx], viewmats[j], Ks[j],
+                                     viewmats[j + 1], Ks[j + 1])
             poses[k, j + 1] = np.asarray(delta, np.float64) @ poses[k, j]
             rms_all.append(float(rms))
     log(f"tracking: {num_objects} object(s) over {t} frames in {time.perf_counter() - t0:.1f} s "
@@ -187,8 +196,6 @@ def camera_correction(depth, valid, flow, viewmat0, viewmat1, K, *, huber_px: fl
     world-to-camera, inlier RMS in pixels, pixels used); fewer than ``min_pixels`` usable pixels
     return viewmat1 unchanged (RMS NaN). Six unknowns need few pixels: at most ``max_pixels``, evenly
     strided over the usable ones, enter the fit."""
-    from fgjax.pipeline.init_points import pixel_rays
-
     depth = np.asarray(depth, np.float64)
     flow = np.asarray(flow, np.float64)
     h, w = depth.shape
@@ -201,16 +208,9 @@ def camera_correction(depth, valid, flow, viewmat0, viewmat1, K, *, huber_px: fl
         idx = idx[np.linspace(0, len(idx) - 1, max_pixels).round().astype(int)]
     ys, xs = np.divmod(idx, w)
     xy = np.stack([xs + 0.5, ys + 0.5], -1)  # pixel centres at +0.5
-    centre, rays = pixel_rays(np.asarray(viewmat0, np.float64), np.asarray(K, np.float64), xy)
-    m = _bucket(len(idx))
-    pts = np.zeros((m, 3))
-    pts[:len(idx)] = centre + depth.reshape(-1)[idx, None] * rays
-    target = np.zeros((m, 2))
-    target[:len(idx)] = xy + flow.reshape(-1, 2)[idx]
-    wts = np.zeros(m)
-    wts[:len(idx)] = 1.0
+    K = np.asarray(K, np.float64)
     # more reweighting rounds than for one object: a quarter of the frame may move, and the first
     # (unweighted) fit is pulled far enough that some moving pixels look like inliers after two rounds
-    delta, rms = rigid_increment(pts, target, wts, jnp.asarray(vm1), jnp.asarray(np.asarray(K, np.float64)),
-                                 irls=irls, huber_px=huber_px)
+    delta, rms = _fit_pixels(xy, depth.reshape(-1)[idx], flow.reshape(-1, 2)[idx], np.asarray(viewmat0, np.float64),
+                             K, vm1, K, irls=irls, huber_px=huber_px)
     return vm1 @ np.asarray(delta, np.float64), float(rms), int(len(idx))

@@ -19,6 +19,9 @@ from jaxtyping import Bool, Float, Int
 
 __all__ = [
     "grow_clusters",
+    "localize_clusters",
+    "moving_frames",
+    "Localized",
     "otsu_threshold",
     "select_dynamic",
     "k_distances",
@@ -302,6 +305,138 @@ def grow_clusters(
             break
         lab[todo[hit]] = lab[have[j[hit]]]
     return lab
+
+
+def moving_frames(
+    labels: Int[np.ndarray, " M"],
+    moving_t: Float[np.ndarray, "T M"],
+    total_t: Float[np.ndarray, "T M"],
+    *,
+    active: float = 0.5,
+    dilate: int = 0,
+) -> Bool[np.ndarray, "K T"]:
+    """The frames in which each cluster moves: [K, T] bool (K = max label + 1).
+
+    Cluster k's moving fraction m_k(t) = sum_{i in k} moving_it / sum_{i in k} total_it (the share of its
+    painted weight that lies on moving pixels in frame t); frame t is a moving frame when
+    m_k(t) >= ``active`` x max_t m_k(t) > 0, then the set is widened by ``dilate`` frames on each side."""
+    lab = np.asarray(labels, np.int64)
+    mv = np.asarray(moving_t, np.float64)
+    tt = np.asarray(total_t, np.float64)
+    if mv.ndim != 2 or mv.shape[1] != len(lab) or tt.shape != mv.shape:
+        raise ValueError(f"moving_frames: moving_t and total_t must both have shape [T, {len(lab)}], got "
+                         f"{list(mv.shape)} and {list(tt.shape)}")
+    k_num = int(lab.max()) + 1 if np.any(lab >= 0) else 0
+    out = np.zeros((k_num, mv.shape[0]), bool)
+    for k in range(k_num):
+        mem = lab == k
+        if not np.any(mem):
+            continue
+        prof = mv[:, mem].sum(1) / np.maximum(tt[:, mem].sum(1), 1e-12)  # [T]
+        if prof.max() > 0:
+            out[k] = prof >= active * prof.max()
+    for _ in range(max(int(dilate), 0)):
+        prev = out.copy()
+        out[:, 1:] |= prev[:, :-1]
+        out[:, :-1] |= prev[:, 1:]
+    return out
+
+
+class Localized(NamedTuple):
+    """Result of `localize_clusters`.
+
+    labels: [M] new labels (-1 = none).
+    frames: [K, T] bool, the frames in which each cluster moves.
+    scores: [M] the score each point got for the cluster it was tested against (NaN: not tested).
+    joined: [K] points that joined each cluster.
+    """
+
+    labels: Int[np.ndarray, " M"]
+    frames: Bool[np.ndarray, "K T"]
+    scores: Float[np.ndarray, " M"]
+    joined: tuple[int, ...]
+
+
+def localize_clusters(
+    points: Float[np.ndarray, "M D"],
+    labels: Int[np.ndarray, " M"],
+    moving_t: Float[np.ndarray, "T M"],
+    total_t: Float[np.ndarray, "T M"],
+    *,
+    radius: float,
+    threshold: float,
+    candidates: Bool[np.ndarray, " M"] | None = None,
+    active: float = 0.5,
+    eps: float = 0.1,
+) -> Localized:
+    """Second pass of the selection, in each cluster's own moving frames: unlabelled points near a
+    cluster join it when they lie on moving pixels in most of the frames where that cluster moves.
+
+    The global score sum_t moving_t / sum_t total_t of `fgjax.pipeline.discover` is diluted by every
+    frame in which a part rests: a lid that moves in 8 of 60 frames scores ~0.1 even where it is painted
+    on moving pixels whenever it moves, below the global cut that the parts moving longer set. Here,
+    cluster k's moving frames F_k are those where its members' moving fraction
+    m_k(t) = sum_{i in k} moving_it / sum_{i in k} total_it is at least ``active`` x max_t m_k(t); every
+    candidate within ``radius`` of a member (unlabelled, and a ``candidates`` point when given) gets
+    s_ik = sum_{t in F_k} moving_it / (sum_{t in F_k} total_it + eps) and joins k when s_ik >= ``threshold``
+    (the largest s_ik wins when several clusters reach it). Members keep their labels.
+
+    Args:
+        points: [M, D] positions (canonical centres).
+        labels: [M] cluster ids 0..K-1, -1 none.
+        moving_t, total_t: [T, M] per-frame painted weight on moving pixels and in all
+            (`fgjax.pipeline.discover.Scores.moving_t` / ``total_t``).
+        radius: search radius around a cluster's members (same units as `points`).
+        threshold: the cut of s_ik in [0, 1].
+        candidates: [M] bool, the points allowed to join (None: all).
+        active: a frame is in F_k when m_k(t) >= active * max_t m_k(t).
+        eps: pixel-equivalents added to the denominator (points hardly seen in F_k score low).
+
+    Returns:
+        `Localized`.
+    """
+    pts = _points(points, "points")
+    m = len(pts)
+    lab = np.asarray(labels, np.int64).copy()
+    mv = np.asarray(moving_t, np.float64)
+    tt = np.asarray(total_t, np.float64)
+    if lab.shape != (m,):
+        raise ValueError(f"localize_clusters: labels must have shape [{m}], got {list(lab.shape)}")
+    if mv.ndim != 2 or mv.shape[1] != m or tt.shape != mv.shape:
+        raise ValueError(f"localize_clusters: moving_t and total_t must both have shape [T, {m}], got "
+                         f"{list(mv.shape)} and {list(tt.shape)}")
+    if not radius > 0 or not 0.0 <= threshold <= 1.0 or not 0.0 < active <= 1.0:
+        raise ValueError(f"localize_clusters: need radius > 0, threshold in [0, 1] and active in (0, 1]; got "
+                         f"{radius}, {threshold}, {active}")
+    cand = np.ones(m, bool) if candidates is None else np.asarray(candidates, bool)
+    if cand.shape != (m,):
+        raise ValueError(f"localize_clusters: candidates must have shape [{m}], got {list(cand.shape)}")
+    frames = moving_frames(lab, mv, tt, active=active)
+    k_num = len(frames)
+    best = np.full(m, -np.inf)
+    best_k = np.full(m, -1, np.int64)
+    scores = np.full(m, np.nan)
+    free = cand & (lab < 0)
+    from scipy.spatial import cKDTree
+
+    for k in range(k_num):
+        mem = lab == k
+        if not np.any(mem) or not np.any(frames[k]):
+            continue
+        near = np.isfinite(cKDTree(pts[mem]).query(pts, k=1, distance_upper_bound=radius)[0]) & free
+        idx = np.flatnonzero(near)
+        if len(idx) == 0:
+            continue
+        f = frames[k]
+        s = mv[f][:, idx].sum(0) / (tt[f][:, idx].sum(0) + eps)  # [len(idx)]
+        scores[idx] = np.where(np.isnan(scores[idx]), s, np.fmax(scores[idx], s))
+        win = (s >= threshold) & (s > best[idx])
+        best[idx[win]] = s[win]
+        best_k[idx[win]] = k
+    join = best_k >= 0
+    lab[join] = best_k[join]
+    joined = tuple(int(np.sum(join & (best_k == k))) for k in range(k_num))
+    return Localized(labels=lab, frames=frames, scores=scores, joined=joined)
 
 
 def cluster_report(labels: Int[np.ndarray, " M"]) -> ClusterReport:

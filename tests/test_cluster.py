@@ -245,3 +245,69 @@ def test_grow_clusters_hysteresis():
     np.testing.assert_array_equal(grow_clusters(pts, np.full(len(pts), -1), cand, 0.06), -1)  # no seeds
     with pytest.raises(ValueError):
         grow_clusters(pts, labels, cand, eps=0.0)
+
+
+def _activity(t, n, spans):
+    """Per-frame painted weights [T, N]: total 10 everywhere; point i moving (weight 8) in frames spans[i]."""
+    total = np.full((t, n), 10.0)
+    moving = np.zeros((t, n))
+    for i, sp in spans.items():
+        moving[list(sp), i] = 8.0
+    return moving, total
+
+
+def test_moving_frames_and_dilation():
+    labels = np.array([0, 0, 1, -1])
+    moving, total = _activity(12, 4, {0: range(3, 6), 1: range(3, 6), 2: [8, 9], 3: range(12)})
+    moving[4, 1] = 2.0  # a weaker frame: cluster 0's fraction (0.8 + 0.2) / 2 = 0.5 of its maximum
+    f = C.moving_frames(labels, moving, total, active=0.5)
+    assert f.shape == (2, 12)
+    np.testing.assert_array_equal(np.flatnonzero(f[0]), [3, 4, 5])
+    np.testing.assert_array_equal(np.flatnonzero(f[1]), [8, 9])
+    np.testing.assert_array_equal(np.flatnonzero(C.moving_frames(labels, moving, total, active=0.9)[0]), [3, 5])
+    d = C.moving_frames(labels, moving, total, active=0.5, dilate=1)
+    np.testing.assert_array_equal(np.flatnonzero(d[0]), [2, 3, 4, 5, 6])
+    np.testing.assert_array_equal(np.flatnonzero(d[1]), [7, 8, 9, 10])
+    assert C.moving_frames(np.full(4, -1), moving, total).shape == (0, 12)  # no clusters
+    np.testing.assert_array_equal(C.moving_frames(labels, np.zeros_like(moving), total), False)  # never moving
+    with pytest.raises(ValueError, match="moving_t and total_t"):
+        C.moving_frames(labels, moving[:, :3], total)
+
+
+def test_localize_clusters_finds_a_briefly_moving_part_that_the_global_score_misses():
+    # cluster 0 (points 0-4) moves in frames 40-47 of 60; near it: a point on the same part that the
+    # global cut missed (moving whenever the part moves), a static neighbour, a neighbour moving only
+    # outside the part's frames; far away: a point moving in the same frames (beyond the radius);
+    # a member of cluster 1 (also near) keeps its label.
+    t = 60
+    pts = np.array([[0.0, 0, 0], [0.02, 0, 0], [0.04, 0, 0], [0.0, 0.02, 0], [0.02, 0.02, 0],  # cluster 0
+                    [0.07, 0.0, 0],   # 5: the missed piece of the part
+                    [0.0, -0.06, 0],  # 6: static neighbour
+                    [0.0, 0.07, 0],   # 7: moves, but in other frames
+                    [2.0, 0.0, 0],    # 8: moves in the same frames, far away
+                    [0.06, 0.04, 0]])  # 9: cluster 1
+    labels = np.array([0, 0, 0, 0, 0, -1, -1, -1, -1, 1])
+    part = range(40, 48)
+    moving, total = _activity(t, len(pts), {**{i: part for i in range(6)}, 7: range(0, 10), 8: part, 9: range(20, 24)})
+    glob = moving.sum(0) / (total.sum(0) + 0.1)
+    assert glob[5] < 0.15  # diluted by the 52 frames of rest: below any sensible global cut
+    res = C.localize_clusters(pts, labels, moving, total, radius=0.1, threshold=0.4)
+    np.testing.assert_array_equal(res.labels, [0, 0, 0, 0, 0, 0, -1, -1, -1, 1])
+    np.testing.assert_array_equal(np.flatnonzero(res.frames[0]), list(part))
+    assert res.joined == (1, 0)
+    assert res.scores[5] == pytest.approx(8 * 8 / (8 * 10 + 0.1))
+    assert res.scores[6] == 0.0 and np.isnan(res.scores[8])  # tested and failed; never tested (too far)
+    # candidates restrict who may join; a point reaching two clusters joins the higher-scoring one
+    none = C.localize_clusters(pts, labels, moving, total, radius=0.1, threshold=0.4, candidates=np.zeros(10, bool))
+    np.testing.assert_array_equal(none.labels, labels)
+    lab2 = labels.copy()
+    lab2[7] = 1  # cluster 1 now also holds a point moving in frames 0-9; point 6 moves in frames 0-9 too
+    mv2, tt2 = _activity(t, len(pts), {**{i: part for i in range(6)}, 6: range(0, 10), 7: range(0, 10),
+                                       9: range(0, 10)})
+    mv2[40:48, 6] = 4.0  # and half-moving in cluster 0's frames
+    res2 = C.localize_clusters(pts, lab2, mv2, tt2, radius=0.15, threshold=0.4)
+    assert res2.scores[6] == pytest.approx(8 * 10 / (10 * 10 + 0.1)) and res2.labels[6] == 1
+    with pytest.raises(ValueError, match="threshold"):
+        C.localize_clusters(pts, labels, moving, total, radius=0.1, threshold=1.5)
+    with pytest.raises(ValueError, match="labels"):
+        C.localize_clusters(pts, labels[:3], moving, total, radius=0.1, threshold=0.4)

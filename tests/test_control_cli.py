@@ -57,7 +57,8 @@ def test_eval_writes_metrics(tiny, capsys):
     run_dir, _ = tiny
     assert cli.main(["eval", "--run", str(run_dir)]) == 0
     m = json.loads((run_dir / "metrics.json").read_text())["control"]
-    assert -1.0 <= m["ari"] <= 1.0 and np.isfinite(m["state_psnr"])
+    assert -1.0 <= m["ari"] <= 1.0 and -1.0 <= m["ari_controlled"] <= 1.0 and np.isfinite(m["state_psnr"])
+    assert len(m["ari_per_view"]) == len(m["ari_controlled_per_view"]) >= 1
     assert m["num_objects_gt"] == 3
 
 

@@ -53,6 +53,42 @@ def test_controlled_render_zero_vector_is_stage1_at_t0(tiny):
     np.testing.assert_allclose(img, ref, atol=1e-5)
     ids = stage2.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"])
     assert ids.shape == (m["height"], m["width"]) and ids.min() >= 0 and ids.max() <= run.s2.num_objects
+    # at the reference time both sources draw the same scene (zero control vectors)
+    ids_c = stage2.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"], source="control")
+    assert np.mean(ids_c == ids) > 0.99
+    with pytest.raises(ValueError, match="source"):
+        stage2.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"], source="gt")
+
+
+def test_cluster_map_of_the_stage1_source_is_the_stage1_model_at_t(tiny):
+    """source="stage1": the one-hot ids composited over the stage-1 model at time t (what `fgjax render`
+    draws in colour), checked against an independent composite of the same geometry."""
+    import jax.numpy as jnp
+
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+    from fgjax.gaussians import activate
+    from fgjax.render.api import rasterization
+
+    run = stage2.load_stage2(tiny[0])
+    m = run.meta
+    sc = load_scene(tiny[1], "train", normalize=Normalization.from_dict(m["normalization"]))
+    t = float(sc.times[-1])
+    labels = run.s2.labels.copy()
+    labels[: len(labels) // 3] = 0  # make sure some Gaussians carry an object id
+    run.s2.labels = labels
+    ids = stage2.render_clusters(run, sc.viewmats[-1], sc.Ks[-1], m["width"], m["height"], t=t)
+    mt, qt, st = run.deformed(t)
+    g = run.state.params["gaussians"]
+    q, s, o = activate(type(g)(mt, st, qt, g.opacity_logits, g.sh), run.state.densify.alive)
+    obj = (labels >= 0).astype(np.float32)[:, None]
+    feat, alpha, _ = rasterization(mt, q, s, o, jnp.asarray(obj), jnp.asarray(sc.viewmats[-1], jnp.float32),
+                                   jnp.asarray(sc.Ks[-1], jnp.float32), m["width"], m["height"])
+    feat, alpha = np.asarray(feat)[..., 0], np.asarray(alpha)
+    expect = (alpha >= 0.5) & (feat > 0.5 * alpha)  # an object channel dominates
+    decided = np.abs(feat - 0.5 * alpha) > 1e-3  # away from ties
+    np.testing.assert_array_equal((ids > 0)[decided], expect[decided])
+    assert expect.any()
 
 
 def test_write_cluster_maps(tiny, tmp_path):
@@ -144,6 +180,8 @@ def test_camera_correction_config_is_checked_and_wired_into_discovery(tiny, monk
     from fgjax.data.scene import Normalization
     from fgjax.pipeline import track
 
+    with pytest.raises(ValueError, match="track_masks"):
+        stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(track_masks="later"), log=lambda m: None)
     with pytest.raises(ValueError, match="camera_correction"):
         stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(camera_correction="yes"), log=lambda m: None)
     run = stage2.load_stage2(tiny[0], require_stage2=False)

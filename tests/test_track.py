@@ -109,6 +109,24 @@ def test_track_objects_recovers_rigid_poses_from_exact_flow():
     np.testing.assert_allclose(est[0, 0], np.eye(4))
     np.testing.assert_allclose(est[0, :, :3, :3], poses[:, :3, :3], atol=0.01)
     np.testing.assert_allclose(est[0, :, :3, 3], poses[:, :3, 3], atol=0.01)
+    # the per-frame geometry (the scene as reconstructed at each frame) gives the same poses
+    per = [transform_gaussians(jnp.asarray(means), jnp.asarray(quats), jnp.asarray(labels), jnp.asarray(p[None]))
+           for p in poses]
+    est_f = track_objects(np.stack([np.asarray(m) for m, _ in per]), np.stack([np.asarray(q) for _, q in per]),
+                          np.stack([scales] * t), opac, labels, 1, vms, np.stack([K] * t), flows, W, H,
+                          log=lambda m: None)
+    np.testing.assert_allclose(est_f[0, :, :3, :3], poses[:, :3, :3], atol=0.01)
+    np.testing.assert_allclose(est_f[0, :, :3, 3], poses[:, :3, 3], atol=0.01)
+    # pairs marked as resting keep the pose: the increment of pair 1 is skipped, the others still apply
+    moving = np.array([[True, False, True, True]])
+    est_m = track_objects(means, quats, scales, opac, labels, 1, vms, np.stack([K] * t), flows, W, H,
+                          moving=moving, log=lambda m: None)
+    np.testing.assert_allclose(est_m[0, 2], est_m[0, 1])
+    np.testing.assert_allclose(est_m[0, 1, :3, 3], poses[1, :3, 3], atol=0.01)
+    assert not np.allclose(est_m[0, 3], est_m[0, 2], atol=1e-3)
+    still = track_objects(means, quats, scales, opac, labels, 1, vms, np.stack([K] * t), flows, W, H,
+                          moving=np.zeros((1, t - 1), bool), log=lambda m: None)
+    np.testing.assert_array_equal(still, np.tile(np.eye(4), (1, t, 1, 1)))
     # no objects / one frame: identities, no work
     assert track_objects(means, quats, scales, opac, np.full(n, -1), 0, vms, np.stack([K] * t), flows, W, H,
                          log=lambda m: None).shape == (0, t, 4, 4)

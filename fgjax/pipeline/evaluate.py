@@ -6,7 +6,10 @@ kept):
 
 - ``ari``: adjusted Rand index of per-pixel object ids (`stage2.render_clusters` with the stage-1
   model at the frame's time, 0 = static included) against gt object ids, over the test frames of
-  kind "view" (pixels with gt id >= 0).
+  kind "view" (pixels with gt id >= 0). It measures the discovery and clustering: which Gaussians of
+  the reconstruction belong to which object.
+- ``ari_controlled``: the same with the controlled scene at the frame's time (each object moved to
+  its trajectory vector v_c(t, k)): this one also carries the errors of the trajectories.
 - ``state_psnr``: PSNR of controlled renders of the held-out "state" test frames. Each discovered
   cluster is matched to the gt object under most of its pixels in the training frames (majority
   vote: evaluation only); the gt object's centre displacement from the reference (first) training
@@ -45,16 +48,18 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
     ids_train = np.load(gt / "train" / "object_id.npy")
     res: dict = {"num_objects_found": s2.num_objects, "num_objects_gt": len(meta.get("objects", []))}
     # ARI on "view" frames
-    aris = []
-    for i, kd in enumerate(kinds):
-        if kd != "view":
-            continue
-        pred = stage2.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height, t=test.times[i])
-        ok = ids_test[i] >= 0
-        aris.append(float(metrics.ari(ids_test[i][ok], pred[ok])))
-    if aris:
-        res["ari"] = float(np.mean(aris))
-        res["ari_per_view"] = aris
+    for key, source in (("ari", "stage1"), ("ari_controlled", "control")):
+        aris = []
+        for i, kd in enumerate(kinds):
+            if kd != "view":
+                continue
+            pred = stage2.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height,
+                                          t=test.times[i], source=source)
+            ok = ids_test[i] >= 0
+            aris.append(float(metrics.ari(ids_test[i][ok], pred[ok])))
+        if aris:
+            res[key] = float(np.mean(aris))
+            res[f"{key}_per_view"] = aris
     # cluster -> gt object matching by pixel majority over training frames
     k = s2.num_objects
     votes = np.zeros((k + 1, int(ids_train.max()) + 1 if ids_train.size else 1))

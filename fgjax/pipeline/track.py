@@ -127,15 +127,21 @@ def _fit_pixels(xy, depth, flow, viewmat0, K0, viewmat1, K1, **kw):
 
 
 def track_objects(means, quats, scales, opacities, labels, num_objects: int, viewmats, Ks, flows, width: int,
-                  height: int, *, min_pixels: int = 30, dominance: float = 0.6, erode: int = 1, tile_size: int = 8,
+                  height: int, *, moving=None, min_pixels: int = 30, dominance: float = 0.6, erode: int = 1, tile_size: int = 8,
                   log=print) -> np.ndarray:
     """Poses [K, T, 4, 4] of each object at each frame (T = len(viewmats), frames in time order; pose 0 = I).
 
     Args:
-        means, quats, scales, opacities: the reference Gaussians (activated quats/scales/opacities) [N, ...].
+        means, quats, scales, opacities: the reference Gaussians (activated quats/scales/opacities) [N, ...];
+            object k's pixels in frame t are those it paints when moved by its current pose T_k(t). Or
+            means [T, N, 3], quats [T, N, 4] and scales [T, N, 3]: the scene as reconstructed at each frame (the stage-1
+            model at that frame's time), which paints each object where the image shows it, so a pose
+            error does not move the pixels the next increment is measured on.
         labels: [N] object of each Gaussian (-1: static).
         viewmats, Ks: [T, 4, 4], [T, 3, 3] cameras in time order.
         flows: [T-1, H, W, 2] observed flow frame j -> j + 1 (NaN = unknown).
+        moving: [K, T-1] bool, the pairs in which each object moves (None: all). An object keeps its pose
+            over the other pairs, so its pose does not drift while it rests.
         min_pixels: objects painting fewer pixels in a frame keep their pose for that step.
         dominance: a pixel belongs to object k when k's share of the composited weight exceeds this.
         erode: pixels within this many pixels of the edge of object k's mask are not used.
@@ -156,16 +162,24 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
     pix = np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
     t0 = time.perf_counter()
     rms_all = []
+    per_frame = np.ndim(means) == 3
     for j in range(t - 1):
-        m_j, q_j = transform_gaussians(jnp.asarray(means), jnp.asarray(quats), jnp.asarray(labels),
-                                       jnp.asarray(poses[:, j], jnp.float32))
-        feat, alpha, info = rasterization(m_j, q_j, scales, opacities, jnp.asarray(onehot), jnp.asarray(viewmats[j]),
+        s_j = scales[j] if per_frame else scales
+        if per_frame:
+            m_j, q_j = jnp.asarray(means[j]), jnp.asarray(quats[j])
+        else:
+            m_j, q_j = transform_gaussians(jnp.asarray(means), jnp.asarray(quats), jnp.asarray(labels),
+                                           jnp.asarray(poses[:, j], jnp.float32))
+        feat, alpha, info = rasterization(m_j, q_j, s_j, opacities, jnp.asarray(onehot), jnp.asarray(viewmats[j]),
                                           jnp.asarray(Ks[j]), width, height, render_depth=True, tile_size=tile_size)
         feat, alpha, depth = np.asarray(feat), np.asarray(alpha), np.asarray(info["depth"])
         share = feat / np.maximum(alpha, 1e-9)[..., None]
         flow = np.asarray(flows[j]).reshape(-1, 2)
         known = np.all(np.isfinite(flow), -1) & (alpha.reshape(-1) > 0.5) & (depth.reshape(-1) > 0)
         for k in range(num_objects):
+            if moving is not None and not moving[k, j]:
+                poses[k, j + 1] = poses[k, j]
+                continue
             own = share[..., k + 1] > dominance
             if erode > 0:  # flow is smoothed across object edges (towards the background's): keep the interior
                 own = cv2.erode(own.astype(np.uint8), np.ones((2 * erode + 1, 2 * erode + 1), np.uint8)) > 0

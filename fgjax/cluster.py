@@ -20,6 +20,7 @@ from jaxtyping import Bool, Float, Int
 __all__ = [
     "grow_clusters",
     "localize_clusters",
+    "split_by_motion",
     "moving_frames",
     "Localized",
     "otsu_threshold",
@@ -340,6 +341,83 @@ def moving_frames(
         out[:, 1:] |= prev[:, :-1]
         out[:, :-1] |= prev[:, 1:]
     return out
+
+
+def _runs(mask: np.ndarray, min_gap: int) -> list[np.ndarray]:
+    """Index arrays of the runs of True in `mask` [T]; runs separated by fewer than `min_gap` False frames merge."""
+    idx = np.flatnonzero(mask)
+    if len(idx) == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(idx) > min_gap) + 1
+    return np.split(idx, cuts)
+
+
+def split_by_motion(
+    points: Float[np.ndarray, "M D"],
+    labels: Int[np.ndarray, " M"],
+    moving_t: Float[np.ndarray, "T M"],
+    total_t: Float[np.ndarray, "T M"],
+    *,
+    active: float = 0.5,
+    min_gap: int = 2,
+    min_size: int = 5,
+    eps: float = 0.1,
+) -> Int[np.ndarray, " M"]:
+    """Split clusters that hold parts moving at different times.
+
+    Two parts closer than DBSCAN's eps merge into one cluster, although they usually move at different
+    times. A cluster's moving frames (`moving_frames`) fall into runs (separated by at least
+    ``min_gap`` resting frames). Each member's activity in run r is a_ir = sum_{t in r} moving_it /
+    (sum_{t in r} total_it + eps). Runs whose activities are positively correlated over the members (one
+    part opening, then closing: the same members move in both) form one group; a cluster with several
+    groups is split, each member going to the group where its mean activity is largest (members with
+    no activity in any run: to the group of their nearest active member). Parts smaller than
+    ``min_size`` stay merged (with the largest part). Returns new labels [M], 0..K'-1 by decreasing size.
+    """
+    pts = _points(points, "points")
+    lab = np.asarray(labels, np.int64).copy()
+    mv = np.asarray(moving_t, np.float64)
+    tt = np.asarray(total_t, np.float64)
+    if lab.shape != (len(pts),) or mv.ndim != 2 or mv.shape[1] != len(pts) or tt.shape != mv.shape:
+        raise ValueError(f"split_by_motion: labels [{len(pts)}] and moving_t, total_t [T, {len(pts)}] expected, got "
+                         f"{list(lab.shape)}, {list(mv.shape)}, {list(tt.shape)}")
+    frames = moving_frames(lab, mv, tt, active=active)
+    out = lab.copy()
+    next_label = int(lab.max()) + 1 if np.any(lab >= 0) else 0
+    from scipy.spatial import cKDTree
+
+    for k in range(len(frames)):
+        runs = _runs(frames[k], min_gap)
+        mem = np.flatnonzero(lab == k)
+        if len(runs) < 2 or len(mem) < 2 * min_size:
+            continue
+        act = np.stack([mv[r][:, mem].sum(0) / (tt[r][:, mem].sum(0) + eps) for r in runs], 1)  # [members, runs]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = np.nan_to_num(np.corrcoef(act.T), nan=1.0)  # [runs, runs]; a constant column: no evidence
+        group = np.arange(len(runs))  # union-find over positively correlated runs
+        for a in range(len(runs)):
+            for b in range(a + 1, len(runs)):
+                if corr[a, b] > 0:
+                    group[group == group[b]] = group[a]
+        gids = np.unique(group)
+        if len(gids) < 2:
+            continue
+        score = np.stack([act[:, group == g].mean(1) for g in gids], 1)  # [members, groups]
+        pick = np.argmax(score, 1)
+        idle = score.max(1) <= 0
+        if np.any(idle) and np.any(~idle):
+            _, nn = cKDTree(pts[mem[~idle]]).query(pts[mem[idle]], k=1)
+            pick[idle] = pick[~idle][nn]
+        sizes = np.bincount(pick, minlength=len(gids))
+        big = int(np.argmax(sizes))
+        for g in range(len(gids)):
+            if g != big and sizes[g] < min_size:
+                pick[pick == g] = big
+        for g in np.unique(pick):
+            if g != big:
+                out[mem[pick == g]] = next_label
+                next_label += 1
+    return relabel_by_size(out)
 
 
 class Localized(NamedTuple):

@@ -311,3 +311,24 @@ def test_localize_clusters_finds_a_briefly_moving_part_that_the_global_score_mis
         C.localize_clusters(pts, labels, moving, total, radius=0.1, threshold=1.5)
     with pytest.raises(ValueError, match="labels"):
         C.localize_clusters(pts, labels[:3], moving, total, radius=0.1, threshold=0.4)
+
+
+def test_split_by_motion_separates_parts_that_move_at_different_times():
+    rng = np.random.default_rng(0)
+    a = rng.normal([0.0, 0.0, 0.0], 0.01, (30, 3))  # part A
+    b = rng.normal([0.04, 0.0, 0.0], 0.01, (20, 3))  # part B, touching A: one DBSCAN cluster
+    pts = np.concatenate([a, b, [[1.0, 1.0, 1.0]]])
+    labels = np.r_[np.zeros(50, int), -1]
+    a_runs, b_runs = [*range(5, 9), *range(15, 19)], [*range(25, 29), *range(35, 39)]  # open, rest, close
+    moving, total = _activity(45, 51, {**{i: a_runs for i in range(30)}, **{i: b_runs for i in range(30, 50)}})
+    moving[:, 29] = 0.0  # an idle member of A (never on moving pixels) follows its nearest active neighbour
+    out = C.split_by_motion(pts, labels, moving, total)
+    assert len(set(out[:30])) == 1 and len(set(out[30:50])) == 1 and out[0] != out[30]
+    assert out[0] == 0 and out[30] == 1 and out[-1] == -1  # by size; noise stays noise
+    # one part opening then closing (two runs, the same members): not split
+    one, _ = _activity(45, 51, {i: a_runs for i in range(50)})
+    np.testing.assert_array_equal(C.split_by_motion(pts, labels, one, total), labels)
+    # a part smaller than min_size stays merged
+    np.testing.assert_array_equal(C.split_by_motion(pts, labels, moving, total, min_size=25), labels)
+    with pytest.raises(ValueError, match="split_by_motion"):
+        C.split_by_motion(pts, labels[:5], moving, total)

@@ -75,3 +75,29 @@ def test_render_clusters_writes_id_maps(tiny, tmp_path):
     for path in maps:
         ids = np.load(path)
         assert ids.dtype.kind in "iu" and ids.min() >= 0 and ids.max() <= n
+
+
+def test_gt_point_motion_matches_hinge_and_slide_geometry():
+    """The evaluation's gt motion of a point, against closed forms: a point at distance r from a hinge
+    turned by theta moves by 2 r sin(theta / 2) and keeps its distance to the axis; a drawer point
+    moves by s * distance along the direction. In the run's scene units (centre and scale applied)."""
+    from fgjax.data.scene import Normalization
+    from fgjax.data.synth import SynthObject
+    from fgjax.pipeline.evaluate import gt_point_motion
+
+    norm = Normalization(centre=np.array([0.3, -0.2, 0.5]), scale=0.8)
+    z = np.zeros(3)
+    door = SynthObject(label=1, kind="door", name="door_1", pivot=np.array([1.0, 0.0, 0.0]),
+                       axis=np.array([0.0, 0.0, 1.0]), direction=z, lateral=z, max_angle=1.2, distance=0.0,
+                       wiggle=0.0, radius=0.0, key_times=np.array([0.0, 1.0]), key_states=np.array([0.0, 1.0]))
+    p_world = np.array([1.0, 0.4, 0.7])  # 0.4 from the hinge axis
+    p = norm.points_to_scene(p_world)
+    q = gt_point_motion(door, 0.25, 0.75, p, norm)  # turns by 0.5 * 1.2 rad
+    assert np.linalg.norm(q - p) == pytest.approx(0.8 * 2 * 0.4 * np.sin(0.3), rel=1e-9)
+    q_world = norm.points_to_world(q)
+    assert np.hypot(q_world[0] - 1.0, q_world[1]) == pytest.approx(0.4, rel=1e-9) and q_world[2] == pytest.approx(0.7)
+    np.testing.assert_allclose(gt_point_motion(door, 0.75, 0.25, q, norm), p, atol=1e-12)  # and back
+    drawer = SynthObject(label=2, kind="drawer", name="drawer_2", pivot=z, axis=z, direction=np.array([0.0, -1.0, 0.0]),
+                         lateral=z, max_angle=0.0, distance=0.3, wiggle=0.0, radius=0.0,
+                         key_times=np.array([0.0, 1.0]), key_states=np.array([0.0, 1.0]))
+    np.testing.assert_allclose(gt_point_motion(drawer, 0.0, 0.5, p, norm) - p, [0.0, -0.8 * 0.15, 0.0], atol=1e-12)

@@ -180,6 +180,8 @@ def test_camera_correction_config_is_checked_and_wired_into_discovery(tiny, monk
     from fgjax.data.scene import Normalization
     from fgjax.pipeline import track
 
+    with pytest.raises(ValueError, match="track_joints"):
+        stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(track_joints="on"), log=lambda m: None)
     with pytest.raises(ValueError, match="track_masks"):
         stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(track_masks="later"), log=lambda m: None)
     with pytest.raises(ValueError, match="camera_correction"):

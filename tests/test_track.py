@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from conftest import look_at
 
 from fgjax import geometry
@@ -100,7 +101,12 @@ def test_track_objects_recovers_rigid_poses_from_exact_flow():
     opac = np.full(n, 0.9)
     t = 5
     vms = np.stack([look_at(np.array([0.3 * (i - 2) / 2, -3.0, 0.4])) for i in range(t)])
-    poses = np.stack([np.eye(4)] + [_pose([0.0, 0.0, 0.06 * i], [0.03 * i, 0.0, 0.02 * i]) for i in range(1, t)])
+    # a general motion (no articulation): the turn alternates between two axes, and the object also slides
+    poses = [np.eye(4)]
+    for i in range(1, t):
+        inc = _pose([0.0, 0.0, 0.12] if i % 2 else [0.12, 0.0, 0.0], [0.03, 0.0, 0.02])
+        poses.append(inc @ poses[-1])
+    poses = np.stack(poses)
     flows = np.stack([_rendered_flow(means, quats, scales, opac, labels, poses[i], poses[i + 1], vms[i], vms[i + 1])
                       for i in range(t - 1)])
     est = track_objects(means, quats, scales, opac, labels, 1, vms, np.stack([K] * t), flows, W, H,
@@ -117,6 +123,33 @@ def test_track_objects_recovers_rigid_poses_from_exact_flow():
                           log=lambda m: None)
     np.testing.assert_allclose(est_f[0, :, :3, :3], poses[:, :3, :3], atol=0.01)
     np.testing.assert_allclose(est_f[0, :, :3, 3], poses[:, :3, 3], atol=0.01)
+    # a hinge (turns about a fixed vertical axis at the object's edge): with the per-frame geometry the
+    # articulation fit is tried, chosen, and gives the poses
+    hinge = []
+    for i in range(t):
+        p = _pose([0.0, 0.0, 0.12 * i], [0.0, 0.0, 0.0])
+        piv = np.array([-0.3, 0.0, 0.0])
+        p[:3, 3] = piv - p[:3, :3] @ piv
+        hinge.append(p)
+    hinge = np.stack(hinge)
+    flows_h = np.stack([_rendered_flow(means, quats, scales, opac, labels, hinge[i], hinge[i + 1], vms[i], vms[i + 1])
+                        for i in range(t - 1)])
+    per_h = [transform_gaussians(jnp.asarray(means), jnp.asarray(quats), jnp.asarray(labels), jnp.asarray(p[None]))
+             for p in hinge]
+    logs = []
+    est_h = track_objects(np.stack([np.asarray(m) for m, _ in per_h]), np.stack([np.asarray(q) for _, q in per_h]),
+                          np.stack([scales] * t), opac, labels, 1, vms, np.stack([K] * t), flows_h, W, H,
+                          log=logs.append)
+    assert any("-> revolute" in m for m in logs), logs
+    np.testing.assert_allclose(est_h[0, :, :3, :3], hinge[:, :3, :3], atol=0.01)
+    np.testing.assert_allclose(est_h[0, :, :3, 3], hinge[:, :3, 3], atol=0.01)
+    # the general motion above is no articulation: the pair-by-pair poses were kept
+    logs = []
+    track_objects(np.stack([np.asarray(m) for m, _ in per]), np.stack([np.asarray(q) for _, q in per]),
+                  np.stack([scales] * t), opac, labels, 1, vms, np.stack([K] * t), flows, W, H, log=logs.append)
+    assert any("-> pair by pair" in m for m in logs), logs
+    with pytest.raises(ValueError, match="joints"):
+        track_objects(means, quats, scales, opac, labels, 1, vms, np.stack([K] * t), flows, W, H, joints="yes")
     # pairs marked as resting keep the pose: the increment of pair 1 is skipped, the others still apply
     moving = np.array([[True, False, True, True]])
     est_m = track_objects(means, quats, scales, opac, labels, 1, vms, np.stack([K] * t), flows, W, H,
@@ -169,3 +202,56 @@ def test_camera_correction_removes_a_pose_error_from_u_cam_despite_moving_pixels
     out, rms2, n = camera_correction(depth, np.zeros((h, w), bool), u_obs, vm0, noisy, K)
     np.testing.assert_array_equal(out, noisy)
     assert n == 0 and np.isnan(rms2)
+
+
+def _hinged_patch_pairs(kind, amounts, seed=0):
+    """A planar 0.3 x 0.4 patch (a door face) seen from the front, moved pair by pair about a vertical
+    hinge at its left edge (revolute) or along the viewing direction (prismatic): the exact data of
+    `fit_joint` (points of the first frame of each pair, their pixels in the second)."""
+    rng = np.random.default_rng(seed)
+    vm = look_at(np.array([0.1, -2.0, 0.3]))
+    base = np.stack([rng.uniform(0.0, 0.3, 200), np.zeros(200), rng.uniform(0.0, 0.4, 200)], -1)
+    pivot, axis = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    direction = np.array([0.0, -1.0, 0.0])
+    pts, tgt, pose = [], [], np.eye(4)
+    for a in amounts:
+        cur = base @ pose[:3, :3].T + pose[:3, 3]
+        if kind == "revolute":
+            inc = _pose(axis * a, [0.0, 0.0, 0.0])
+            inc[:3, 3] = pivot - inc[:3, :3] @ pivot
+        else:
+            inc = _pose([0.0, 0.0, 0.0], direction * a)
+        nxt = cur @ inc[:3, :3].T + inc[:3, 3]
+        pts.append(cur)
+        tgt.append(_project(vm, nxt))
+        pose = inc @ pose
+    j = len(amounts)
+    return np.stack(pts), np.stack(tgt), np.ones((j, 200)), np.stack([vm] * j), np.stack([K] * j), axis, direction
+
+
+def test_fit_joint_recovers_a_hinge_and_a_slide_over_all_pairs():
+    from fgjax.pipeline.track import fit_joint
+
+    amounts = np.array([0.06, 0.17, 0.24, 0.26, 0.0, -0.2, -0.25])  # radians per pair (a door opening 42 deg)
+    pts, tgt, w, vms, Ks, axis, _ = _hinged_patch_pairs("revolute", amounts)
+    inc, rms, frac, ax, piv = fit_joint(pts, tgt, w, vms, Ks, "revolute")
+    assert rms < 1e-3 and frac == 1.0
+    assert abs(abs(np.dot(ax, axis)) - 1.0) < 1e-6
+    angles = np.arccos(np.clip((np.trace(inc[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1))
+    np.testing.assert_allclose(angles, np.abs(amounts), atol=1e-4)
+    for jj in range(len(amounts)):  # each increment moves the points onto their targets
+        moved = pts[jj] @ inc[jj, :3, :3].T + inc[jj, :3, 3]
+        np.testing.assert_allclose(_project(vms[jj], moved), tgt[jj], atol=1e-3)
+    # a slide: the prismatic fit is exact, the revolute one is not
+    pts, tgt, w, vms, Ks, _, direction = _hinged_patch_pairs("prismatic", np.array([0.02, 0.05, 0.05, -0.04]))
+    inc_p, rms_p, _, d, _ = fit_joint(pts, tgt, w, vms, Ks, "prismatic")
+    assert rms_p < 1e-3 and abs(abs(np.dot(d, direction)) - 1.0) < 1e-6
+    np.testing.assert_allclose(inc_p[:, :3, :3], np.tile(np.eye(3), (4, 1, 1)), atol=1e-12)
+    # padding rows and a pair without data: no effect, and that pair's increment is the identity
+    w2 = w.copy()
+    w2[2] = 0.0
+    inc_z, rms_z, _, _, _ = fit_joint(pts, tgt, w2, vms, Ks, "prismatic")
+    assert rms_z < 1e-3
+    np.testing.assert_allclose(inc_z[2], np.eye(4), atol=1e-6)
+    with pytest.raises(ValueError, match="kind"):
+        fit_joint(pts, tgt, w, vms, Ks, "ball")

@@ -111,6 +111,9 @@ class Stage2Config:
     quick demo's clusters spread into static surfaces (ARI 0.72 -> 0.33), so it is off by default."""
     grow_eps: float = 0.05
     """Growth radius in scene units (not the automatic DBSCAN eps, which can be much larger)."""
+    split_motion: bool = True
+    """Split clusters whose members move at different times (`fgjax.cluster.split_by_motion`): two parts
+    closer than eps merge into one DBSCAN cluster, but they rarely move together."""
     local_radius: float = 0.1
     """Second selection pass in each cluster's own moving frames (`fgjax.cluster.localize_clusters`):
     unlabelled Gaussians within this radius (scene units) of a cluster are scored over the frames in which
@@ -123,6 +126,10 @@ class Stage2Config:
     """Which pixels each tracking step fits (`fgjax.pipeline.track.track_objects`): "frame": those the
     object paints in the stage-1 model at the frame's time (where the image shows it), or "reference":
     those it paints in the reference scene moved by its current pose (session 3; drifts with the pose)."""
+    track_joints: str = "auto"
+    """"auto": with ``track_masks="frame"``, each object's motion is also fitted as one articulation over all
+    its pairs (`fgjax.pipeline.track.fit_joint`: a revolute or prismatic joint), which replaces the
+    pair-by-pair poses unless its RMS is more than 3x theirs (+ 0.25 px); "off": pair by pair only."""
     track_active: float = 0.2
     """Tracking moves an object only in its moving frames (`fgjax.cluster.moving_frames` with this
     ``active`` fraction, widened by one frame); 0: in every frame. Parts rest most of the time; an
@@ -483,7 +490,7 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
                     scene.viewmats[order][:n], scene.Ks[order][:n], np.stack(flows), np.stack(cams),
                     valid=np.stack(valid), threshold_px=thr, min_px=cfg.min_px,
                     score_threshold=cfg.score_threshold, min_score=cfg.min_score,
-                    per_frame=cfg.local_radius > 0 or cfg.track_active > 0)
+                    per_frame=cfg.local_radius > 0 or cfg.track_active > 0 or cfg.split_motion)
     dyn = disc.dynamic & np.asarray(alive)
     return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))
 
@@ -511,7 +518,8 @@ def _tracked_geometry(run: LoadedRun, scene, order, labels: np.ndarray, num_obje
     else:
         geo = (m0, qa, sa)
     poses = track_objects(*geo, oa, labels, num_objects, scene.viewmats[order], scene.Ks[order], flows,
-                          scene.width, scene.height, moving=moving, tile_size=run.cfg.train.tile_size, log=log)
+                          scene.width, scene.height, moving=moving, joints=cfg.track_joints,
+                          tile_size=run.cfg.train.tile_size, log=log)
     ms, qs = [], []
     for j in range(len(order)):
         m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses[:, j], jnp.float32))
@@ -684,6 +692,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
 
     if cfg.trajectories not in ("flow", "deformation"):  # checked before any work is done
         raise ValueError(f"Stage2Config.trajectories must be 'flow' or 'deformation'; got {cfg.trajectories!r}")
+    if cfg.track_joints not in ("auto", "off"):
+        raise ValueError(f"Stage2Config.track_joints must be 'auto' or 'off'; got {cfg.track_joints!r}")
     if cfg.track_masks not in ("frame", "reference"):
         raise ValueError(f"Stage2Config.track_masks must be 'frame' or 'reference'; got {cfg.track_masks!r}")
     if cfg.camera_correction not in ("auto", "on", "off"):
@@ -728,6 +738,13 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
         report = cluster.cluster_report(labels[disc.dynamic])
         log(f"stage 2: grown from {before} to {int(np.sum(labels >= 0))} clustered Gaussians (scores >= "
             f"{cfg.grow_fraction * disc.threshold:.3f} within {eps:.3f} of a cluster); sizes {list(report.sizes)}")
+    if cfg.split_motion and report.n_clusters:
+        split = cluster.split_by_motion(canonical, labels, disc.scores.moving_t, disc.scores.total_t)
+        new = cluster.cluster_report(split[split >= 0])
+        if new.n_clusters != report.n_clusters:
+            log(f"stage 2: split by the times their members move: {report.n_clusters} -> {new.n_clusters} "
+                f"cluster(s), sizes {list(new.sizes)}")
+        labels, report = split, cluster.cluster_report(split[disc.dynamic | (split >= 0)])
     if cfg.local_radius > 0 and report.n_clusters:
         loc = cluster.localize_clusters(canonical, labels, disc.scores.moving_t, disc.scores.total_t,
                                         radius=cfg.local_radius, threshold=cfg.local_threshold,

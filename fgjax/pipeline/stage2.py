@@ -138,6 +138,10 @@ class Stage2Config:
     """Correct each frame pair's relative camera pose from the flow of the static majority of pixels before
     u - u_cam is thresholded (`fgjax.pipeline.track.camera_correction`): "on", "off", or "auto" = on when
     stage 1 refined the poses (``pose.enabled``: the poses are known to be noisy)."""
+    refit_steps: int = 300
+    """Steps of `refit_gaussians` (every Gaussian re-fitted to the training images under the tracked
+    motion; the controlled scene then starts from them); 0: off (the controlled scene moves stage 1's
+    Gaussians at t0). Only with ``trajectories="flow"``."""
     trajectories: str = "flow"
     """Where the objects' motion comes from: "flow" (rigid poses tracked from optical flow,
     `fgjax.pipeline.track`) or "deformation" (the stage-1 deformation field)."""
@@ -168,9 +172,13 @@ class Stage2Result:
     t0: the reference time (traj_times[0]).
     control: the trained `ControlNet`.
     meta: dict (config, report, timings, data_dir).
+    refit: `Gaussians` (numpy leaves) of the controlled scene's reference when stage 2 re-fitted them under
+        the tracked motion (`Stage2Config.refit_steps`), else None (the stage-1 model at t0).
     """
 
-    def __init__(self, labels, dynamic, scores, traj, traj_times, control: ControlNet, meta: dict[str, Any]):
+    def __init__(self, labels, dynamic, scores, traj, traj_times, control: ControlNet, meta: dict[str, Any],
+                 refit: Gaussians | None = None):
+        self.refit = refit
         self.labels = np.asarray(labels, np.int64)
         self.dynamic = np.asarray(dynamic, bool)
         self.scores = np.asarray(scores, np.float64)
@@ -273,13 +281,28 @@ class LoadedRun:
             f = self.__dict__["_deformed_jit"] = _deformed_fn(self.spec, self.static)
         return f(self.state.params, jnp.asarray(t, jnp.float32))
 
+    def base(self):
+        """(means, raw quats, log_scales) of the controlled scene's reference: stage 2's re-fitted Gaussians
+        when it made them, else the stage-1 model at t0."""
+        if self.s2 is not None and self.s2.refit is not None:
+            g = self.s2.refit
+            return jnp.asarray(g.means), jnp.asarray(g.quats), jnp.asarray(g.log_scales)
+        return self.deformed(self.s2.t0)
+
+    def control_params(self):
+        """Parameters whose opacities and colours the controlled scene renders with."""
+        if self.s2 is not None and self.s2.refit is not None:
+            return {**self.state.params, "gaussians": jax.tree_util.tree_map(jnp.asarray, self.s2.refit)}
+        return self.state.params
+
     def render_geometry(self, means, quats, log_scales, viewmat, K, width: int, height: int, *, colors=None,
-                        background=None, capacity=None):
-        """Render given geometry with the run's opacities and colours (or `colors` [N, C])."""
+                        background=None, capacity=None, params=None):
+        """Render given geometry with the run's opacities and colours (or `colors` [N, C]); ``params``: whose
+        opacities and colours (default: stage 1's)."""
         from fgjax.pipeline.stage1 import render_params
         from fgjax.render.api import rasterization
 
-        params = _with_geometry(self.state.params, means, quats, log_scales)
+        params = _with_geometry(self.state.params if params is None else params, means, quats, log_scales)
         vm = jnp.asarray(viewmat, jnp.float32)
         Kj = jnp.asarray(K, jnp.float32)
         if colors is None:
@@ -328,7 +351,14 @@ def load_stage2(run_dir: str | Path, *, require_stage2: bool = True) -> LoadedRu
                 if a.shape != b.shape:
                     raise Stage2Error(f"{p}: control parameter shape {b.shape} != {a.shape}")
             control = jax.tree_util.tree_unflatten(treedef, new)
-            s2 = Stage2Result(z["labels"], z["dynamic"], z["scores"], z["traj"], z["traj_times"], control, m)
+            refit = None
+            if "refit_means" in z.files:
+                refit = Gaussians(*(np.asarray(z[f"refit_{f}"]) for f in
+                                    ("means", "log_scales", "quats", "opacity_logits", "sh")))
+                if refit.means.shape != tuple(state.params["gaussians"].means.shape):
+                    raise Stage2Error(f"{p}: re-fitted Gaussians of shape {refit.means.shape} for "
+                                      f"{tuple(state.params['gaussians'].means.shape)}")
+            s2 = Stage2Result(z["labels"], z["dynamic"], z["scores"], z["traj"], z["traj_times"], control, m, refit)
     except (OSError, ValueError, KeyError) as e:
         raise Stage2Error(f"{p} is not a readable stage-2 result: {e}") from e
     if len(s2.labels) != state.params["gaussians"].means.shape[0]:
@@ -360,11 +390,11 @@ def render_controlled(run: LoadedRun, vectors, viewmat, K, width: int, height: i
     s2 = run.s2
     if s2 is None:
         raise Stage2Error("render_controlled needs stage-2 results")
-    base = run.deformed(s2.t0)
+    base = run.base()
     canonical = run.state.params["gaussians"].means
     vec = np.zeros((max(s2.num_objects, 1), 3)) if s2.num_objects == 0 else np.asarray(vectors, np.float64)
     geo = controlled_gaussians(s2.control, base, canonical, jnp.asarray(s2.labels), jnp.asarray(vec, jnp.float32))
-    img, _, _ = run.render_geometry(*geo, viewmat, K, width, height)
+    img, _, _ = run.render_geometry(*geo, viewmat, K, width, height, params=run.control_params())
     return np.clip(np.asarray(img), 0.0, 1.0)
 
 
@@ -386,15 +416,17 @@ def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: f
         raise ValueError(f"render_clusters: source must be 'stage1' or 'control', got {source!r}")
     if vectors is None and source == "control" and s2.num_objects > 0:  # each object at v_c(t, k)
         vectors = cluster_vectors_at(s2, s2.t0 if t is None else float(t))
+    params = None
     if vectors is not None:
-        geo = controlled_gaussians(s2.control, run.deformed(s2.t0), run.state.params["gaussians"].means,
+        geo = controlled_gaussians(s2.control, run.base(), run.state.params["gaussians"].means,
                                    jnp.asarray(s2.labels), jnp.asarray(np.asarray(vectors).reshape(-1, 3), jnp.float32))
+        params = run.control_params()
     else:
         geo = run.deformed(s2.t0 if t is None else float(t))
     kk = s2.num_objects
     onehot = np.zeros((len(s2.labels), kk + 1), np.float32)  # [N, K + 1]
     onehot[np.arange(len(s2.labels)), np.where(s2.labels >= 0, s2.labels + 1, 0)] = 1.0
-    feat, alpha, _ = run.render_geometry(*geo, viewmat, K, width, height, colors=onehot)
+    feat, alpha, _ = run.render_geometry(*geo, viewmat, K, width, height, colors=onehot, params=params)
     ids = np.argmax(np.asarray(feat), axis=-1)
     return np.where(np.asarray(alpha) >= alpha_threshold, ids, 0).astype(np.int64)
 
@@ -497,10 +529,11 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
 
 def _tracked_geometry(run: LoadedRun, scene, order, labels: np.ndarray, num_objects: int, flows, cfg: Stage2Config,
                       moving=None, log=print):
-    """The reference scene (stage 1 at t0) with each object moved by its tracked rigid pose, per training
-    time (time order): (means [T, N, 3], raw quats [T, N, 4], log-scales [T, N, 3]). ``moving`` [K, T-1]:
-    the pairs in which each object moves (`fgjax.cluster.moving_frames`; None: all)."""
-    from fgjax.pipeline.track import track_objects, transform_gaussians
+    """((means [T, N, 3], raw quats [T, N, 4], log-scales [T, N, 3]), poses [K, T, 4, 4]): the reference
+    scene (stage 1 at t0) with each object moved by its tracked rigid pose, per training time (time
+    order), and the poses. ``moving`` [K, T-1]: the pairs in which each object moves
+    (`fgjax.cluster.moving_frames`; None: all)."""
+    from fgjax.pipeline.track import track_objects
 
     t0 = float(scene.times[order[0]])
     m0, q0, ls0 = run.deformed(t0)
@@ -520,24 +553,106 @@ def _tracked_geometry(run: LoadedRun, scene, order, labels: np.ndarray, num_obje
     poses = track_objects(*geo, oa, labels, num_objects, scene.viewmats[order], scene.Ks[order], flows,
                           scene.width, scene.height, moving=moving, joints=cfg.track_joints,
                           tile_size=run.cfg.train.tile_size, log=log)
+    return _posed_geometry((m0, q0, ls0), labels, poses), poses
+
+
+def _posed_geometry(base, labels: np.ndarray, poses: np.ndarray):
+    """The reference geometry `base` (means, raw quats, log-scales) with each object moved by its pose, per
+    time: (means [T, N, 3], raw quats [T, N, 4], log-scales [T, N, 3])."""
+    from fgjax.pipeline.track import transform_gaussians
+
+    m0, q0, ls0 = base
     ms, qs = [], []
-    for j in range(len(order)):
-        m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses[:, j], jnp.float32))
+    for j in range(poses.shape[1]):
+        m, q = transform_gaussians(jnp.asarray(m0), jnp.asarray(q0), jnp.asarray(labels),
+                                   jnp.asarray(poses[:, j], jnp.float32))
         ms.append(np.asarray(m))
         qs.append(np.asarray(q))
-    return np.stack(ms), np.stack(qs), np.repeat(np.asarray(ls0)[None], len(order), axis=0)
+    return np.stack(ms), np.stack(qs), np.repeat(np.asarray(ls0)[None], poses.shape[1], axis=0)
+
+
+def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.ndarray, steps: int, *, seed: int = 0,
+                    log=print) -> Gaussians:
+    """Re-fit the reference Gaussians (stage 1 at t0) to the training images under the tracked motion.
+
+    Stage 1 never moved the parts (docs/benchmarks.md), so their Gaussians are a blur of their states that
+    the deformation field's time dependence hides frame by frame; moved rigidly by the tracked poses they
+    carry that blur into every state (with the true poses and labels, held-out states reach only ~25.6 dB).
+    Here every Gaussian's parameters (centres, scales, rotations, opacities, SH) are optimised with the
+    photometric loss of stage 1 on frame i rendered with each object moved by its pose T_k(t_i)
+    (`track.transform_gaussians`; static Gaussians stay), with stage 1's optimiser groups and
+    learning rates (decaying over `steps`). No densification. A step whose render overflows the tile
+    capacity or whose loss is not finite is skipped.
+
+    Returns:
+        `Gaussians` (numpy leaves) of the reference scene.
+    """
+    from fgjax.pipeline.stage1 import render_params, scene_extent
+    from fgjax.pipeline.track import transform_gaussians
+    from fgjax.train.losses import photometric_loss
+    from fgjax.train.optim import OptimSpec, make_optimizer
+
+    t_start = time.perf_counter()
+    m0, q0, ls0 = run.deformed(float(scene.times[order[0]]))
+    g = run.state.params["gaussians"]
+    params = {"gaussians": Gaussians(m0, ls0, q0, g.opacity_logits, g.sh)}
+    alive = run.state.densify.alive
+    lab = jnp.asarray(labels)
+    pj = jnp.asarray(poses, jnp.float32)  # [K, T, 4, 4]
+    images = jnp.asarray(scene.images[order])
+    vms = jnp.asarray(scene.viewmats[order], jnp.float32)
+    Ks = jnp.asarray(scene.Ks[order], jnp.float32)
+    bg = jnp.asarray(run.cfg.model.background, jnp.float32)
+    cap = int(run.meta.get("capacity") or 0) or None
+    cap = None if cap is None else int(cap * 1.5)
+    lam = float(run.cfg.train.lambda_dssim)
+    opt = make_optimizer(OptimSpec(steps=max(int(steps), 1), scene_extent=scene_extent(scene.viewmats)),
+                         int(g.sh.shape[1]))
+
+    def loss_fn(p, i):
+        gg = p["gaussians"]
+        m, q = transform_gaussians(gg.means, gg.quats, lab, pj[:, i])
+        moved = {"gaussians": Gaussians(m, gg.log_scales, q, gg.opacity_logits, gg.sh)}
+        img, _, info, _ = render_params(moved, alive, vms[i], Ks[i], 0.0, spec=None,
+                                        sh_degree=run.cfg.model.sh_degree, width=scene.width, height=scene.height,
+                                        background=bg, capacity=cap, tile_size=run.cfg.train.tile_size)
+        return photometric_loss(img, images[i], lam), info["overflow"]
+
+    @jax.jit
+    def step(p, st, i):
+        (loss, over), gr = jax.value_and_grad(loss_fn, has_aux=True)(p, i)
+        up, st2 = opt.update(gr, st, p)
+        new = optax.apply_updates(p, up)
+        bad = over | ~jnp.isfinite(loss)
+        keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(bad, y, x), a, b)
+        return keep(new, p), keep(st2, st), loss, bad
+
+    st = opt.init(params)
+    rng = np.random.default_rng(seed + 2)
+    losses, n_bad = [], 0
+    for _ in range(int(steps)):
+        params, st, loss, bad = step(params, st, jnp.asarray(rng.integers(len(order)), jnp.int32))
+        losses.append(loss)
+        n_bad += int(bad)
+    if losses:
+        losses = [float(x) for x in losses]
+        log(f"stage 2: re-fitted the Gaussians under the tracked motion, {steps} steps, loss "
+            f"{np.mean(losses[:10]):.4f} -> {np.mean(losses[-10:]):.4f} ({n_bad} skipped, "
+            f"{time.perf_counter() - t_start:.1f} s)")
+    return jax.tree_util.tree_map(np.asarray, params["gaussians"])
 
 
 def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.ndarray, cfg: Stage2Config,
-                   centres_q_s, flows=None, log=print) -> tuple[ControlNet, dict[str, Any]]:
+                   centres_q_s, flows=None, log=print, refit: Gaussians | None = None) -> tuple[ControlNet, dict[str, Any]]:
     """Fit Θ: distillation from the deformation field, then the photometric loss plus beta L_uGS (module
     docstring). `flows` [T-1, H, W, 2]: observed flow between consecutive frames in time order (None: no
     flow term)."""
     from fgjax.train.losses import photometric_loss
 
     k = traj.shape[0]
-    params = run.state.params
-    canonical = params["gaussians"].means
+    canonical = run.state.params["gaussians"].means  # the control network's input X
+    params = run.state.params if refit is None else {  # whose opacities and colours the renders use
+        **run.state.params, "gaussians": jax.tree_util.tree_map(jnp.asarray, refit)}
     sel = np.flatnonzero(labels >= 0)
     ext = float(np.max(np.abs(np.asarray(canonical)[sel] - np.asarray(canonical)[sel].mean(0)))) if len(sel) else 1.0
     v_all = traj - traj[:, :1]  # [K, T, 3]
@@ -666,6 +781,9 @@ def save_stage2(run_dir: Path, s2: Stage2Result) -> Path:
               "meta": np.array(json.dumps(s2.meta))}
     for i, a in enumerate(leaves):
         arrays[f"control_{i}"] = np.asarray(a)
+    if s2.refit is not None:
+        for f in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+            arrays[f"refit_{f}"] = np.asarray(getattr(s2.refit, f), np.float32)
     p = run_dir / STAGE2_NAME
     _atomic_bytes(p, lambda f: np.savez(f, **arrays))
     summary = {k: v for k, v in s2.meta.items()}
@@ -757,6 +875,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
             f"{list(loc.joined)} Gaussians joined (score >= {cfg.local_threshold} in those frames within "
             f"{cfg.local_radius} of the cluster); sizes {list(report.sizes)}")
     # trajectories and the teacher geometry over all training times (time order)
+    refit = None
     if cfg.trajectories == "flow" and report.n_clusters:
         moving = None
         if cfg.track_active > 0 and disc.scores.moving_t is not None:
@@ -764,7 +883,11 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                                            active=cfg.track_active, dilate=1)
             log(f"stage 2: tracking each object over its moving pairs {[int(f.sum()) for f in moving]} of "
                 f"{moving.shape[1]}")
-        centres, qs, ls = _tracked_geometry(run, scene, order, labels, report.n_clusters, flows, cfg, moving, log)
+        (centres, qs, ls), poses = _tracked_geometry(run, scene, order, labels, report.n_clusters, flows, cfg,
+                                                     moving, log)
+        if cfg.refit_steps > 0:
+            refit = refit_gaussians(run, scene, order, labels, poses, cfg.refit_steps, seed=cfg.seed, log=log)
+            centres, qs, ls = _posed_geometry((refit.means, refit.quats, refit.log_scales), labels, poses)
     else:
         qs, ls = [], []
         for t in times:
@@ -773,7 +896,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
             ls.append(np.asarray(s))
     traj = cluster.trajectories(centres, labels) if report.n_clusters else np.zeros((0, len(times), 3))
     control, stats = _train_control(run, scene, order, labels, traj, cfg, (centres, np.stack(qs), np.stack(ls)),
-                                    flows, log)
+                                    flows, log, refit=refit)
     meta = {
         "format_version": FORMAT_VERSION,
         "data_dir": str(data_dir.resolve()),
@@ -788,7 +911,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
         "time_s": time.perf_counter() - t_start,
         **stats,
     }
-    res = Stage2Result(labels, disc.dynamic, disc.scores.score, traj, times, control, meta)
+    res = Stage2Result(labels, disc.dynamic, disc.scores.score, traj, times, control, meta, refit)
     save_stage2(run_dir, res)
     log(f"stage 2: wrote {run_dir / STAGE2_NAME} ({meta['time_s']:.1f} s)")
     return res

@@ -571,6 +571,23 @@ def _posed_geometry(base, labels: np.ndarray, poses: np.ndarray):
     return np.stack(ms), np.stack(qs), np.repeat(np.asarray(ls0)[None], poses.shape[1], axis=0)
 
 
+def _guarded_step(loss_fn, opt):
+    """jitted (params, opt_state, i) -> (params, opt_state, loss, skipped): one `opt` step on
+    ``loss_fn(params, i) -> (loss, overflow)``; a step whose render overflowed the tile capacity or whose
+    loss is not finite leaves params and state unchanged."""
+
+    @jax.jit
+    def step(p, st, i):
+        (loss, over), gr = jax.value_and_grad(loss_fn, has_aux=True)(p, i)
+        up, st2 = opt.update(gr, st, p)
+        new = optax.apply_updates(p, up)
+        bad = over | ~jnp.isfinite(loss)
+        keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(bad, y, x), a, b)
+        return keep(new, p), keep(st2, st), loss, bad
+
+    return step
+
+
 def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.ndarray, steps: int, *, seed: int = 0,
                     log=print) -> Gaussians:
     """Re-fit the reference Gaussians (stage 1 at t0) to the training images under the tracked motion.
@@ -618,14 +635,7 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
                                         background=bg, capacity=cap, tile_size=run.cfg.train.tile_size)
         return photometric_loss(img, images[i], lam), info["overflow"]
 
-    @jax.jit
-    def step(p, st, i):
-        (loss, over), gr = jax.value_and_grad(loss_fn, has_aux=True)(p, i)
-        up, st2 = opt.update(gr, st, p)
-        new = optax.apply_updates(p, up)
-        bad = over | ~jnp.isfinite(loss)
-        keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(bad, y, x), a, b)
-        return keep(new, p), keep(st2, st), loss, bad
+    step = _guarded_step(loss_fn, opt)
 
     st = opt.init(params)
     rng = np.random.default_rng(seed + 2)
@@ -748,14 +758,7 @@ def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.nd
             over = over | of
         return loss, over
 
-    @jax.jit
-    def photo_step(ctrl, st, i):
-        (loss, over), gr = jax.value_and_grad(photo_loss, has_aux=True)(ctrl, i)
-        up, st2 = opt2.update(gr, st, ctrl)
-        new = optax.apply_updates(ctrl, up)
-        bad = over | ~jnp.isfinite(loss)
-        keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(bad, y, x), a, b)
-        return keep(new, ctrl), keep(st2, st), loss, bad
+    photo_step = _guarded_step(photo_loss, opt2)
 
     t1 = time.perf_counter()
     st = opt2.init(control)

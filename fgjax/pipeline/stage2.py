@@ -571,6 +571,13 @@ def _posed_geometry(base, labels: np.ndarray, poses: np.ndarray):
     return np.stack(ms), np.stack(qs), np.repeat(np.asarray(ls0)[None], poses.shape[1], axis=0)
 
 
+def _render_capacity(run: LoadedRun) -> int | None:
+    """Tile capacity for renders of moved or controlled geometry: 1.5 x the stage-1 run's (None: the
+    rasterizer's default); moved Gaussians can crowd tiles more than stage 1 ever did."""
+    cap = int(run.meta.get("capacity") or 0) or None
+    return None if cap is None else int(cap * 1.5)
+
+
 def _guarded_step(loss_fn, opt):
     """jitted (params, opt_state, i) -> (params, opt_state, loss, skipped): one `opt` step on
     ``loss_fn(params, i) -> (loss, overflow)``; a step whose render overflowed the tile capacity or whose
@@ -620,8 +627,7 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     vms = jnp.asarray(scene.viewmats[order], jnp.float32)
     Ks = jnp.asarray(scene.Ks[order], jnp.float32)
     bg = jnp.asarray(run.cfg.model.background, jnp.float32)
-    cap = int(run.meta.get("capacity") or 0) or None
-    cap = None if cap is None else int(cap * 1.5)
+    cap = _render_capacity(run)
     lam = float(run.cfg.train.lambda_dssim)
     opt = make_optimizer(OptimSpec(steps=max(int(steps), 1), scene_extent=scene_extent(scene.viewmats)),
                          int(g.sh.shape[1]))
@@ -723,9 +729,7 @@ def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.nd
     base = (jnp.asarray(means_t[0]), jnp.asarray(quats_t[0]), jnp.asarray(ls_t[0]))
     labels_j = jnp.asarray(labels)
     bg = jnp.asarray(run.cfg.model.background, jnp.float32)
-    cap = int(run.meta.get("capacity") or 0) or None
-    if cap is not None:
-        cap = int(cap * 1.5)
+    cap = _render_capacity(run)
     images = jnp.asarray(scene.images[order])
     vms = jnp.asarray(scene.viewmats[order], jnp.float32)
     Ks = jnp.asarray(scene.Ks[order], jnp.float32)

@@ -68,15 +68,23 @@ def transform_gaussians(means, quats, labels, poses):
     return jnp.where(moved[:, None], m, means), jnp.where(moved[:, None], q, quats)
 
 
+def _project_rows(moved, viewmat, K):
+    """Pixels [..., M, 2] of world points `moved` [..., M, 3] in cameras `viewmat` [..., 4, 4], `K` [..., 3, 3]
+    (points at or behind z = 1e-3 give 0 and are flagged False)."""
+    pc = jnp.einsum("...mj,...ij->...mi", moved, viewmat[..., :3, :3]) + viewmat[..., None, :3, 3]
+    z = pc[..., 2]
+    ok = z > 1e-3
+    zs = jnp.where(ok, z, 1.0)
+    uv = jnp.stack([K[..., None, 0, 0] * pc[..., 0] / zs + K[..., None, 0, 2],
+                    K[..., None, 1, 1] * pc[..., 1] / zs + K[..., None, 1, 2]], -1)
+    return uv, ok
+
+
 def _residuals(xi, args):
     pts, target, w, centre, viewmat, K = args
     rot = geometry.so3_exp(xi[:3])
     moved = (pts - centre) @ rot.T + centre + xi[3:]  # [M, 3]
-    pc = moved @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = pc[:, 2]
-    ok = z > 1e-3
-    zs = jnp.where(ok, z, 1.0)
-    uv = jnp.stack([K[0, 0] * pc[:, 0] / zs + K[0, 2], K[1, 1] * pc[:, 1] / zs + K[1, 2]], -1)
+    uv, ok = _project_rows(moved, viewmat, K)
     r = jnp.where(ok[:, None], uv - target, 0.0)
     return jnp.sqrt(w)[:, None] * r
 
@@ -115,18 +123,6 @@ def rigid_increment(pts, target, weights, viewmat, K, *, irls: int = 2, huber_px
     inl = (w0 > 0) & (r < 3.0 * huber_px)
     rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0.0)) / jnp.maximum(jnp.sum(inl), 1))
     return delta, rms
-
-
-def _project_rows(moved, viewmat, K):
-    """Pixels [..., M, 2] of world points `moved` [..., M, 3] in cameras `viewmat` [..., 4, 4], `K` [..., 3, 3]
-    (points at or behind z = 1e-3 give 0 and are flagged False)."""
-    pc = jnp.einsum("...mj,...ij->...mi", moved, viewmat[..., :3, :3]) + viewmat[..., None, :3, 3]
-    z = pc[..., 2]
-    ok = z > 1e-3
-    zs = jnp.where(ok, z, 1.0)
-    uv = jnp.stack([K[..., None, 0, 0] * pc[..., 0] / zs + K[..., None, 0, 2],
-                    K[..., None, 1, 1] * pc[..., 1] / zs + K[..., None, 1, 2]], -1)
-    return uv, ok
 
 
 def _joint_moved(x, pts, kind: str):
@@ -227,12 +223,11 @@ def _bucket(n: int) -> int:
     return max(256, 1 << int(np.ceil(np.log2(max(n, 1)))))
 
 
-def _fit_pixels(xy, depth, flow, viewmat0, K0, viewmat1, K1, **kw):
-    """`rigid_increment` of pixels `xy` [M, 2] of camera 0, back-projected at their camera z-`depth` [M],
-    onto ``xy + flow`` [M, 2] in camera 1: (Delta [4, 4], inlier RMS). The arrays are padded with zero
-    weights to a power-of-two length, so a handful of compiled sizes serve every call."""
+def _pixel_points(xy, depth, flow, viewmat0, K0, m: int):
+    """Pixels `xy` [n, 2] of camera 0 back-projected at their camera z-`depth` [n] (world points), with their
+    targets ``xy + flow`` [n, 2], padded with zero weights to length m >= n: (pts [m, 3], target [m, 2],
+    weights [m] float32)."""
     n = len(xy)
-    m = _bucket(n)
     centre, rays = pixel_rays(viewmat0, K0, xy)  # ray parameter = camera z-depth
     pts = np.zeros((m, 3))
     pts[:n] = centre + depth[:, None] * rays
@@ -240,22 +235,22 @@ def _fit_pixels(xy, depth, flow, viewmat0, K0, viewmat1, K1, **kw):
     target[:n] = xy + flow
     w = np.zeros(m, np.float32)
     w[:n] = 1.0
+    return pts, target, w
+
+
+def _fit_pixels(xy, depth, flow, viewmat0, K0, viewmat1, K1, **kw):
+    """`rigid_increment` of pixels `xy` [M, 2] of camera 0, back-projected at their camera z-`depth` [M],
+    onto ``xy + flow`` [M, 2] in camera 1: (Delta [4, 4], inlier RMS). The arrays are padded with zero
+    weights to a power-of-two length, so a handful of compiled sizes serve every call."""
+    pts, target, w = _pixel_points(xy, depth, flow, viewmat0, K0, _bucket(len(xy)))
     return rigid_increment(pts, target, w, jnp.asarray(viewmat1), jnp.asarray(K1), **kw)
 
 
 def _joint_arrays(data: list, m: int, viewmats0, Ks0, viewmats1, Ks1):
     """`fit_joint`'s padded inputs [J, M = m, ...] from a list of (xy, depth, flow), one per pair, and
     the pairs' first- and second-frame cameras."""
-    j = len(data)
-    pts = np.zeros((j, m, 3))
-    tgt = np.zeros((j, m, 2))
-    w = np.zeros((j, m))
-    for i, (xy, depth, flow) in enumerate(data):
-        centre, rays = pixel_rays(viewmats0[i], Ks0[i], xy)
-        n = len(xy)
-        pts[i, :n] = centre + depth[:, None] * rays
-        tgt[i, :n] = xy + flow
-        w[i, :n] = 1.0
+    rows = [_pixel_points(xy, depth, flow, viewmats0[i], Ks0[i], m) for i, (xy, depth, flow) in enumerate(data)]
+    pts, tgt, w = (np.stack(a) for a in zip(*rows, strict=True))
     return pts, tgt, w, np.stack(viewmats1), np.stack(Ks1)
 
 

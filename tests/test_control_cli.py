@@ -60,6 +60,8 @@ def test_eval_writes_metrics(tiny, capsys):
     assert -1.0 <= m["ari"] <= 1.0 and -1.0 <= m["ari_controlled"] <= 1.0 and np.isfinite(m["state_psnr"])
     assert len(m["ari_per_view"]) == len(m["ari_controlled_per_view"]) >= 1
     assert m["num_objects_gt"] == 3
+    if m["num_objects_found"]:
+        assert np.isfinite(m["state_psnr_true_motion"]) and np.isfinite(m["state_psnr_true_motion_labels"])
 
 
 def test_render_clusters_writes_id_maps(tiny, tmp_path):
@@ -101,3 +103,46 @@ def test_gt_point_motion_matches_hinge_and_slide_geometry():
                          lateral=z, max_angle=0.0, distance=0.3, wiggle=0.0, radius=0.0,
                          key_times=np.array([0.0, 1.0]), key_states=np.array([0.0, 1.0]))
     np.testing.assert_allclose(gt_point_motion(drawer, 0.0, 0.5, p, norm) - p, [0.0, -0.8 * 0.15, 0.0], atol=1e-12)
+
+
+def test_gt_motion_scene_matches_point_motion():
+    """The gt motion as a scene-unit matrix moves points where the world-space round trip does."""
+    from fgjax.data.scene import Normalization
+    from fgjax.data.synth import SynthObject
+    from fgjax.pipeline.evaluate import gt_motion_scene, gt_point_motion
+
+    norm = Normalization(centre=np.array([0.3, -0.2, 0.5]), scale=0.8)
+    z = np.zeros(3)
+    lid = SynthObject(label=1, kind="lid", name="lid_1", pivot=np.array([0.2, 1.0, -0.3]),
+                      axis=np.array([1.0, 0.0, 0.0]), direction=z, lateral=z, max_angle=1.0, distance=0.0,
+                      wiggle=0.0, radius=0.0, key_times=np.array([0.0, 1.0]), key_states=np.array([0.0, 1.0]))
+    pts = np.random.default_rng(0).normal(size=(5, 3))
+    tr = gt_motion_scene(lid, 0.1, 0.9, norm)
+    np.testing.assert_allclose(tr[:3, :3] @ tr[:3, :3].T, np.eye(3), atol=1e-12)
+    for x in pts:
+        np.testing.assert_allclose(tr[:3, :3] @ x + tr[:3, 3], gt_point_motion(lid, 0.1, 0.9, x, norm), atol=1e-12)
+
+
+def test_gt_labels_of_gaussians_labels_the_gt_parts(tiny):
+    """The gt Gaussians themselves, moved to some states and put in scene units, get their own labels
+    through the cluster matching; a point far from everything is static."""
+    from fgjax.data.scene import Normalization
+    from fgjax.data.synth import SynthObject, object_transform
+    from fgjax.pipeline.evaluate import gt_labels_of_gaussians
+
+    _, data = tiny
+    gt = data / "gt"
+    meta = json.loads((gt / "meta.json").read_text())
+    z = np.load(gt / "canonical.npz")
+    pts, lab = np.array(z["means"], np.float64), np.asarray(z["labels"])
+    states = np.linspace(0.2, 0.8, len(meta["objects"]))
+    for o in meta["objects"]:
+        obj = SynthObject(**{f: (np.asarray(v, np.float64) if isinstance(v, list) else v) for f, v in o.items()})
+        tr = object_transform(obj, states[o["label"] - 1])
+        pts[lab == o["label"]] = pts[lab == o["label"]] @ tr[:3, :3].T + tr[:3, 3]
+    norm = Normalization(centre=np.array([0.1, 0.2, -0.1]), scale=0.5)
+    query = np.concatenate([norm.points_to_scene(pts), [[50.0, 50.0, 50.0]]])
+    match = {c: c + 1 for c in range(len(meta["objects"]))}  # cluster c <-> gt object c + 1
+    got = gt_labels_of_gaussians(query, gt, states, norm, match, radius=1e-6)
+    np.testing.assert_array_equal(got[:-1], np.where(lab > 0, lab - 1, -1))
+    assert got[-1] == -1

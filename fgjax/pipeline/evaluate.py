@@ -22,6 +22,10 @@ kept):
   2-3's protocol). For a rotating part this differs from the centroid's displacement whenever the
   cluster covers the part unevenly, so it mixes an error of the protocol into the control error.
 - ``state_psnr_stage1`` is stage 1 rendered at the frame's time, for reference.
+- ``state_psnr_true_motion`` and ``state_psnr_true_motion_labels``: ceilings, no control network. The
+  reference Gaussians with each matched cluster moved by the gt motion of its object (the discovered
+  labels, then labels taken from the nearest gt Gaussian): what perfect tracking, then perfect tracking
+  and clustering, would give this reconstruction.
 - ``trajectory_error``: mean over the matched clusters and the training times of the distance (scene
   units) between the cluster's centroid trajectory ς(t, k) and where the gt motion of its object takes
   the cluster's reference centroid: the tracking error alone, free of appearance and label errors.
@@ -36,7 +40,20 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "evaluate_control", "gt_point_motion"]
+__all__ = ["main", "evaluate_control", "gt_labels_of_gaussians", "gt_motion_scene", "gt_point_motion"]
+
+
+def gt_motion_scene(obj, s_from: float, s_to: float, norm) -> np.ndarray:
+    """The gt rigid motion [4, 4] (x -> R x + t) of synthetic object `obj` (`fgjax.data.synth.SynthObject`)
+    from state `s_from` to state `s_to`, in the run's scene units (`norm`: the run's `Normalization`,
+    x_scene = scale (x_world - centre)): R is unchanged and t = scale (R c + t_world - c)."""
+    from fgjax.data.synth import object_transform
+
+    mo = object_transform(obj, float(s_to)) @ np.linalg.inv(object_transform(obj, float(s_from)))
+    out = np.eye(4)
+    out[:3, :3] = mo[:3, :3]
+    out[:3, 3] = norm.scale * (mo[:3, :3] @ norm.centre + mo[:3, 3] - norm.centre)
+    return out
 
 
 def gt_point_motion(obj, s_from: float, s_to: float, point, norm):
@@ -48,6 +65,31 @@ def gt_point_motion(obj, s_from: float, s_to: float, point, norm):
     mo = object_transform(obj, float(s_to)) @ np.linalg.inv(object_transform(obj, float(s_from)))
     p = norm.points_to_world(np.asarray(point, np.float64))
     return norm.points_to_scene(mo[:3, :3] @ p + mo[:3, 3])
+
+
+def gt_labels_of_gaussians(means, gt_dir: Path, states, norm, match: dict[int, int], radius: float) -> np.ndarray:
+    """Evaluation only: each reconstructed Gaussian (centres `means` [N, 3], scene units, at the gt `states`
+    [K_gt] of the objects) labelled with the cluster index (0-based, -1 = static) that `match` (cluster ->
+    gt label) gives the gt object of its nearest gt Gaussian, when that one lies within `radius` (scene
+    units) and is on a moving part; [N] int."""
+    from sklearn.neighbors import NearestNeighbors
+
+    from fgjax.data.synth import SynthObject, object_transform
+
+    meta = json.loads((gt_dir / "meta.json").read_text())
+    z = np.load(gt_dir / "canonical.npz")
+    pts, lab = np.asarray(z["means"], np.float64), np.asarray(z["labels"], np.int64)  # world, state 0
+    for o in meta.get("objects", []):
+        obj = SynthObject(**{f: (np.asarray(v, np.float64) if isinstance(v, list) else v) for f, v in o.items()})
+        sel = lab == int(o["label"])
+        tr = object_transform(obj, float(states[int(o["label"]) - 1]))
+        pts[sel] = pts[sel] @ tr[:3, :3].T + tr[:3, 3]
+    nn = NearestNeighbors(n_neighbors=1).fit(norm.points_to_scene(pts))
+    d, j = nn.kneighbors(np.asarray(means, np.float64))
+    near = lab[j[:, 0]]
+    to_cluster = {g: c for c, g in sorted(match.items(), reverse=True) if g >= 1}
+    return np.array([to_cluster.get(int(g), -1) if (dd <= radius and g >= 1) else -1
+                     for g, dd in zip(near, d[:, 0])], np.int32)
 
 
 def evaluate_control(run, data_dir: Path, log=print) -> dict:
@@ -148,7 +190,42 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         res["state_psnr_per_frame"] = ps
         res["state_psnr_centre"] = float(np.mean(ps_c))
         res["state_psnr_stage1"] = float(np.mean(ps1))
+    if ps and k and states_train is not None:
+        res.update(_true_motion_psnr(run, test, meta, objs, match, states_train[ref], norm, gt))
     return res
+
+
+def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], s_ref, norm, gt: Path) -> dict:
+    """Ceilings of the state PSNR: the controlled scene's reference Gaussians (`LoadedRun.base`, no control
+    network) with every matched cluster moved by the gt motion of its object from the reference state
+    `s_ref` [K_gt] to the held-out state. ``state_psnr_true_motion`` keeps the discovered labels,
+    ``state_psnr_true_motion_labels`` takes them from the gt (`gt_labels_of_gaussians`, radius 0.03): the
+    first is what perfect tracking would give, the second what perfect tracking and clustering would."""
+    import jax.numpy as jnp
+
+    from fgjax import metrics
+    from fgjax.pipeline.track import transform_gaussians
+
+    s2 = run.s2
+    m0, q0, ls0 = run.base()
+    label_sets = {
+        "state_psnr_true_motion": np.asarray(s2.labels),
+        "state_psnr_true_motion_labels": gt_labels_of_gaussians(np.asarray(m0), gt, s_ref, norm, match, 0.03),
+    }
+    out: dict = {key: [] for key in label_sets}
+    for i, f in enumerate(meta.get("test_frames", [])):
+        if f.get("kind") != "state" or f.get("states") is None:
+            continue
+        poses = np.tile(np.eye(4), (s2.num_objects, 1, 1))
+        for c, j in match.items():
+            if j >= 1 and j in objs:
+                poses[c] = gt_motion_scene(objs[j], float(s_ref[j - 1]), float(f["states"][j - 1]), norm)
+        for key, labels in label_sets.items():
+            m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses, jnp.float32))
+            img, _, _ = run.render_geometry(m, q, ls0, test.viewmats[i], test.Ks[i], test.width, test.height,
+                                            params=run.control_params())
+            out[key].append(float(metrics.psnr(np.clip(np.asarray(img), 0.0, 1.0), test.images[i])))
+    return {key: float(np.mean(v)) for key, v in out.items() if v}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -189,6 +189,15 @@ class PoseConfig:
     """Refine per-frame se(3) camera deltas."""
     lr: float = 1e-4
     lr_final: float = 1e-6
+    bundle: bool = False
+    """Before training, refine the written poses by a bundle adjustment over optical-flow tracks
+    (`fgjax.pipeline.poses`); the corrections become the initial pose deltas (needs ``enabled``)."""
+    bundle_prior_deg: float = 1.0
+    """Prior standard deviation of the written rotations' errors (degrees)."""
+    bundle_prior_trans: float = 0.05
+    """Prior standard deviation of the written camera positions' errors (scene units)."""
+    bundle_cauchy_px: float = 0.25
+    """Final Cauchy scale of the reprojection residuals (pixels)."""
 
 
 @dataclasses.dataclass(frozen=True)

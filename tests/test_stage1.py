@@ -438,3 +438,38 @@ def test_field_only_phase_freezes_the_canonical_gaussians():
                for x, y in zip(leaves(a, "deform"), leaves(b, "deform"), strict=True))
     assert any(not np.array_equal(np.asarray(x), np.asarray(y))  # and after the phase they train again
                for x, y in zip(leaves(b, "gaussians"), leaves(c, "gaussians"), strict=True))
+
+
+def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
+    """``pose.bundle``: without ``pose.enabled`` a ConfigError; with it, the bundle adjustment's corrections
+    (stubbed here; `tests/test_poses.py` tests the solver) become the initial pose deltas and the initial
+    Gaussians are placed with the corrected cameras."""
+    from fgjax.pipeline import poses
+
+    scene = _tiny_scene(False, frames=4)
+    with pytest.raises(C.ConfigError, match="pose.bundle"):
+        stage1._check_train_config(_cfg("pose.bundle=true"))
+    deltas = np.arange(24, dtype=np.float64).reshape(4, 6) * 1e-3
+    seen = {}
+
+    def fake(viewmats, Ks, flows, prev, **kw):
+        seen.update(kw, flows=flows.shape)
+        from fgjax.geometry import se3_exp
+
+        vm = np.asarray(se3_exp(jnp.asarray(deltas, jnp.float32)), np.float64) @ viewmats
+        return poses.BundleResult(vm, deltas, np.zeros(0), 1.0, 0.1, 1.0, 3, 0.0)
+
+    monkeypatch.setattr(poses, "bundle_adjust", fake)
+    placed = {}
+    real_init = stage1.init_gaussians
+
+    def spy(cfg, sc, key, **kw):
+        placed["viewmats"] = np.asarray(sc.viewmats)
+        return real_init(cfg, sc, key, **kw)
+
+    monkeypatch.setattr(stage1, "init_gaussians", spy)
+    cfg = _cfg("pose.enabled=true", "pose.bundle=true", "pose.bundle_cauchy_px=0.5", "model.init=random")
+    state, _, _ = stage1.initial_state(cfg, scene)
+    np.testing.assert_allclose(np.asarray(state.params["pose"]), deltas, atol=1e-7)
+    assert seen["cauchy_px"] == 0.5 and seen["flows"] == (4, scene.height, scene.width, 2)
+    np.testing.assert_allclose(placed["viewmats"], stage1.refined_viewmats(state.params, scene.viewmats), atol=1e-5)

@@ -418,15 +418,31 @@ def _mesh_shardings(batch: int, devices=None):
     return NamedSharding(mesh, PartitionSpec("cams")), NamedSharding(mesh, PartitionSpec())
 
 
+def _bundle_adjusted(cfg: Config, scene, cache_dir, log):
+    """(scene with the bundle-adjusted cameras, their pose deltas [T, 6]) (``pose.bundle``): the initial
+    Gaussians are placed with the corrected cameras, and training starts from the deltas, so that
+    `refined_viewmats` and everything downstream see the corrected poses."""
+    from fgjax.pipeline.poses import bundle_adjust
+
+    flows = estimate_training_flows(scene, cfg.flow.method, cache_dir=cache_dir, log=log)
+    p = cfg.pose
+    res = bundle_adjust(scene.viewmats, scene.Ks, flows, previous_frames(scene.times), prior_rot_deg=p.bundle_prior_deg,
+                        prior_trans=p.bundle_prior_trans, cauchy_px=p.bundle_cauchy_px, log=log)
+    return dataclasses.replace(scene, viewmats=res.viewmats.astype(np.float32)), res.deltas.astype(np.float32)
+
+
 def initial_state(cfg: Config, scene, log=print, cache_dir=None) -> tuple[TrainState, DeformSpec, OptimSpec]:
     key = jax.random.key(cfg.model.seed)
     k_init, k_def, key = jax.random.split(key, 3)
+    deltas = np.zeros((scene.num_frames, 6), np.float32)
+    if cfg.pose.enabled and cfg.pose.bundle and scene.num_frames > 1:
+        scene, deltas = _bundle_adjusted(cfg, scene, cache_dir, log)
     g, alive = init_gaussians(cfg, scene, k_init, log=log, cache_dir=cache_dir)
     lo, hi = scene_box(scene.viewmats, scene.Ks, scene.width, scene.height)
     spec = deform_spec_from_config(cfg, np.concatenate([lo, hi]))
     params: dict[str, Any] = {"gaussians": g, "deform": deform_init(k_def, spec)}
     if cfg.pose.enabled:
-        params["pose"] = jnp.zeros((scene.num_frames, 6), jnp.float32)
+        params["pose"] = jnp.asarray(deltas, jnp.float32)
     t = cfg.train
     ospec = OptimSpec(
         steps=t.steps, scene_extent=scene_extent(scene.viewmats), lr_means=t.lr_means,
@@ -499,6 +515,12 @@ def _check_train_config(cfg: Config) -> None:
               "field_only_steps"):
         if getattr(t, k) < 0:
             raise ConfigError(f"config key 'train.{k}' must be >= 0; got {getattr(t, k)}")
+    if cfg.pose.bundle and not cfg.pose.enabled:
+        raise ConfigError("config key 'pose.bundle' needs 'pose.enabled = true' (the bundle adjustment's corrections "
+                          "are stored as the pose deltas)")
+    for k in ("bundle_prior_deg", "bundle_prior_trans", "bundle_cauchy_px"):
+        if not getattr(cfg.pose, k) > 0:
+            raise ConfigError(f"config key 'pose.{k}' must be > 0; got {getattr(cfg.pose, k)}")
 
 
 def train_stage1(

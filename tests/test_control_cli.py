@@ -106,9 +106,10 @@ def test_gt_point_motion_matches_hinge_and_slide_geometry():
 
 
 def test_gt_motion_scene_matches_point_motion():
-    """The gt motion as a scene-unit matrix moves points where the world-space round trip does."""
+    """The gt motion as a scene-unit matrix moves points where the world-space round trip does (scene ->
+    world, the object's transform, world -> scene; written out here), and `gt_point_motion` agrees."""
     from fgjax.data.scene import Normalization
-    from fgjax.data.synth import SynthObject
+    from fgjax.data.synth import SynthObject, object_transform
     from fgjax.pipeline.evaluate import gt_motion_scene, gt_point_motion
 
     norm = Normalization(centre=np.array([0.3, -0.2, 0.5]), scale=0.8)
@@ -119,8 +120,11 @@ def test_gt_motion_scene_matches_point_motion():
     pts = np.random.default_rng(0).normal(size=(5, 3))
     tr = gt_motion_scene(lid, 0.1, 0.9, norm)
     np.testing.assert_allclose(tr[:3, :3] @ tr[:3, :3].T, np.eye(3), atol=1e-12)
+    mo = object_transform(lid, 0.9) @ np.linalg.inv(object_transform(lid, 0.1))  # world units
     for x in pts:
-        np.testing.assert_allclose(tr[:3, :3] @ x + tr[:3, 3], gt_point_motion(lid, 0.1, 0.9, x, norm), atol=1e-12)
+        ref = norm.points_to_scene(mo[:3, :3] @ norm.points_to_world(x) + mo[:3, 3])
+        np.testing.assert_allclose(tr[:3, :3] @ x + tr[:3, 3], ref, atol=1e-12)
+        np.testing.assert_allclose(gt_point_motion(lid, 0.1, 0.9, x, norm), ref, atol=1e-12)
 
 
 def test_gt_labels_of_gaussians_labels_the_gt_parts(tiny):
@@ -143,6 +147,8 @@ def test_gt_labels_of_gaussians_labels_the_gt_parts(tiny):
     norm = Normalization(centre=np.array([0.1, 0.2, -0.1]), scale=0.5)
     query = np.concatenate([norm.points_to_scene(pts), [[50.0, 50.0, 50.0]]])
     match = {c: c + 1 for c in range(len(meta["objects"]))}  # cluster c <-> gt object c + 1
-    got = gt_labels_of_gaussians(query, gt, states, norm, match, radius=1e-6)
+    from fgjax.pipeline.evaluate import gt_objects
+
+    got = gt_labels_of_gaussians(query, gt, gt_objects(meta), states, norm, match, radius=1e-6)
     np.testing.assert_array_equal(got[:-1], np.where(lab > 0, lab - 1, -1))
     assert got[-1] == -1

@@ -40,7 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "evaluate_control", "gt_labels_of_gaussians", "gt_motion_scene", "gt_point_motion"]
+__all__ = ["main", "evaluate_control", "gt_labels_of_gaussians", "gt_motion_scene", "gt_objects",
+           "gt_point_motion"]
 
 
 def gt_motion_scene(obj, s_from: float, s_to: float, norm) -> np.ndarray:
@@ -60,29 +61,33 @@ def gt_point_motion(obj, s_from: float, s_to: float, point, norm):
     """Where the gt motion of synthetic object `obj` (`fgjax.data.synth.SynthObject`) from state `s_from` to
     state `s_to` takes a point given in the run's scene units (`norm`: the run's `Normalization`); scene
     units [3]."""
-    from fgjax.data.synth import object_transform
-
-    mo = object_transform(obj, float(s_to)) @ np.linalg.inv(object_transform(obj, float(s_from)))
-    p = norm.points_to_world(np.asarray(point, np.float64))
-    return norm.points_to_scene(mo[:3, :3] @ p + mo[:3, 3])
+    tr = gt_motion_scene(obj, s_from, s_to, norm)
+    return tr[:3, :3] @ np.asarray(point, np.float64) + tr[:3, 3]
 
 
-def gt_labels_of_gaussians(means, gt_dir: Path, states, norm, match: dict[int, int], radius: float) -> np.ndarray:
+def gt_objects(meta: dict) -> dict:
+    """The synthetic objects of a scene's gt/meta.json, by label: {label: `fgjax.data.synth.SynthObject`}."""
+    from fgjax.data.synth import SynthObject
+
+    return {int(o["label"]): SynthObject(**{f: (np.asarray(v, np.float64) if isinstance(v, list) else v)
+                                            for f, v in o.items()}) for o in meta.get("objects", [])}
+
+
+def gt_labels_of_gaussians(means, gt_dir: Path, objs: dict, states, norm, match: dict[int, int],
+                           radius: float) -> np.ndarray:
     """Evaluation only: each reconstructed Gaussian (centres `means` [N, 3], scene units, at the gt `states`
-    [K_gt] of the objects) labelled with the cluster index (0-based, -1 = static) that `match` (cluster ->
-    gt label) gives the gt object of its nearest gt Gaussian, when that one lies within `radius` (scene
-    units) and is on a moving part; [N] int."""
+    [K_gt] of the objects `objs`, `gt_objects`) labelled with the cluster index (0-based, -1 = static) that
+    `match` (cluster -> gt label) gives the gt object of its nearest gt Gaussian (gt_dir/canonical.npz),
+    when that one lies within `radius` (scene units) and is on a moving part; [N] int."""
     from sklearn.neighbors import NearestNeighbors
 
-    from fgjax.data.synth import SynthObject, object_transform
+    from fgjax.data.synth import object_transform
 
-    meta = json.loads((gt_dir / "meta.json").read_text())
     z = np.load(gt_dir / "canonical.npz")
     pts, lab = np.asarray(z["means"], np.float64), np.asarray(z["labels"], np.int64)  # world, state 0
-    for o in meta.get("objects", []):
-        obj = SynthObject(**{f: (np.asarray(v, np.float64) if isinstance(v, list) else v) for f, v in o.items()})
-        sel = lab == int(o["label"])
-        tr = object_transform(obj, float(states[int(o["label"]) - 1]))
+    for label, obj in objs.items():
+        sel = lab == label
+        tr = object_transform(obj, float(states[label - 1]))
         pts[sel] = pts[sel] @ tr[:3, :3].T + tr[:3, 3]
     nn = NearestNeighbors(n_neighbors=1).fit(norm.points_to_scene(pts))
     d, j = nn.kneighbors(np.asarray(means, np.float64))
@@ -138,10 +143,7 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
     t_train = np.load(gt / "train" / "times.npy")
     ref = int(np.argmin(np.abs(t_train - s2.t0)))
     c_test = np.load(gt / "test" / "centres.npy")
-    from fgjax.data.synth import SynthObject
-
-    objs = {int(o["label"]): SynthObject(**{f: (np.asarray(v, np.float64) if isinstance(v, list) else v)
-                                            for f, v in o.items()}) for o in meta.get("objects", [])}
+    objs = gt_objects(meta)
     states_train = np.load(gt / "train" / "states.npy") if (gt / "train" / "states.npy").is_file() else None
     # trajectory error: each cluster's centroid trajectory against the gt motion of the same point
     if states_train is not None and k:
@@ -210,7 +212,7 @@ def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], 
     m0, q0, ls0 = run.base()
     label_sets = {
         "state_psnr_true_motion": np.asarray(s2.labels),
-        "state_psnr_true_motion_labels": gt_labels_of_gaussians(np.asarray(m0), gt, s_ref, norm, match, 0.03),
+        "state_psnr_true_motion_labels": gt_labels_of_gaussians(np.asarray(m0), gt, objs, s_ref, norm, match, 0.03),
     }
     out: dict = {key: [] for key in label_sets}
     for i, f in enumerate(meta.get("test_frames", [])):

@@ -170,7 +170,7 @@ def _triangulate_inverse_depth(viewmats, Ks, tr: FlowTracks) -> np.ndarray:
     vm = np.asarray(viewmats, np.float64)
     ks = np.asarray(Ks, np.float64)
     h, j = tr.host[tr.obs_track], tr.obs_frame
-    rel = vm[j] @ np.linalg.inv(vm[h])  # [O, 4, 4]: camera h -> camera j
+    rel = vm[j] @ np.linalg.inv(vm)[h]  # [O, 4, 4]: camera h -> camera j (one inverse per camera)
     xy = tr.xy[tr.obs_track]
     ray = np.stack([(xy[:, 0] - ks[h, 0, 2]) / ks[h, 0, 0], (xy[:, 1] - ks[h, 1, 2]) / ks[h, 1, 1],
                     np.ones(len(h))], -1)
@@ -280,22 +280,15 @@ def bundle_adjust(viewmats: np.ndarray, Ks: np.ndarray, flows: np.ndarray, prev:
                 xi, rho, lam, improved = xi_new, rho_new, max(lam / 3.0, 1e-7), True
                 break
             lam *= 10.0
-        if not improved:
-            if scale <= cauchy_px:
-                break
-            scale = max(cauchy_px, scale / 2.0)
-            continue
-        step = float(np.max(np.abs(d_p)))
-        if step < 1e-6:
-            if scale <= cauchy_px:
-                break
-        if scale > cauchy_px:
-            scale = max(cauchy_px, scale / 2.0)
+        converged = not improved or float(np.max(np.abs(d_p))) < 1e-6
+        if converged and scale <= cauchy_px:
+            break
+        scale = max(cauchy_px, scale / 2.0)  # anneal the Cauchy scale towards cauchy_px
     r, front = lin(xi, rho, jac=False)
     rms_after = inlier_rms(r, front, 4.0 * cauchy_px)
     n = np.sqrt(np.sum(r * r, -1))
     inl = float(np.mean((front > 0) & (n < 2 * cauchy_px)))
-    out = np.asarray(jax.vmap(se3_exp)(jnp.asarray(xi, jnp.float32)), np.float64) @ vm
+    out = np.asarray(se3_exp(jnp.asarray(xi, jnp.float32)), np.float64) @ vm  # se3_exp is batched
     res = BundleResult(out, xi, rho, rms_before, rms_after, inl, it, time.time() - t0)
     log(f"pose bundle adjustment: {nt} cameras, {m} flow tracks, {len(tr.obs_track)} observations; inlier RMS "
         f"{rms_before:.3f} -> {rms_after:.3f} px ({100 * inl:.0f}% within {2 * cauchy_px:g} px), {it} iterations, "

@@ -225,6 +225,14 @@ def _with_geometry(params, means, quats, log_scales):
     return {**params, "gaussians": Gaussians(means, log_scales, quats, g.opacity_logits, g.sh)}
 
 
+def _with_refit(params, refit):
+    """Stage-1 `params` with their Gaussians replaced by stage 2's re-fitted ones (`refit`, numpy leaves;
+    None: unchanged)."""
+    if refit is None:
+        return params
+    return {**params, "gaussians": jax.tree_util.tree_map(jnp.asarray, refit)}
+
+
 def _control_hparams(cfg: Stage2Config, x_scale: float, v_scale: float) -> dict[str, Any]:
     return {"encoding": "frequency", "hidden": cfg.hidden, "depth": cfg.depth, "n_freqs_x": cfg.n_freqs_x,
             "n_freqs_v": cfg.n_freqs_v, "x_scale": float(x_scale), "v_scale": float(v_scale)}
@@ -291,9 +299,7 @@ class LoadedRun:
 
     def control_params(self):
         """Parameters whose opacities and colours the controlled scene renders with."""
-        if self.s2 is not None and self.s2.refit is not None:
-            return {**self.state.params, "gaussians": jax.tree_util.tree_map(jnp.asarray, self.s2.refit)}
-        return self.state.params
+        return _with_refit(self.state.params, None if self.s2 is None else self.s2.refit)
 
     def render_geometry(self, means, quats, log_scales, viewmat, K, width: int, height: int, *, colors=None,
                         background=None, capacity=None, params=None):
@@ -667,8 +673,7 @@ def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.nd
 
     k = traj.shape[0]
     canonical = run.state.params["gaussians"].means  # the control network's input X
-    params = run.state.params if refit is None else {  # whose opacities and colours the renders use
-        **run.state.params, "gaussians": jax.tree_util.tree_map(jnp.asarray, refit)}
+    params = _with_refit(run.state.params, refit)  # whose opacities and colours the renders use
     sel = np.flatnonzero(labels >= 0)
     ext = float(np.max(np.abs(np.asarray(canonical)[sel] - np.asarray(canonical)[sel].mean(0)))) if len(sel) else 1.0
     v_all = traj - traj[:, :1]  # [K, T, 3]

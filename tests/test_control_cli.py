@@ -60,6 +60,9 @@ def test_eval_writes_metrics(tiny, capsys):
     assert -1.0 <= m["ari"] <= 1.0 and -1.0 <= m["ari_controlled"] <= 1.0 and np.isfinite(m["state_psnr"])
     assert len(m["ari_per_view"]) == len(m["ari_controlled_per_view"]) >= 1
     assert m["num_objects_gt"] == 3
+    # the tiny scene's poses are written exactly and not refined: both camera errors ~0
+    assert m["camera_rotation_error_written_deg"] < 1e-3 and m["camera_centre_error_written"] < 1e-5
+    assert m["camera_rotation_error_used_deg"] == m["camera_rotation_error_written_deg"]
     if m["num_objects_found"]:
         assert np.isfinite(m["state_psnr_true_motion"]) and np.isfinite(m["state_psnr_true_motion_labels"])
 
@@ -152,3 +155,20 @@ def test_gt_labels_of_gaussians_labels_the_gt_parts(tiny):
     got = gt_labels_of_gaussians(query, gt, gt_objects(meta), states, norm, match, radius=1e-6)
     np.testing.assert_array_equal(got[:-1], np.where(lab > 0, lab - 1, -1))
     assert got[-1] == -1
+
+
+def test_camera_errors_against_a_known_perturbation():
+    """A camera turned by 3 degrees about its own centre and one moved by (0.3, 0.4, 0) without turning:
+    rotation errors (3, 0), centre errors (0, 0.5)."""
+    from fgjax.pipeline.evaluate import camera_errors
+
+    a = np.radians(3.0)
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    true = np.tile(np.eye(4), (2, 1, 1))
+    true[:, :3, 3] = [[0.1, -0.2, 0.5], [1.0, 0.0, -1.0]]
+    turned = true.copy()
+    turned[0, :3, :3] = rz  # R' = Rz, t' = Rz t keeps the centre -R'^T t' = -t
+    turned[0, :3, 3] = rz @ true[0, :3, 3]
+    turned[1, :3, 3] = true[1, :3, 3] - np.array([0.3, 0.4, 0.0])  # centre -t moves by (0.3, 0.4, 0)
+    rot, centre = camera_errors(turned, true)
+    assert rot == pytest.approx(1.5, abs=1e-9) and centre == pytest.approx(0.25, abs=1e-12)

@@ -26,6 +26,9 @@ kept):
   reference Gaussians with each matched cluster moved by the gt motion of its object (the discovered
   labels, then labels taken from the nearest gt Gaussian): what perfect tracking, then perfect tracking
   and clustering, would give this reconstruction.
+- ``camera_rotation_error_{written,used}_deg`` and ``camera_centre_error_{written,used}`` (scene units):
+  the training cameras as written and as the run used them (stage 1's pose deltas, which start from the
+  flow bundle adjustment with ``pose.bundle``) against the gt cameras; means over the frames.
 - ``trajectory_error``: mean over the matched clusters and the training times of the distance (scene
   units) between the cluster's centroid trajectory ς(t, k) and where the gt motion of its object takes
   the cluster's reference centroid: the tracking error alone, free of appearance and label errors.
@@ -40,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "evaluate_control", "gt_labels_of_gaussians", "gt_motion_scene", "gt_objects",
+__all__ = ["main", "camera_errors", "evaluate_control", "gt_labels_of_gaussians", "gt_motion_scene", "gt_objects",
            "gt_point_motion"]
 
 
@@ -63,6 +66,17 @@ def gt_point_motion(obj, s_from: float, s_to: float, point, norm):
     units [3]."""
     tr = gt_motion_scene(obj, s_from, s_to, norm)
     return tr[:3, :3] @ np.asarray(point, np.float64) + tr[:3, 3]
+
+
+def camera_errors(viewmats, true) -> tuple[float, float]:
+    """Mean rotation error (degrees) and mean camera-centre distance (the viewmats' units) of world-to-camera
+    `viewmats` [T, 4, 4] against `true` [T, 4, 4]."""
+    a, b = np.asarray(viewmats, np.float64), np.asarray(true, np.float64)
+    rel = a[:, :3, :3] @ np.transpose(b[:, :3, :3], (0, 2, 1))
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    ca = -np.einsum("tji,tj->ti", a[:, :3, :3], a[:, :3, 3])
+    cb = -np.einsum("tji,tj->ti", b[:, :3, :3], b[:, :3, 3])
+    return float(np.degrees(np.arccos(cos)).mean()), float(np.linalg.norm(ca - cb, axis=1).mean())
 
 
 def gt_objects(meta: dict) -> dict:
@@ -115,6 +129,12 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
     ids_test = np.load(gt / "test" / "object_id.npy")
     ids_train = np.load(gt / "train" / "object_id.npy")
     res: dict = {"num_objects_found": s2.num_objects, "num_objects_gt": len(meta.get("objects", []))}
+    if (gt / "train" / "viewmats_true.npy").is_file():  # the training cameras: written, then as used
+        from fgjax.pipeline.stage1 import refined_viewmats
+
+        true = norm.viewmats_to_scene(np.load(gt / "train" / "viewmats_true.npy"))
+        for key, vm in (("written", train.viewmats), ("used", refined_viewmats(run.state.params, train.viewmats))):
+            res[f"camera_rotation_error_{key}_deg"], res[f"camera_centre_error_{key}"] = camera_errors(vm, true)
     # ARI on "view" frames
     for key, source in (("ari", "stage1"), ("ari_controlled", "control")):
         aris = []

@@ -64,7 +64,7 @@ class BundleResult:
     time_s: float
 
 
-def _bilinear(field: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def sample_bilinear(field: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Sample `field` [H, W, C] at K-coordinate positions `xy` [N, 2] (pixel centres at +0.5); NaN outside."""
     h, w = field.shape[:2]
     x, y = xy[:, 0] - 0.5, xy[:, 1] - 0.5
@@ -106,7 +106,7 @@ def flow_tracks(flows: np.ndarray, prev: np.ndarray, *, length: int = 4, stride:
             j = nxt[frame]
             if j < 0 or len(pos) == 0:
                 break
-            pos = pos + _bilinear(flows[j].astype(np.float64), pos)
+            pos = pos + sample_bilinear(flows[j].astype(np.float64), pos)
             ok = np.all(np.isfinite(pos), -1) & (pos[:, 0] >= 0) & (pos[:, 1] >= 0) & (pos[:, 0] <= w) & (
                 pos[:, 1] <= h)
             pos, ids = pos[ok], ids[ok]

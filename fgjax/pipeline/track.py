@@ -257,7 +257,7 @@ def _joint_arrays(data: list, m: int, viewmats0, Ks0, viewmats1, Ks1):
 def track_objects(means, quats, scales, opacities, labels, num_objects: int, viewmats, Ks, flows, width: int,
                   height: int, *, moving=None, joints: str = "auto", joint_pixels: int = 256, joint_tolerance: float = 3.0,
                   min_pixels: int = 30, dominance: float = 0.6, erode: int = 1, tile_size: int = 8,
-                  log=print) -> np.ndarray:
+                  depth_from=None, log=print) -> np.ndarray:
     """Poses [K, T, 4, 4] of each object at each frame (T = len(viewmats), frames in time order; pose 0 = I).
 
     Args:
@@ -279,6 +279,11 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
         min_pixels: objects painting fewer pixels in a frame keep their pose for that step.
         dominance: a pixel belongs to object k when k's share of the composited weight exceeds this.
         erode: pixels within this many pixels of the edge of object k's mask are not used.
+        depth_from: None, or (reference means [N, 3], raw quats [N, 4], activated scales [N, 3], poses
+            [K, T, 4, 4]): the depth of object k's pixels in frame j then comes from the reference scene with
+            each object moved by those poses (and a pixel is used only where that scene paints object k
+            too), not from the per-frame geometry. Stage 1 blurs a part over its states, so its depth of a
+            moving part lags behind the part, and increments fitted on it under-rotate it.
     """
     import cv2
 
@@ -313,6 +318,16 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
                                           jnp.asarray(Ks[j]), width, height, render_depth=True, tile_size=tile_size)
         feat, alpha, depth = np.asarray(feat), np.asarray(alpha), np.asarray(info["depth"])
         share = feat / np.maximum(alpha, 1e-9)[..., None]
+        if depth_from is not None:
+            rm, rq, rs, rposes = depth_from
+            m_r, q_r = transform_gaussians(jnp.asarray(rm), jnp.asarray(rq), jnp.asarray(labels),
+                                           jnp.asarray(rposes[:, j], jnp.float32))
+            f_r, a_r, i_r = rasterization(m_r, q_r, jnp.asarray(rs), opacities, jnp.asarray(onehot),
+                                          jnp.asarray(viewmats[j]), jnp.asarray(Ks[j]), width, height,
+                                          render_depth=True, tile_size=tile_size)
+            a_r = np.asarray(a_r)
+            share = np.minimum(share, np.asarray(f_r) / np.maximum(a_r, 1e-9)[..., None])
+            depth = np.where(a_r > 0.5, np.asarray(i_r["depth"]), 0.0)
         flow = np.asarray(flows[j]).reshape(-1, 2)
         known = np.all(np.isfinite(flow), -1) & (alpha.reshape(-1) > 0.5) & (depth.reshape(-1) > 0)
         for k in range(num_objects):
@@ -390,3 +405,104 @@ def camera_correction(depth, valid, flow, viewmat0, viewmat1, K, *, huber_px: fl
     delta, rms = _fit_pixels(xy, depth.reshape(-1)[idx], flow.reshape(-1, 2)[idx], np.asarray(viewmat0, np.float64),
                              K, vm1, K, irls=irls, huber_px=huber_px)
     return vm1 @ np.asarray(delta, np.float64), float(rms), int(len(idx))
+
+
+def _runs_of(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Maximal runs [a, b] (inclusive) of True in a 1-D bool array."""
+    out, start = [], None
+    for i, v in enumerate(list(mask) + [False]):
+        if v and start is None:
+            start = i
+        elif not v and start is not None:
+            out.append((start, i - 1))
+            start = None
+    return out
+
+
+def chained_joint_poses(means, quats, scales, opacities, labels, poses, moving, viewmats, Ks, flows, width: int,
+                        height: int, *, points: int = 512, dominance: float = 0.6, erode: int = 1,
+                        huber_px: float = 1.5, tile_size: int = 8, log=print):
+    """Poses [K, T, 4, 4] of each object from its reference points followed through chained flow, one
+    articulation per object (`fit_joint` on absolute amounts); objects whose fit fails keep `poses`.
+
+    Pair-by-pair increments see only the flow of one pair: a door turning towards the camera barely moves
+    in the image from one frame to the next, and the increments under-rotate it (9 of 76 degrees on the
+    default scene). Over a whole moving run its outline shrinks by many pixels. For each run [a, b] of an
+    object's moving pairs (`moving` [K, T-1]), the pixels it paints in frame a (the reference Gaussians
+    `means` [N, 3], `quats`, `scales`, `opacities`, labels [N], moved by its pose in frame a; interior
+    pixels only) are back-projected at that render's depth to reference-space points, and followed through
+    the flows `flows` [T-1, H, W, 2] to frames a+1..b+1 (lost where the flow is unknown). Every (point,
+    frame) pair then constrains that frame's absolute pose; one revolute or prismatic joint with one
+    amount per frame, fitted to all of them, gives the poses (frames after a run keep its last pose).
+    A run's points are seeded with the object's pose in frame a from `poses`; a second call re-seeds
+    later runs with the poses the first one fitted.
+
+    Returns:
+        (poses [K, T, 4, 4], per-object inlier RMS [K] in pixels (NaN: not re-fitted)).
+    """
+    import cv2
+
+    from fgjax.pipeline.poses import sample_bilinear
+    from fgjax.render.api import rasterization
+
+    poses = np.array(poses, np.float64)
+    num_objects, t = poses.shape[:2]
+    labels = np.asarray(labels)
+    onehot = np.zeros((len(labels), num_objects + 1), np.float32)
+    onehot[np.arange(len(labels)), np.where(labels >= 0, labels + 1, 0)] = 1.0
+    ys, xs = np.mgrid[0:height, 0:width]
+    pix = np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
+    rms_out = np.full(num_objects, np.nan)
+    for k in range(num_objects):
+        runs = _runs_of(np.asarray(moving[k], bool))
+        if not runs:
+            continue
+        rows = []  # (reference points [M, 3], pixels [M, 2], frame)
+        for a, b in runs:
+            m_a, q_a = transform_gaussians(jnp.asarray(means), jnp.asarray(quats), jnp.asarray(labels),
+                                           jnp.asarray(poses[:, a], jnp.float32))
+            feat, alpha, info = rasterization(m_a, q_a, jnp.asarray(scales), jnp.asarray(opacities),
+                                              jnp.asarray(onehot), jnp.asarray(viewmats[a], jnp.float32),
+                                              jnp.asarray(Ks[a], jnp.float32), width, height, render_depth=True,
+                                              tile_size=tile_size)
+            alpha, depth = np.asarray(alpha), np.asarray(info["depth"])
+            own = (np.asarray(feat)[..., k + 1] / np.maximum(alpha, 1e-9) > dominance) & (alpha > 0.5) & (depth > 0)
+            if erode > 0:
+                own = cv2.erode(own.astype(np.uint8), np.ones((2 * erode + 1, 2 * erode + 1), np.uint8)) > 0
+            idx = np.flatnonzero(own.reshape(-1))
+            if len(idx) < 30:
+                continue
+            idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), points)).round().astype(int)]
+            centre, rays = pixel_rays(viewmats[a], Ks[a], pix[idx])
+            world = centre + depth.reshape(-1)[idx, None] * rays  # [M, 3] in frame a
+            inv = np.linalg.inv(poses[k, a])
+            ref = world @ inv[:3, :3].T + inv[:3, 3]  # reference-space points
+            pos = pix[idx].astype(np.float64)
+            for j in range(a, b + 1):
+                pos = pos + sample_bilinear(np.asarray(flows[j], np.float64), pos)
+                ok = np.all(np.isfinite(pos), -1)
+                if ok.sum() < 30:
+                    break
+                rows.append((ref[ok], pos[ok], j + 1))
+        if len(rows) < 2:
+            continue
+        m = _bucket(max(len(r[0]) for r in rows))
+        pts = np.zeros((len(rows), m, 3))
+        tgt = np.zeros((len(rows), m, 2))
+        w = np.zeros((len(rows), m))
+        for i, (p, q, _) in enumerate(rows):
+            pts[i, :len(p)], tgt[i, :len(p)], w[i, :len(p)] = p, q, 1.0
+        frames = [r[2] for r in rows]
+        fits = {kind: fit_joint(pts, tgt, w, viewmats[frames], Ks[frames], kind, huber_px=huber_px)
+                for kind in JOINT_KINDS}
+        kind = min(fits, key=lambda c: fits[c][1] / max(fits[c][2], 1e-3))
+        inc, rms, frac = fits[kind][:3]
+        rms_out[k] = rms
+        new = poses[k].copy()
+        at = dict(zip(frames, inc, strict=True))  # the frame's absolute pose (the last row of a frame wins)
+        for j in range(1, t):
+            new[j] = at.get(j, new[j - 1])
+        poses[k] = new
+        log(f"tracking: object {k + 1}: chained flow over {len(runs)} run(s), {len(rows)} frames -> {kind}, inlier "
+            f"RMS {rms:.2f} px ({100 * frac:.0f}% inliers)")
+    return poses, rms_out

@@ -257,7 +257,7 @@ def _joint_arrays(data: list, m: int, viewmats0, Ks0, viewmats1, Ks1):
 def track_objects(means, quats, scales, opacities, labels, num_objects: int, viewmats, Ks, flows, width: int,
                   height: int, *, moving=None, joints: str = "auto", joint_pixels: int = 256, joint_tolerance: float = 3.0,
                   min_pixels: int = 30, dominance: float = 0.6, erode: int = 1, tile_size: int = 8,
-                  depth_from=None, log=print) -> np.ndarray:
+                  log=print) -> np.ndarray:
     """Poses [K, T, 4, 4] of each object at each frame (T = len(viewmats), frames in time order; pose 0 = I).
 
     Args:
@@ -279,11 +279,6 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
         min_pixels: objects painting fewer pixels in a frame keep their pose for that step.
         dominance: a pixel belongs to object k when k's share of the composited weight exceeds this.
         erode: pixels within this many pixels of the edge of object k's mask are not used.
-        depth_from: None, or (reference means [N, 3], raw quats [N, 4], activated scales [N, 3], poses
-            [K, T, 4, 4]): the depth of object k's pixels in frame j then comes from the reference scene with
-            each object moved by those poses (and a pixel is used only where that scene paints object k
-            too), not from the per-frame geometry. Stage 1 blurs a part over its states, so its depth of a
-            moving part lags behind the part, and increments fitted on it under-rotate it.
     """
     import cv2
 
@@ -318,16 +313,6 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
                                           jnp.asarray(Ks[j]), width, height, render_depth=True, tile_size=tile_size)
         feat, alpha, depth = np.asarray(feat), np.asarray(alpha), np.asarray(info["depth"])
         share = feat / np.maximum(alpha, 1e-9)[..., None]
-        if depth_from is not None:
-            rm, rq, rs, rposes = depth_from
-            m_r, q_r = transform_gaussians(jnp.asarray(rm), jnp.asarray(rq), jnp.asarray(labels),
-                                           jnp.asarray(rposes[:, j], jnp.float32))
-            f_r, a_r, i_r = rasterization(m_r, q_r, jnp.asarray(rs), opacities, jnp.asarray(onehot),
-                                          jnp.asarray(viewmats[j]), jnp.asarray(Ks[j]), width, height,
-                                          render_depth=True, tile_size=tile_size)
-            a_r = np.asarray(a_r)
-            share = np.minimum(share, np.asarray(f_r) / np.maximum(a_r, 1e-9)[..., None])
-            depth = np.where(a_r > 0.5, np.asarray(i_r["depth"]), 0.0)
         flow = np.asarray(flows[j]).reshape(-1, 2)
         known = np.all(np.isfinite(flow), -1) & (alpha.reshape(-1) > 0.5) & (depth.reshape(-1) > 0)
         for k in range(num_objects):

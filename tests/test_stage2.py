@@ -231,12 +231,9 @@ def _moved_scene(run, sc, labels, poses):
     return dataclasses.replace(sc, images=images), order
 
 
-def test_refit_moves_the_objects_by_their_poses_and_repairs_damaged_colours(tiny):
-    """`refit_gaussians` renders each frame with the objects moved by their poses: on images made that
-    way from the stage-1 scene at t0 its first loss is zero (and not without the poses); with the moving
-    part's colours damaged it lowers the loss and brings them back towards the originals."""
-    import jax.numpy as jnp
-
+def _sliding_part(tiny, dx: float):
+    """The tiny run with the alive Gaussians beyond the median x as part 0, sliding along x by up to `dx`:
+    (run, labels [N], poses [1, T, 4, 4], training scene rendered that way, time order)."""
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
 
@@ -245,10 +242,20 @@ def test_refit_moves_the_objects_by_their_poses_and_repairs_damaged_colours(tiny
     alive = np.asarray(run.state.densify.alive)
     m0 = np.asarray(run.state.params["gaussians"].means)
     labels = np.where(alive & (m0[:, 0] > np.median(m0[alive, 0])), 0, -1)
-    t = sc.num_frames
-    poses = np.tile(np.eye(4), (1, t, 1, 1))
-    poses[0, :, 0, 3] = np.linspace(0.0, 0.1, t)  # the part slides along x
+    poses = np.tile(np.eye(4), (1, sc.num_frames, 1, 1))
+    poses[0, :, 0, 3] = np.linspace(0.0, dx, sc.num_frames)
     moved, order = _moved_scene(run, sc, labels, poses)
+    return run, labels, poses, moved, order
+
+
+def test_refit_moves_the_objects_by_their_poses_and_repairs_damaged_colours(tiny):
+    """`refit_gaussians` renders each frame with the objects moved by their poses: on images made that
+    way from the stage-1 scene at t0 its first loss is zero (and not without the poses); with the moving
+    part's colours damaged it lowers the loss and brings them back towards the originals."""
+    import jax.numpy as jnp
+
+    run, labels, poses, moved, order = _sliding_part(tiny, 0.1)
+    t = poses.shape[1]
     def losses(poses_, steps):
         logs = []
         g, _ = stage2.refit_gaussians(run, moved, order, labels, poses_, steps, log=logs.append)
@@ -306,18 +313,9 @@ def test_refit_relabelling_returns_mislabelled_gaussians_to_their_part(tiny):
     """Images made with a part moved by known poses; the labels given to the re-fit have part Gaussians
     marked static and static Gaussians marked as the part. The relabelling phase (both copies rendered,
     the photometric loss keeps one) moves most of them back; without it the labels come back unchanged."""
-    from fgjax.data.loaders import load_scene
-    from fgjax.data.scene import Normalization
-
-    run = stage2.load_stage2(tiny[0], require_stage2=False)
-    sc = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
+    run, labels, poses, moved, order = _sliding_part(tiny, 0.15)
     alive = np.asarray(run.state.densify.alive)
     m0 = np.asarray(run.state.params["gaussians"].means)
-    labels = np.where(alive & (m0[:, 0] > np.median(m0[alive, 0])), 0, -1)
-    t = sc.num_frames
-    poses = np.tile(np.eye(4), (1, t, 1, 1))
-    poses[0, :, 0, 3] = np.linspace(0.0, 0.15, t)
-    moved, order = _moved_scene(run, sc, labels, poses)
     rng = np.random.default_rng(0)
     seen = alive
     flip = seen & (rng.random(len(labels)) < 0.25)

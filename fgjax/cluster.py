@@ -21,6 +21,7 @@ __all__ = [
     "grow_clusters",
     "localize_clusters",
     "split_by_motion",
+    "true_runs",
     "moving_frames",
     "Localized",
     "otsu_threshold",
@@ -343,8 +344,9 @@ def moving_frames(
     return out
 
 
-def _runs(mask: np.ndarray, min_gap: int) -> list[np.ndarray]:
-    """Index arrays of the runs of True in `mask` [T]; runs separated by fewer than `min_gap` False frames merge."""
+def true_runs(mask: np.ndarray, min_gap: int = 1) -> list[np.ndarray]:
+    """Index arrays of the runs of True in `mask` [T]; runs separated by fewer than `min_gap` False frames merge
+    (1: every maximal run on its own)."""
     idx = np.flatnonzero(mask)
     if len(idx) == 0:
         return []
@@ -387,7 +389,7 @@ def split_by_motion(
     from scipy.spatial import cKDTree
 
     for k in range(len(frames)):
-        runs = _runs(frames[k], min_gap)
+        runs = true_runs(frames[k], min_gap)
         mem = np.flatnonzero(lab == k)
         if len(runs) < 2 or len(mem) < 2 * min_size:
             continue

@@ -443,10 +443,10 @@ def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: f
         params = run.control_params()
     else:
         geo = run.deformed(s2.t0 if t is None else float(t))
-    kk = s2.num_objects
-    onehot = np.zeros((len(s2.labels), kk + 1), np.float32)  # [N, K + 1]
-    onehot[np.arange(len(s2.labels)), np.where(s2.labels >= 0, s2.labels + 1, 0)] = 1.0
-    feat, alpha, _ = run.render_geometry(*geo, viewmat, K, width, height, colors=onehot, params=params)
+    from fgjax.pipeline.track import label_onehot
+
+    feat, alpha, _ = run.render_geometry(*geo, viewmat, K, width, height, colors=label_onehot(s2.labels, s2.num_objects),
+                                         params=params)
     ids = np.argmax(np.asarray(feat), axis=-1)
     return np.where(np.asarray(alpha) >= alpha_threshold, ids, 0).astype(np.int64)
 
@@ -547,11 +547,10 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
     return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))
 
 
-def _tracked_geometry(run: LoadedRun, scene, order, labels: np.ndarray, num_objects: int, flows, cfg: Stage2Config,
-                      moving=None, log=print):
-    """((means [T, N, 3], raw quats [T, N, 4], log-scales [T, N, 3]), poses [K, T, 4, 4]): the reference
-    scene (stage 1 at t0) with each object moved by its tracked rigid pose, per training time (time
-    order), and the poses. ``moving`` [K, T-1]: the pairs in which each object moves
+def _tracked_poses(run: LoadedRun, scene, order, labels: np.ndarray, num_objects: int, flows, cfg: Stage2Config,
+                   moving=None, log=print) -> np.ndarray:
+    """Poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow against
+    the reference scene (stage 1 at t0). ``moving`` [K, T-1]: the pairs in which each object moves
     (`fgjax.cluster.moving_frames`; None: all)."""
     from fgjax.pipeline.track import track_objects
 
@@ -580,7 +579,7 @@ def _tracked_geometry(run: LoadedRun, scene, order, labels: np.ndarray, num_obje
             poses, _ = chained_joint_poses(m0, qa, sa, oa, labels, poses, moving, scene.viewmats[order],
                                            scene.Ks[order], flows, scene.width, scene.height,
                                            tile_size=run.cfg.train.tile_size, log=log)
-    return _posed_geometry((m0, q0, ls0), labels, poses), poses
+    return poses
 
 
 def _posed_geometry(base, labels: np.ndarray, poses: np.ndarray):
@@ -660,7 +659,6 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     g = run.state.params["gaussians"]
     params = {"gaussians": Gaussians(m0, ls0, q0, g.opacity_logits, g.sh)}
     alive = run.state.densify.alive
-    lab = jnp.asarray(labels)
     pj = jnp.asarray(poses, jnp.float32)  # [K, T, 4, 4]
     images = jnp.asarray(scene.images[order])
     vms = jnp.asarray(scene.viewmats[order], jnp.float32)
@@ -671,16 +669,22 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     opt = make_optimizer(OptimSpec(steps=max(int(steps), 1), scene_extent=scene_extent(scene.viewmats)),
                          int(g.sh.shape[1]))
 
-    def loss_fn(p, i):
-        gg = p["gaussians"]
-        m, q = transform_gaussians(gg.means, gg.quats, lab, pj[:, i])
-        moved = {"gaussians": Gaussians(m, gg.log_scales, q, gg.opacity_logits, gg.sh)}
-        img, _, info, _ = render_params(moved, alive, vms[i], Ks[i], 0.0, spec=None,
+    def photo(gs: Gaussians, alive_, i):
+        """(photometric loss, overflow) of training frame i (time order) rendered from `gs` as given."""
+        img, _, info, _ = render_params({"gaussians": gs}, alive_, vms[i], Ks[i], 0.0, spec=None,
                                         sh_degree=run.cfg.model.sh_degree, width=scene.width, height=scene.height,
                                         background=bg, capacity=cap, tile_size=run.cfg.train.tile_size)
         return photometric_loss(img, images[i], lam), info["overflow"]
 
-    step = _guarded_step(loss_fn, opt)
+    def posed_loss(labels_):
+        lab = jnp.asarray(labels_)
+
+        def loss_fn(p, i):
+            gg = p["gaussians"]
+            m, q = transform_gaussians(gg.means, gg.quats, lab, pj[:, i])
+            return photo(Gaussians(m, gg.log_scales, q, gg.opacity_logits, gg.sh), alive, i)
+
+        return loss_fn
 
     st = opt.init(params)
     rng = np.random.default_rng(seed + 2)
@@ -688,15 +692,14 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     n_rel = min(int(relabel_steps), int(steps))
     labels = np.asarray(labels, np.int64)
     if n_rel > 0 and labels.max(initial=-1) >= 0:
-        params, st, labels, info = _relabel(run, params, st, opt, labels, np.asarray(poses), loss_fn, images, vms,
-                                            Ks, alive, bg, cap, lam, n_rel, relabel_radius, relabel_lr, rng)
+        params, st, labels, info = _relabel(params, st, opt, labels, np.asarray(poses), photo, alive, n_rel,
+                                            relabel_radius, relabel_lr, rng)
         losses += info.pop("losses")
         n_bad += info.pop("skipped")
         log(f"stage 2: relabelled by motion in {n_rel} steps: {info}")
-        lab = jnp.asarray(labels)
-        step = _guarded_step(loss_fn, opt)  # loss_fn reads the new labels
     else:
         n_rel = 0
+    step = _guarded_step(posed_loss(labels), opt)
     for _ in range(int(steps) - n_rel):
         params, st, loss, bad = step(params, st, jnp.asarray(rng.integers(len(order)), jnp.int32))
         losses.append(loss)
@@ -729,28 +732,37 @@ def _mixed_opacity_logits(o, logit_w):
     return log_p - jnp.log(-jnp.expm1(log_p))
 
 
-def _relabel(run, params, st, opt, labels, poses, loss_fn, images, vms, Ks, alive, bg, cap, lam, steps, radius, lr,
-             rng):
-    """The relabelling phase of `refit_gaussians`: (params, opt state, new labels [N], info)."""
-    from fgjax.pipeline.stage1 import render_params
+def _paired(a: optax.GradientTransformation, b: optax.GradientTransformation) -> optax.GradientTransformation:
+    """`a` on the first element of a (params, params) pair, `b` on the second."""
+
+    def init(p):
+        return a.init(p[0]), b.init(p[1])
+
+    def update(u, s, p=None):
+        ua, sa = a.update(u[0], s[0], None if p is None else p[0])
+        ub, sb = b.update(u[1], s[1], None if p is None else p[1])
+        return (ua, ub), (sa, sb)
+
+    return optax.GradientTransformation(init, update)
+
+
+def _relabel(params, st, opt, labels, poses, photo, alive, steps, radius, lr, rng):
+    """The relabelling phase of `refit_gaussians` (``photo(gaussians, alive, i)``: its render and loss of
+    frame i): (params, opt state, new labels [N], info)."""
     from fgjax.pipeline.track import transform_gaussians
-    from fgjax.train.losses import photometric_loss
 
     g0 = params["gaussians"]
-    alive_np = np.asarray(alive)
-    cand, k_c = _relabel_candidates(np.asarray(g0.means), labels, alive_np, float(radius))
+    cand, k_c = _relabel_candidates(np.asarray(g0.means), labels, np.asarray(alive), float(radius))
     mixed = labels.copy()
     mixed[cand] = k_c  # the first copy of a candidate moves with its nearest cluster
     lab_m = jnp.asarray(mixed)
     cj = jnp.asarray(cand)
-    is_cand = np.zeros(len(labels), bool)
-    is_cand[cand] = True
     logits0 = jnp.asarray(np.where(labels[cand] >= 0, 2.0, -2.0), jnp.float32)  # [C]
     alive2 = jnp.concatenate([alive, alive[cj]])
     pj = jnp.asarray(poses, jnp.float32)
-    opt_l = optax.adam(lr)
 
-    def loss_mixed(p, lg, i):
+    def loss_mixed(p_lg, i):
+        p, lg = p_lg
         g = p["gaussians"]
         m, q = transform_gaussians(g.means, g.quats, lab_m, pj[:, i])
         o_moved = g.opacity_logits.at[cj].set(_mixed_opacity_logits(g.opacity_logits[cj], lg))
@@ -758,31 +770,20 @@ def _relabel(run, params, st, opt, labels, poses, loss_fn, images, vms, Ks, aliv
         both = Gaussians(jnp.concatenate([m, g.means[cj]]), jnp.concatenate([g.log_scales, g.log_scales[cj]]),
                          jnp.concatenate([q, g.quats[cj]]), jnp.concatenate([o_moved, o_static]),
                          jnp.concatenate([g.sh, g.sh[cj]]))
-        img, _, info, _ = render_params({"gaussians": both}, alive2, vms[i], Ks[i], 0.0, spec=None,
-                                        sh_degree=run.cfg.model.sh_degree, width=images.shape[2],
-                                        height=images.shape[1], background=bg, capacity=cap,
-                                        tile_size=run.cfg.train.tile_size)
-        return photometric_loss(img, images[i], lam), info["overflow"]
+        return photo(both, alive2, i)
 
-    @jax.jit
-    def step(p, s, lg, sl, i):
-        (loss, over), (gp, gl) = jax.value_and_grad(loss_mixed, argnums=(0, 1), has_aux=True)(p, lg, i)
-        up, s2 = opt.update(gp, s, p)
-        ul, sl2 = opt_l.update(gl, sl, lg)
-        bad = over | ~jnp.isfinite(loss)
-        keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(bad, y, x), a, b)
-        return (keep(optax.apply_updates(p, up), p), keep(s2, s), keep(optax.apply_updates(lg, ul), lg),
-                keep(sl2, sl), loss, bad)
-
+    opt_l = optax.adam(lr)
+    step = _guarded_step(loss_mixed, _paired(opt, opt_l))
     # frames where some object is away from its reference pose: only there do the two copies part
     away = np.any(np.abs(poses - np.eye(4)).reshape(poses.shape[0], poses.shape[1], -1).max(-1) > 1e-4, axis=0)
     frames = np.flatnonzero(away) if away.any() else np.arange(poses.shape[1])
-    lg, sl = logits0, opt_l.init(logits0)
+    p_lg, st_pair = (params, logits0), (st, opt_l.init(logits0))
     losses, n_bad = [], 0
     for _ in range(int(steps)):
-        params, st, lg, sl, loss, bad = step(params, st, lg, sl, jnp.asarray(rng.choice(frames), jnp.int32))
+        p_lg, st_pair, loss, bad = step(p_lg, st_pair, jnp.asarray(rng.choice(frames), jnp.int32))
         losses.append(loss)
         n_bad += int(bad)
+    (params, lg), st = p_lg, st_pair[0]
     pi = np.asarray(jax.nn.sigmoid(lg))
     new = labels.copy()
     new[cand] = np.where(pi > 0.5, k_c, -1)
@@ -1026,14 +1027,15 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                                            active=cfg.track_active, dilate=1)
             log(f"stage 2: tracking each object over its moving pairs {[int(f.sum()) for f in moving]} of "
                 f"{moving.shape[1]}")
-        (centres, qs, ls), poses = _tracked_geometry(run, scene, order, labels, report.n_clusters, flows, cfg,
-                                                     moving, log)
+        poses = _tracked_poses(run, scene, order, labels, report.n_clusters, flows, cfg, moving, log)
+        base = run.deformed(float(times[0]))  # the reference scene the poses move
         if cfg.refit_steps > 0:
             refit, labels = refit_gaussians(run, scene, order, labels, poses, cfg.refit_steps, seed=cfg.seed,
                                             relabel_steps=cfg.relabel_steps, relabel_radius=cfg.relabel_radius,
                                             log=log)
             report = cluster.cluster_report(labels[disc.dynamic | (labels >= 0)])
-            centres, qs, ls = _posed_geometry((refit.means, refit.quats, refit.log_scales), labels, poses)
+            base = (refit.means, refit.quats, refit.log_scales)
+        centres, qs, ls = _posed_geometry(base, labels, poses)
     else:
         qs, ls = [], []
         for t in times:

@@ -68,6 +68,31 @@ def transform_gaussians(means, quats, labels, poses):
     return jnp.where(moved[:, None], m, means), jnp.where(moved[:, None], q, quats)
 
 
+def label_onehot(labels, num_objects: int) -> np.ndarray:
+    """Per-Gaussian features [N, K + 1] float32 for rendering object masks: channel 0 for the static
+    Gaussians (label -1), channel k + 1 for object k."""
+    labels = np.asarray(labels)
+    out = np.zeros((len(labels), num_objects + 1), np.float32)
+    out[np.arange(len(labels)), np.where(labels >= 0, labels + 1, 0)] = 1.0
+    return out
+
+
+def _pixel_centres(width: int, height: int) -> np.ndarray:
+    """Pixel centres [H * W, 2] in K's coordinates, row-major."""
+    ys, xs = np.mgrid[0:height, 0:width]
+    return np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
+
+
+def _interior(own: np.ndarray, erode: int) -> np.ndarray:
+    """The mask `own` [H, W] without the pixels within `erode` pixels of its edge (the flow is smoothed
+    across object edges, towards the background's)."""
+    import cv2
+
+    if erode <= 0:
+        return own
+    return cv2.erode(own.astype(np.uint8), np.ones((2 * erode + 1, 2 * erode + 1), np.uint8)) > 0
+
+
 def _project_rows(moved, viewmat, K):
     """Pixels [..., M, 2] of world points `moved` [..., M, 3] in cameras `viewmat` [..., 4, 4], `K` [..., 3, 3]
     (points at or behind z = 1e-3 give 0 and are flagged False)."""
@@ -280,20 +305,15 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
         dominance: a pixel belongs to object k when k's share of the composited weight exceeds this.
         erode: pixels within this many pixels of the edge of object k's mask are not used.
     """
-    import cv2
-
     from fgjax.render.api import rasterization
 
     t = len(viewmats)
-    n = len(labels)
     labels = np.asarray(labels)
     poses = np.tile(np.eye(4), (num_objects, t, 1, 1))
     if num_objects == 0 or t < 2:
         return poses
-    onehot = np.zeros((n, num_objects + 1), np.float32)
-    onehot[np.arange(n), np.where(labels >= 0, labels + 1, 0)] = 1.0
-    ys, xs = np.mgrid[0:height, 0:width]
-    pix = np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
+    onehot = label_onehot(labels, num_objects)
+    pix = _pixel_centres(width, height)
     t0 = time.perf_counter()
     rms_all = []
     if joints not in ("auto", "off"):
@@ -319,9 +339,7 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
             if moving is not None and not moving[k, j]:
                 poses[k, j + 1] = poses[k, j]
                 continue
-            own = share[..., k + 1] > dominance
-            if erode > 0:  # flow is smoothed across object edges (towards the background's): keep the interior
-                own = cv2.erode(own.astype(np.uint8), np.ones((2 * erode + 1, 2 * erode + 1), np.uint8)) > 0
+            own = _interior(share[..., k + 1] > dominance, erode)
             sel = known & own.reshape(-1)
             if sel.sum() < min_pixels:
                 poses[k, j + 1] = poses[k, j]
@@ -392,18 +410,6 @@ def camera_correction(depth, valid, flow, viewmat0, viewmat1, K, *, huber_px: fl
     return vm1 @ np.asarray(delta, np.float64), float(rms), int(len(idx))
 
 
-def _runs_of(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Maximal runs [a, b] (inclusive) of True in a 1-D bool array."""
-    out, start = [], None
-    for i, v in enumerate(list(mask) + [False]):
-        if v and start is None:
-            start = i
-        elif not v and start is not None:
-            out.append((start, i - 1))
-            start = None
-    return out
-
-
 def chained_joint_poses(means, quats, scales, opacities, labels, poses, moving, viewmats, Ks, flows, width: int,
                         height: int, *, points: int = 512, dominance: float = 0.6, erode: int = 1,
                         huber_px: float = 1.5, tile_size: int = 8, log=print):
@@ -425,25 +431,23 @@ def chained_joint_poses(means, quats, scales, opacities, labels, poses, moving, 
     Returns:
         (poses [K, T, 4, 4], per-object inlier RMS [K] in pixels (NaN: not re-fitted)).
     """
-    import cv2
-
+    from fgjax.cluster import true_runs
     from fgjax.pipeline.poses import sample_bilinear
     from fgjax.render.api import rasterization
 
     poses = np.array(poses, np.float64)
     num_objects, t = poses.shape[:2]
     labels = np.asarray(labels)
-    onehot = np.zeros((len(labels), num_objects + 1), np.float32)
-    onehot[np.arange(len(labels)), np.where(labels >= 0, labels + 1, 0)] = 1.0
-    ys, xs = np.mgrid[0:height, 0:width]
-    pix = np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2)
+    onehot = label_onehot(labels, num_objects)
+    pix = _pixel_centres(width, height)
     rms_out = np.full(num_objects, np.nan)
     for k in range(num_objects):
-        runs = _runs_of(np.asarray(moving[k], bool))
+        runs = true_runs(np.asarray(moving[k], bool))
         if not runs:
             continue
         rows = []  # (reference points [M, 3], pixels [M, 2], frame)
-        for a, b in runs:
+        for run in runs:
+            a, b = int(run[0]), int(run[-1])
             m_a, q_a = transform_gaussians(jnp.asarray(means), jnp.asarray(quats), jnp.asarray(labels),
                                            jnp.asarray(poses[:, a], jnp.float32))
             feat, alpha, info = rasterization(m_a, q_a, jnp.asarray(scales), jnp.asarray(opacities),
@@ -451,9 +455,8 @@ def chained_joint_poses(means, quats, scales, opacities, labels, poses, moving, 
                                               jnp.asarray(Ks[a], jnp.float32), width, height, render_depth=True,
                                               tile_size=tile_size)
             alpha, depth = np.asarray(alpha), np.asarray(info["depth"])
-            own = (np.asarray(feat)[..., k + 1] / np.maximum(alpha, 1e-9) > dominance) & (alpha > 0.5) & (depth > 0)
-            if erode > 0:
-                own = cv2.erode(own.astype(np.uint8), np.ones((2 * erode + 1, 2 * erode + 1), np.uint8)) > 0
+            own = _interior((np.asarray(feat)[..., k + 1] / np.maximum(alpha, 1e-9) > dominance) & (alpha > 0.5)
+                            & (depth > 0), erode)
             idx = np.flatnonzero(own.reshape(-1))
             if len(idx) < 30:
                 continue
@@ -465,10 +468,11 @@ def chained_joint_poses(means, quats, scales, opacities, labels, poses, moving, 
             pos = pix[idx].astype(np.float64)
             for j in range(a, b + 1):
                 pos = pos + sample_bilinear(np.asarray(flows[j], np.float64), pos)
-                ok = np.all(np.isfinite(pos), -1)
-                if ok.sum() < 30:
+                ok = np.all(np.isfinite(pos), -1)  # a track is lost for good where the flow is unknown
+                ref, pos = ref[ok], pos[ok]
+                if len(pos) < 30:
                     break
-                rows.append((ref[ok], pos[ok], j + 1))
+                rows.append((ref, pos, j + 1))
         if len(rows) < 2:
             continue
         m = _bucket(max(len(r[0]) for r in rows))
@@ -484,7 +488,7 @@ def chained_joint_poses(means, quats, scales, opacities, labels, poses, moving, 
         inc, rms, frac = fits[kind][:3]
         rms_out[k] = rms
         new = poses[k].copy()
-        at = dict(zip(frames, inc, strict=True))  # the frame's absolute pose (the last row of a frame wins)
+        at = dict(zip(frames, inc, strict=True))  # each frame's absolute pose (runs do not share frames)
         for j in range(1, t):
             new[j] = at.get(j, new[j - 1])
         poses[k] = new

@@ -247,7 +247,8 @@ def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
     stage1.run(cfg, scene_dir, run_dir, log=say)
     say(f"demo: stage 1 done ({time.perf_counter() - t0:.1f} s)")
     s2cfg = stage2.Stage2Config(flow_cache=str(cache), auto_eps=quick,
-                                **({"distill_steps": 100, "photo_steps": 20, "refit_steps": 100} if quick else {}))
+                                **({"distill_steps": 100, "photo_steps": 20, "refit_steps": 100, "track_photo": 0}
+                                   if quick else {}))
     s2 = stage2.run_stage2(run_dir, scene_dir, s2cfg, log=say)
     run = stage2.load_stage2(run_dir)
     vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height

@@ -136,6 +136,13 @@ class Stage2Config:
     0: off (default). Needs ``track_active > 0``. Measured (docs/benchmarks.md, session 6): the drawer's
     trajectory error falls from 0.020 to 0.007, the door's rises from 0.035 to 0.062, the state PSNR goes
     from 25.07 to 24.70 dB."""
+    track_photo: int = 0
+    """Adam steps per frame of photometric tracking (`fgjax.pipeline.phototrack`: the poses fitted to the
+    training images by rendering the reference scene, coarse to fine over blurs of 4, 2 and 0.7 pixels
+    (2:2:1 of the steps), then one articulation per object); it replaces the flow-based tracking; 0: off
+    (default). Measured (docs/benchmarks.md, session 7)."""
+    track_photo_radius: float = 0.1
+    """Candidates of the photometric tracker's soft membership (scene units; 0: the labels as they are)."""
     track_active: float = 0.2
     """Tracking moves an object only in its moving frames (`fgjax.cluster.moving_frames` with this
     ``active`` fraction, widened by one frame); 0: in every frame. Parts rest most of the time; an
@@ -556,6 +563,8 @@ def _tracked_poses(run: LoadedRun, scene, order, labels: np.ndarray, num_objects
 
     t0 = float(scene.times[order[0]])
     m0, q0, ls0 = run.deformed(t0)
+    if cfg.track_photo > 0:
+        return _photometric_poses(run, scene, order, (m0, q0, ls0), labels, num_objects, cfg, moving, log)
     alive = run.state.densify.alive
     qa, sa, oa = activate(_with_geometry(run.state.params, m0, q0, ls0)["gaussians"], alive)
     if cfg.track_masks == "frame":  # object pixels from the stage-1 model at each frame's time
@@ -579,6 +588,32 @@ def _tracked_poses(run: LoadedRun, scene, order, labels: np.ndarray, num_objects
             poses, _ = chained_joint_poses(m0, qa, sa, oa, labels, poses, moving, scene.viewmats[order],
                                            scene.Ks[order], flows, scene.width, scene.height,
                                            tile_size=run.cfg.train.tile_size, log=log)
+    return poses
+
+
+def _photometric_poses(run: LoadedRun, scene, order, base, labels: np.ndarray, num_objects: int, cfg: Stage2Config,
+                       moving, log=print) -> np.ndarray:
+    """`_tracked_poses` by `fgjax.pipeline.phototrack` (``cfg.track_photo`` steps per frame) from the
+    reference scene `base` (means, raw quats, log-scales): poses [K, T, 4, 4]."""
+    from fgjax.pipeline.phototrack import joint_poses, track_photometric
+
+    m0, q0, ls0 = base
+    g = run.state.params["gaussians"]
+    n = int(cfg.track_photo)
+    steps = (max(1, round(0.4 * n)), max(1, round(0.4 * n)), max(1, n - 2 * round(0.4 * n)))
+    vms, Ks = scene.viewmats[order], scene.Ks[order]
+    poses, _ = track_photometric(Gaussians(m0, ls0, q0, g.opacity_logits, g.sh), run.state.densify.alive, labels,
+                                 num_objects, scene.images[order], vms, Ks, moving=moving,
+                                 sh_degree=run.cfg.model.sh_degree, background=run.cfg.model.background,
+                                 capacity=_render_capacity(run), tile_size=run.cfg.train.tile_size, steps=steps,
+                                 radius=cfg.track_photo_radius, log=log)
+    rng = np.random.default_rng(cfg.seed)
+    m0 = np.asarray(m0)
+    pts = []
+    for k in range(num_objects):
+        idx = np.flatnonzero(labels == k)
+        pts.append(m0[rng.choice(idx, min(len(idx), 256), replace=False)] if len(idx) else np.zeros((0, 3)))
+    poses, _ = joint_poses(pts, poses, vms, Ks, log=log)
     return poses
 
 
@@ -712,26 +747,6 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     return jax.tree_util.tree_map(np.asarray, params["gaussians"]), labels
 
 
-def _relabel_candidates(means: np.ndarray, labels: np.ndarray, alive: np.ndarray, radius: float):
-    """(candidate indices [C], their nearest cluster [C]): the alive Gaussians within `radius` of a member
-    of some cluster (members included, each with its own cluster)."""
-    from sklearn.neighbors import NearestNeighbors
-
-    members = np.flatnonzero(labels >= 0)
-    nn = NearestNeighbors(n_neighbors=1).fit(means[members])
-    d, j = nn.kneighbors(means)
-    near = labels[members[j[:, 0]]]
-    cand = np.flatnonzero(alive & ((d[:, 0] <= radius) | (labels >= 0)))
-    return cand, np.where(labels[cand] >= 0, labels[cand], near[cand])
-
-
-def _mixed_opacity_logits(o, logit_w):
-    """logit(sigmoid(o) * sigmoid(logit_w)), computed in log space: [M]."""
-    log_p = jax.nn.log_sigmoid(o) + jax.nn.log_sigmoid(logit_w)
-    log_p = jnp.minimum(log_p, float(np.log1p(-1e-6)))
-    return log_p - jnp.log(-jnp.expm1(log_p))
-
-
 def _paired(a: optax.GradientTransformation, b: optax.GradientTransformation) -> optax.GradientTransformation:
     """`a` on the first element of a (params, params) pair, `b` on the second."""
 
@@ -749,10 +764,11 @@ def _paired(a: optax.GradientTransformation, b: optax.GradientTransformation) ->
 def _relabel(params, st, opt, labels, poses, photo, alive, steps, radius, lr, rng):
     """The relabelling phase of `refit_gaussians` (``photo(gaussians, alive, i)``: its render and loss of
     frame i): (params, opt state, new labels [N], info)."""
+    from fgjax.pipeline.phototrack import mixed_copies, relabel_candidates
     from fgjax.pipeline.track import transform_gaussians
 
     g0 = params["gaussians"]
-    cand, k_c = _relabel_candidates(np.asarray(g0.means), labels, np.asarray(alive), float(radius))
+    cand, k_c = relabel_candidates(np.asarray(g0.means), labels, np.asarray(alive), float(radius))
     mixed = labels.copy()
     mixed[cand] = k_c  # the first copy of a candidate moves with its nearest cluster
     lab_m = jnp.asarray(mixed)
@@ -765,11 +781,7 @@ def _relabel(params, st, opt, labels, poses, photo, alive, steps, radius, lr, rn
         p, lg = p_lg
         g = p["gaussians"]
         m, q = transform_gaussians(g.means, g.quats, lab_m, pj[:, i])
-        o_moved = g.opacity_logits.at[cj].set(_mixed_opacity_logits(g.opacity_logits[cj], lg))
-        o_static = _mixed_opacity_logits(g.opacity_logits[cj], -lg)
-        both = Gaussians(jnp.concatenate([m, g.means[cj]]), jnp.concatenate([g.log_scales, g.log_scales[cj]]),
-                         jnp.concatenate([q, g.quats[cj]]), jnp.concatenate([o_moved, o_static]),
-                         jnp.concatenate([g.sh, g.sh[cj]]))
+        both = mixed_copies(g, m, q, cj, lg)
         return photo(both, alive2, i)
 
     opt_l = optax.adam(lr)
@@ -958,6 +970,9 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
         raise ValueError(f"Stage2Config.track_joints must be 'auto' or 'off'; got {cfg.track_joints!r}")
     if cfg.track_masks not in ("frame", "reference"):
         raise ValueError(f"Stage2Config.track_masks must be 'frame' or 'reference'; got {cfg.track_masks!r}")
+    if cfg.track_photo < 0 or cfg.track_photo_radius < 0:
+        raise ValueError(f"Stage2Config.track_photo and track_photo_radius must be >= 0; got {cfg.track_photo!r}, "
+                         f"{cfg.track_photo_radius!r}")
     if cfg.camera_correction not in ("auto", "on", "off"):
         raise ValueError(f"Stage2Config.camera_correction must be 'auto', 'on' or 'off'; got {cfg.camera_correction!r}")
     t_start = time.perf_counter()

@@ -44,7 +44,7 @@ from fgjax.gaussians import Gaussians
 from fgjax.pipeline.track import JOINT_KINDS, _project_rows, fit_joint, transform_gaussians
 
 __all__ = ["blur", "pose_delta", "relabel_candidates", "mixed_opacity_logits", "mixed_copies",
-           "track_photometric", "make_render_loss", "joint_poses"]
+           "track_photometric", "joint_poses"]
 
 
 def blur(img, sigma: float):
@@ -234,37 +234,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     return poses, pi
 
 
-def make_render_loss(gaussians: Gaussians, alive, labels, images, viewmats, Ks, *, sh_degree: int, background,
-                     capacity: int | None = None, tile_size: int = 8, sigma: float = 2.0):
-    """A scorer ``(poses [K, T, 4, 4], frames [F]) -> losses [F]``: the mean |blur(render) - blur(image)| of
-    each listed frame (time order), the labelled Gaussians of `gaussians` moved by their object's pose in
-    that frame (the labels as they are; blur of `sigma` pixels). Compiled once, for every call."""
-    from fgjax.pipeline.stage1 import render_params
-
-    g = jax.tree_util.tree_map(jnp.asarray, gaussians)
-    lab, al = jnp.asarray(np.asarray(labels, np.int64)), jnp.asarray(np.asarray(alive, bool))
-    target = jax.vmap(lambda im: blur(im, sigma))(jnp.asarray(images, jnp.float32))
-    vms, Kj = jnp.asarray(viewmats, jnp.float32), jnp.asarray(Ks, jnp.float32)
-    bg = jnp.asarray(background, jnp.float32)
-    width, height = int(target.shape[2]), int(target.shape[1])
-
-    @jax.jit
-    def one(P, i):  # P [K, 4, 4]
-        m, q = transform_gaussians(g.means, g.quats, lab, P)
-        img, _, _, _ = render_params({"gaussians": Gaussians(m, g.log_scales, q, g.opacity_logits, g.sh)}, al, vms[i],
-                                     Kj[i], 0.0, spec=None, sh_degree=sh_degree, width=width, height=height,
-                                     background=bg, capacity=capacity, tile_size=tile_size)
-        return jnp.mean(jnp.abs(blur(img, sigma) - target[i]))
-
-    def losses(poses, frames):
-        pj = jnp.asarray(poses, jnp.float32)
-        return np.array([float(one(pj[:, int(n)], jnp.asarray(int(n), jnp.int32))) for n in frames])
-
-    return losses
-
-
-def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_margin: float = 0.95, score=None,
-                log=print):
+def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_margin: float = 0.95, log=print):
     """Each object's poses replaced by the one articulation that best explains them.
 
     Args:
@@ -276,14 +246,7 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
     targets of `fit_joint` (revolute and prismatic, amounts per frame from the reference; the initial
     axes: the largest pose's rotation axis or the centroid's largest shift, and the coordinate axes);
     the revolute joint wins when its inlier RMS (pixels) per inlier fraction is below ``revolute_margin``
-    times the prismatic one's (a turn about a far pivot mimics a slide), else the prismatic one.
-
-    ``score`` (`make_render_loss`'s scorer): the images decide instead. Per-frame photometric poses of a
-    sliding box turn it spuriously, and a revolute joint can fit those poses better than the slide
-    (measured, docs/benchmarks.md session 7). Each kind's poses (the other objects as already decided)
-    are rendered in the frames where the two kinds differ, and the lower mean loss wins.
-
-    Returns (poses [K, T, 4, 4], kinds [K]).
+    times the prismatic one's (a turn about a far pivot mimics a slide), else the prismatic one. Returns (poses [K, T, 4, 4], kinds [K]).
     """
     poses = np.asarray(poses, np.float64)
     out, kinds = poses.copy(), []
@@ -307,24 +270,11 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
             axes = np.eye(3) if np.linalg.norm(seed[kind]) < 1e-9 else np.vstack([seed[kind], np.eye(3)])
             fits[kind] = fit_joint(np.repeat(pts[None], t_all, 0), tgt, w, vms, Kn, kind, axes=axes,
                                    huber_px=huber_px)
-        rms = {c: fits[c][1] / max(fits[c][2], 1e-3) for c in fits}
+        score = {c: fits[c][1] / max(fits[c][2], 1e-3) for c in fits}
         # a turn about a far pivot mimics a slide: the revolute joint has to be clearly better
-        kind = "revolute" if rms["revolute"] < revolute_margin * rms["prismatic"] else "prismatic"
-        said = ""
-        if score is not None:
-            diff = np.abs(fits["revolute"][0] - fits["prismatic"][0]).reshape(t_all, -1).max(1) > 1e-4
-            frames = np.flatnonzero(diff)
-            if len(frames):
-                loss = {}
-                for c in JOINT_KINDS:
-                    cand = out.copy()
-                    cand[k] = fits[c][0]
-                    loss[c] = float(np.mean(score(cand, frames)))
-                if all(np.isfinite(v) for v in loss.values()):
-                    kind = min(loss, key=loss.get)
-                    said = f"; rendered loss revolute {loss['revolute']:.5f}, prismatic {loss['prismatic']:.5f}"
+        kind = "revolute" if score["revolute"] < revolute_margin * score["prismatic"] else "prismatic"
         out[k] = fits[kind][0]
         kinds.append(kind)
         log(f"photometric tracking: object {k + 1}: revolute {fits['revolute'][1]:.2f} px, prismatic "
-            f"{fits['prismatic'][1]:.2f} px{said} -> {kind} (axis {np.round(fits[kind][3], 3).tolist()})")
+            f"{fits['prismatic'][1]:.2f} px -> {kind} (axis {np.round(fits[kind][3], 3).tolist()})")
     return out, kinds

@@ -599,26 +599,25 @@ def _photometric_poses(run: LoadedRun, scene, order, base, labels: np.ndarray, n
                        moving, log=print) -> np.ndarray:
     """`_tracked_poses` by `fgjax.pipeline.phototrack` (``cfg.track_photo`` steps per frame) from the
     reference scene `base` (means, raw quats, log-scales): poses [K, T, 4, 4]."""
-    from fgjax.pipeline.phototrack import joint_poses, make_render_loss, track_photometric
+    from fgjax.pipeline.phototrack import joint_poses, track_photometric
 
     m0, q0, ls0 = base
     g = run.state.params["gaussians"]
     n = int(cfg.track_photo)
     steps = (max(1, round(0.4 * n)), max(1, round(0.4 * n)), max(1, n - 2 * round(0.4 * n)))
     vms, Ks = scene.viewmats[order], scene.Ks[order]
-    ref = Gaussians(m0, ls0, q0, g.opacity_logits, g.sh)
-    render = dict(sh_degree=run.cfg.model.sh_degree, background=run.cfg.model.background,
-                  capacity=_render_capacity(run), tile_size=run.cfg.train.tile_size)
-    poses, _ = track_photometric(ref, run.state.densify.alive, labels, num_objects, scene.images[order], vms, Ks,
-                                 moving=moving, steps=steps, radius=cfg.track_photo_radius, log=log, **render)
-    score = make_render_loss(ref, run.state.densify.alive, labels, scene.images[order], vms, Ks, **render)
+    poses, _ = track_photometric(Gaussians(m0, ls0, q0, g.opacity_logits, g.sh), run.state.densify.alive, labels,
+                                 num_objects, scene.images[order], vms, Ks, moving=moving,
+                                 sh_degree=run.cfg.model.sh_degree, background=run.cfg.model.background,
+                                 capacity=_render_capacity(run), tile_size=run.cfg.train.tile_size, steps=steps,
+                                 radius=cfg.track_photo_radius, log=log)
     rng = np.random.default_rng(cfg.seed)
     m0 = np.asarray(m0)
     pts = []
     for k in range(num_objects):
         idx = np.flatnonzero(labels == k)
         pts.append(m0[rng.choice(idx, min(len(idx), 256), replace=False)] if len(idx) else np.zeros((0, 3)))
-    poses, _ = joint_poses(pts, poses, vms, Ks, score=score, log=log)
+    poses, _ = joint_poses(pts, poses, vms, Ks, log=log)
     return poses
 
 

@@ -23,7 +23,6 @@ def test_blur_matches_opencv_with_zero_border(sigma):
     r = int(np.ceil(3 * sigma))
     ref = cv2.GaussianBlur(img, (2 * r + 1, 2 * r + 1), sigma, borderType=cv2.BORDER_CONSTANT)
     np.testing.assert_allclose(np.asarray(blur(jnp.asarray(img), sigma)), ref, atol=1e-6)
-    assert blur(jnp.asarray(img), 0.0) is not None
     np.testing.assert_array_equal(np.asarray(blur(jnp.asarray(img), 0.0)), img)
 
 

@@ -43,7 +43,7 @@ from fgjax import geometry
 from fgjax.gaussians import Gaussians
 from fgjax.pipeline.track import JOINT_KINDS, _project_rows, fit_joint, transform_gaussians
 
-__all__ = ["blur", "pose_delta", "relabel_candidates", "mixed_opacity_logits", "mixed_copies",
+__all__ = ["blur", "pose_delta", "relabel_candidates", "mixed_opacity_logits", "mixed_copies", "soft_members",
            "track_photometric", "joint_poses"]
 
 
@@ -101,6 +101,18 @@ def mixed_copies(g: Gaussians, means, quats, cand, logits) -> Gaussians:
                      jnp.concatenate([g.sh, g.sh[cand]]))
 
 
+def soft_members(labels: np.ndarray, cand: np.ndarray, nearest: np.ndarray, alive):
+    """The set-up of the two-copy scene (`mixed_copies`) for candidates `cand` [C] with their nearest cluster
+    `nearest` [C]: (labels [N] that move each candidate's first copy with its cluster, cand as a jax array,
+    alive [N + C] of both copies, initial membership logits [C]: +2 for members, -2 for the others)."""
+    mixed = np.array(labels, np.int64)
+    mixed[cand] = nearest
+    cj = jnp.asarray(cand)
+    alive = jnp.asarray(alive)
+    logits = jnp.asarray(np.where(np.asarray(labels)[cand] >= 0, 2.0, -2.0), jnp.float32)
+    return jnp.asarray(mixed), cj, jnp.concatenate([alive, alive[cj]]), logits
+
+
 def _radii(means: np.ndarray, labels: np.ndarray, num_objects: int) -> np.ndarray:
     """RMS distance [K] of each object's Gaussians from their centroid (floor 1e-3)."""
     out = np.full(num_objects, 1e-3)
@@ -150,10 +162,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         cand, k_c = relabel_candidates(m_ref, labels, alive_np, float(radius))
     else:  # no soft membership: the labels as they are
         cand = k_c = np.zeros(0, np.int64)
-    mixed = labels.copy()
-    mixed[cand] = k_c
-    lab_m, cj = jnp.asarray(mixed), jnp.asarray(cand)
-    alive2 = jnp.concatenate([jnp.asarray(alive_np), jnp.asarray(alive_np)[cj]])
+    lab_m, cj, alive2, lg = soft_members(labels, cand, k_c, alive_np)
     scale = jnp.asarray(_radii(m_ref, labels, num_objects) * translation_scale, jnp.float32)
     images = jnp.asarray(images, jnp.float32)
     vms, Kj = jnp.asarray(viewmats, jnp.float32), jnp.asarray(Ks, jnp.float32)
@@ -199,7 +208,6 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         return step
 
     levels = [(make_step(float(s)), int(n)) for s, n in zip(sigmas, steps, strict=True)]
-    lg = jnp.asarray(np.where(labels[cand] >= 0, 2.0, -2.0), jnp.float32)  # [C]
     mov = np.ones((num_objects, t_all - 1), bool) if moving is None else np.asarray(moving, bool)
     eye = np.eye(4, dtype=np.float32)
     n_fit, n_bad = 0, 0
@@ -214,7 +222,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         starts = [np.einsum("kij,kjl->kil", vel, prev).astype(np.float32), prev]
         i = jnp.asarray(n, jnp.int32)
         l0 = [float(first_loss(jnp.asarray(s), lg, i)) for s in starts]
-        p_init = starts[int(np.nanargmin(np.where(np.isfinite(l0), l0, np.inf)))] if np.any(np.isfinite(l0)) else prev
+        p_init = starts[int(np.argmin(np.where(np.isfinite(l0), l0, np.inf)))] if np.any(np.isfinite(l0)) else prev
         centres = np.stack([(m_ref[labels == k] @ p_init[k, :3, :3].T + p_init[k, :3, 3]).mean(0)
                             if np.any(labels == k) else p_init[k, :3, 3] for k in range(num_objects)])
         x = jnp.zeros((num_objects, 6), jnp.float32)

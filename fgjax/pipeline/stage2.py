@@ -558,17 +558,16 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
     return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))
 
 
-def _tracked_poses(run: LoadedRun, scene, order, labels: np.ndarray, num_objects: int, flows, cfg: Stage2Config,
+def _tracked_poses(run: LoadedRun, scene, order, base, labels: np.ndarray, num_objects: int, flows, cfg: Stage2Config,
                    moving=None, log=print) -> np.ndarray:
     """Poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow against
-    the reference scene (stage 1 at t0). ``moving`` [K, T-1]: the pairs in which each object moves
+    the reference scene `base` (stage 1 at t0: means, raw quats, log-scales). ``moving`` [K, T-1]: the pairs in which each object moves
     (`fgjax.cluster.moving_frames`; None: all)."""
     from fgjax.pipeline.track import track_objects
 
-    t0 = float(scene.times[order[0]])
-    m0, q0, ls0 = run.deformed(t0)
+    m0, q0, ls0 = base
     if cfg.track_photo > 0:
-        return _photometric_poses(run, scene, order, (m0, q0, ls0), labels, num_objects, cfg, moving, log)
+        return _photometric_poses(run, scene, order, base, labels, num_objects, cfg, moving, log)
     alive = run.state.densify.alive
     qa, sa, oa = activate(_with_geometry(run.state.params, m0, q0, ls0)["gaussians"], alive)
     if cfg.track_masks == "frame":  # object pixels from the stage-1 model at each frame's time
@@ -768,17 +767,12 @@ def _paired(a: optax.GradientTransformation, b: optax.GradientTransformation) ->
 def _relabel(params, st, opt, labels, poses, photo, alive, steps, radius, lr, rng):
     """The relabelling phase of `refit_gaussians` (``photo(gaussians, alive, i)``: its render and loss of
     frame i): (params, opt state, new labels [N], info)."""
-    from fgjax.pipeline.phototrack import mixed_copies, relabel_candidates
+    from fgjax.pipeline.phototrack import mixed_copies, relabel_candidates, soft_members
     from fgjax.pipeline.track import transform_gaussians
 
     g0 = params["gaussians"]
     cand, k_c = relabel_candidates(np.asarray(g0.means), labels, np.asarray(alive), float(radius))
-    mixed = labels.copy()
-    mixed[cand] = k_c  # the first copy of a candidate moves with its nearest cluster
-    lab_m = jnp.asarray(mixed)
-    cj = jnp.asarray(cand)
-    logits0 = jnp.asarray(np.where(labels[cand] >= 0, 2.0, -2.0), jnp.float32)  # [C]
-    alive2 = jnp.concatenate([alive, alive[cj]])
+    lab_m, cj, alive2, logits0 = soft_members(labels, cand, k_c, alive)  # the first copy moves with k_c
     pj = jnp.asarray(poses, jnp.float32)
 
     def loss_mixed(p_lg, i):
@@ -1046,8 +1040,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                                            active=cfg.track_active, dilate=1)
             log(f"stage 2: tracking each object over its moving pairs {[int(f.sum()) for f in moving]} of "
                 f"{moving.shape[1]}")
-        poses = _tracked_poses(run, scene, order, labels, report.n_clusters, flows, cfg, moving, log)
         base = run.deformed(float(times[0]))  # the reference scene the poses move
+        poses = _tracked_poses(run, scene, order, base, labels, report.n_clusters, flows, cfg, moving, log)
         if cfg.refit_steps > 0:
             refit, labels = refit_gaussians(run, scene, order, labels, poses, cfg.refit_steps, seed=cfg.seed,
                                             relabel_steps=cfg.relabel_steps, relabel_radius=cfg.relabel_radius,

@@ -97,6 +97,9 @@ def test_track_photometric_recovers_a_turning_part_from_its_images_and_joint_pos
     axis = np.asarray(geometry.so3_log(jnp.asarray(joint[0, -1, :3, :3])))
     assert abs(abs(axis[2]) / np.linalg.norm(axis) - 1.0) < 0.01, axis  # the hinge is vertical (z)
     assert err(joint[0]).mean() <= err(est[0]).mean() + 1e-3, (err(joint[0]), err(est[0]))
+    with pytest.raises(ValueError, match="2 step counts for 3 blur levels"):
+        track_photometric(g, np.ones(len(labels), bool), labels, 1, imgs, vms, Ks, sh_degree=0,
+                          background=np.zeros(3), steps=(5, 5), sigmas=(4.0, 2.0, 0.7))
     # a part that never moves keeps the identity (and nothing is fitted)
     rest, _ = track_photometric(g, np.ones(len(labels), bool), labels, 1, imgs, vms, Ks, sh_degree=0,
                                 background=np.zeros(3), moving=np.zeros((1, t - 1), bool), log=logs.append)

@@ -335,18 +335,23 @@ def test_refit_relabelling_returns_mislabelled_gaussians_to_their_part(tiny):
 
 def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path):
     """`track_photo` replaces the flow-based tracking: the log shows the photometric fit and one
-    articulation per object, and the result is written; a negative step count is refused."""
+    articulation per object, in each of two rounds of tracking and re-fitting (`track_rounds`), and the
+    result is written; a negative step count and zero rounds are refused."""
     import shutil
 
     dst = tmp_path / "run"
     shutil.copytree(tiny[0], dst)
     logs = []
-    cfg = stage2.Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2, refit_steps=4, track_photo=5)
+    cfg = stage2.Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2, refit_steps=4, track_photo=5,
+                              track_rounds=2)
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
     assert res.num_objects > 0, logs
-    assert any(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs), logs
-    assert sum("-> revolute" in m or "-> prismatic" in m for m in logs) == res.num_objects, logs
-    assert np.all(np.isfinite(res.traj))
+    assert sum(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs) == 2, logs
+    assert sum("-> revolute" in m or "-> prismatic" in m for m in logs) == 2 * res.num_objects, logs
+    assert sum(m.startswith("stage 2: re-fitted the Gaussians") for m in logs) == 2, logs
+    assert any("round 2 of 2" in m for m in logs), logs
+    assert np.all(np.isfinite(res.traj)) and res.refit is not None
     assert stage2.load_stage2(dst).s2.meta["config"]["track_photo"] == 5
-    with pytest.raises(ValueError, match="track_photo"):
-        stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(track_photo=-1), log=logs.append)
+    for bad, field in (({"track_photo": -1}, "track_photo"), ({"track_rounds": 0}, "track_rounds")):
+        with pytest.raises(ValueError, match=field):
+            stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(**bad), log=logs.append)

@@ -7,8 +7,8 @@ so the tracked turns come out far too small (docs/benchmarks.md, session 6: 9 ag
 the poses are fitted by analysis by synthesis instead:
 
 1. Frames in time order. Object k's pose in frame n starts from its pose in frame n-1, extrapolated at
-   constant velocity or not (whichever renders closer to image n), and only objects moving in pair
-   (n-1, n) are fitted (the others keep their pose).
+   constant velocity or not, or from an earlier fit's pose when one is given (whichever renders closest
+   to image n), and only objects moving in pair (n-1, n) are fitted (the others keep their pose).
 2. A pose update is a rotation about the object's current centroid and a shift, both in world
    coordinates (``x`` [K, 6]: rotation vector, shift in units of the object's radius times
    ``translation_scale``). The loss is the mean absolute difference of the rendered and the observed
@@ -126,7 +126,7 @@ def _radii(means: np.ndarray, labels: np.ndarray, num_objects: int) -> np.ndarra
 def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, *, moving=None,
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
-                      radius: float = 0.1, translation_scale: float = 3.0, log=print):
+                      radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, log=print):
     """Poses [K, T, 4, 4] of each object fitted to the images frame by frame (module docstring, 1-3).
 
     Args:
@@ -140,6 +140,8 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         lr, member_lr: Adam learning rates of the pose updates and of the membership logits.
         radius: candidates of the soft membership (scene units; 0: members only, no soft membership).
         translation_scale: a shift's unit, in object radii.
+        init_poses: [K, T, 4, 4] poses of an earlier fit (e.g. a previous round's), a third start of each
+            frame besides the extrapolated and the previous pose (None: two starts).
 
     Returns:
         (poses [K, T, 4, 4], pi [N]: each candidate's final membership of its nearest cluster; 1 for the
@@ -155,6 +157,11 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         return poses, (labels >= 0).astype(np.float64)
     if len(steps) != len(sigmas):
         raise ValueError(f"track_photometric: {len(steps)} step counts for {len(sigmas)} blur levels")
+    if init_poses is not None:
+        init_poses = np.asarray(init_poses, np.float32)
+        if init_poses.shape != poses.shape:
+            raise ValueError(f"track_photometric: init_poses must be [K, T, 4, 4] = {list(poses.shape)}, got "
+                             f"{list(init_poses.shape)}")
     t_start = time.perf_counter()
     g = jax.tree_util.tree_map(jnp.asarray, gaussians)
     m_ref = np.asarray(g.means, np.float64)
@@ -220,6 +227,8 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         vel = np.einsum("kij,kjl->kil", prev, np.linalg.inv(poses[:, n - 2])) if n >= 2 else np.tile(eye, (num_objects, 1, 1))
         vel[~mk] = eye
         starts = [np.einsum("kij,kjl->kil", vel, prev).astype(np.float32), prev]
+        if init_poses is not None:  # the earlier fit's pose for the moving objects
+            starts.append(np.where(mk[:, None, None], init_poses[:, n], prev).astype(np.float32))
         i = jnp.asarray(n, jnp.int32)
         l0 = [float(first_loss(jnp.asarray(s), lg, i)) for s in starts]
         p_init = starts[int(np.argmin(np.where(np.isfinite(l0), l0, np.inf)))] if np.any(np.isfinite(l0)) else prev

@@ -987,6 +987,9 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                          f"{cfg.track_photo_radius!r}")
     if cfg.track_rounds < 1:
         raise ValueError(f"Stage2Config.track_rounds must be >= 1; got {cfg.track_rounds!r}")
+    if cfg.track_rounds > 1 and (cfg.track_photo == 0 or cfg.refit_steps == 0 or cfg.trajectories != "flow"):
+        log(f"stage 2: track_rounds={cfg.track_rounds} has no effect without track_photo > 0, refit_steps > 0 and "
+            f"trajectories='flow'; one round")
     if cfg.camera_correction not in ("auto", "on", "off"):
         raise ValueError(f"Stage2Config.camera_correction must be 'auto', 'on' or 'off'; got {cfg.camera_correction!r}")
     t_start = time.perf_counter()

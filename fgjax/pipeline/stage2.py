@@ -121,7 +121,10 @@ class Stage2Config:
     that moves briefly (the default scene's lid) is found only in pieces by the global cut. Measured
     (docs/benchmarks.md, session 4): ARI 0.69 -> 0.78 on the default scene."""
     local_threshold: float = 0.4
-    """The cut of that score (the fraction of a Gaussian's painted weight on moving pixels in those frames)."""
+    """The cut of that score (the fraction of a Gaussian's painted weight on moving pixels in those frames).
+    0.2 brings in missing and wrong Gaussians at about the same rate (docs/benchmarks.md, session 8); with
+    ``track_photo=50 relabel_steps=150`` it gives the best held-out states so far (28.47 dB); not measured
+    with the flow tracking, so the default stays."""
     track_masks: str = "frame"
     """Which pixels each tracking step fits (`fgjax.pipeline.track.track_objects`): "frame": those the
     object paints in the stage-1 model at the frame's time (where the image shows it), or "reference":
@@ -142,8 +145,8 @@ class Stage2Config:
     (2:2:1 of the steps), then one articulation per object); it replaces the flow-based tracking; 0: off
     (default). Measured (docs/benchmarks.md, session 7), default scene: state PSNR 25.07 -> 26.81 dB,
     ari_controlled 0.76 -> 0.85, trajectory error 0.029 -> 0.015 (the door's turn is found, the lid's not);
-    with ``relabel_steps=150`` 27.62 dB. 50 steps cost ~300 s on a 2-core CPU (the full demo would exceed
-    15 minutes), hence off."""
+    with ``relabel_steps=150`` 27.62 dB, and with ``local_threshold=0.2`` as well 28.47 dB (session 8).
+    50 steps cost ~300 s on a 2-core CPU (the full demo would exceed 15 minutes), hence off."""
     track_photo_radius: float = 0.1
     """Candidates of the photometric tracker's soft membership (scene units; 0: the labels as they are)."""
     track_rounds: int = 1
@@ -154,7 +157,8 @@ class Stage2Config:
     relabelling) continues from the previous one. Each round costs one tracking and one re-fit. Measured
     (docs/benchmarks.md, session 8; default scene, ``track_photo=50 relabel_steps=150``): two rounds take
     the held-out state PSNR from 27.62 to 27.76 dB and the trajectory error from 0.0147 to 0.0125, for
-    ~5 more minutes; the lid stays under-turned (its labels, not the search, limit it)."""
+    ~5 more minutes; the lid stays under-turned (its labels, not the search, limit it). With
+    ``local_threshold=0.2`` a second round costs 1.25 dB instead (the lid turned about a wrong axis)."""
     track_active: float = 0.2
     """Tracking moves an object only in its moving frames (`fgjax.cluster.moving_frames` with this
     ``active`` fraction, widened by one frame); 0: in every frame. Parts rest most of the time; an

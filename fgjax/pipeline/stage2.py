@@ -152,8 +152,7 @@ class Stage2Config:
     track_rounds: int = 1
     """Rounds of photometric tracking and re-fitting (with ``track_photo > 0`` and ``refit_steps > 0``).
     From the second round on, the tracker renders the previous round's re-fitted scene with its labels
-    (stage 1 never moved the parts, so its reference lacks the sides they show when moved, e.g. a lifted
-    lid's underside), each frame may also start from the previous round's pose, and the re-fit (with its
+    (stage 1 never moved the parts, so its reference is a blur of their states), each frame may also start from the previous round's pose, and the re-fit (with its
     relabelling) continues from the previous one. Each round costs one tracking and one re-fit. Measured
     (docs/benchmarks.md, session 8; default scene, ``track_photo=50 relabel_steps=150``): two rounds take
     the held-out state PSNR from 27.62 to 27.76 dB and the trajectory error from 0.0147 to 0.0125, for
@@ -571,20 +570,17 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
     return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))
 
 
-def _tracked_poses(run: LoadedRun, scene, order, base, labels: np.ndarray, num_objects: int, flows, cfg: Stage2Config,
-                   moving=None, log=print) -> np.ndarray:
-    """Poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow against
-    the reference scene `base` (stage 1 at t0: means, raw quats, log-scales). ``moving`` [K, T-1]: the pairs in which each object moves
-    (`fgjax.cluster.moving_frames`; None: all)."""
+def _tracked_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int, flows,
+                   cfg: Stage2Config, moving=None, log=print) -> np.ndarray:
+    """Poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow (or the
+    images, ``cfg.track_photo``) against the reference scene `ref` (stage 1 at t0, raw parameters).
+    ``moving`` [K, T-1]: the pairs in which each object moves (`fgjax.cluster.moving_frames`; None: all)."""
     from fgjax.pipeline.track import track_objects
 
-    m0, q0, ls0 = base
     if cfg.track_photo > 0:
-        g = run.state.params["gaussians"]
-        return _photometric_poses(run, scene, order, Gaussians(m0, ls0, q0, g.opacity_logits, g.sh), labels,
-                                  num_objects, cfg, moving, log)
+        return _photometric_poses(run, scene, order, ref, labels, num_objects, cfg, moving, log)
     alive = run.state.densify.alive
-    qa, sa, oa = activate(_with_geometry(run.state.params, m0, q0, ls0)["gaussians"], alive)
+    qa, sa, oa = activate(ref, alive)
     if cfg.track_masks == "frame":  # object pixels from the stage-1 model at each frame's time
         ms, qs, ss = [], [], []
         for i in order:
@@ -595,7 +591,7 @@ def _tracked_poses(run: LoadedRun, scene, order, base, labels: np.ndarray, num_o
             ss.append(np.asarray(s_i))
         geo = (np.stack(ms), np.stack(qs), np.stack(ss))
     else:
-        geo = (m0, qa, sa)
+        geo = (ref.means, qa, sa)
     poses = track_objects(*geo, oa, labels, num_objects, scene.viewmats[order], scene.Ks[order], flows,
                           scene.width, scene.height, moving=moving, joints=cfg.track_joints,
                           tile_size=run.cfg.train.tile_size, log=log)
@@ -603,7 +599,7 @@ def _tracked_poses(run: LoadedRun, scene, order, base, labels: np.ndarray, num_o
         from fgjax.pipeline.track import chained_joint_poses
 
         for _ in range(int(cfg.track_chain)):
-            poses, _ = chained_joint_poses(m0, qa, sa, oa, labels, poses, moving, scene.viewmats[order],
+            poses, _ = chained_joint_poses(ref.means, qa, sa, oa, labels, poses, moving, scene.viewmats[order],
                                            scene.Ks[order], flows, scene.width, scene.height,
                                            tile_size=run.cfg.train.tile_size, log=log)
     return poses
@@ -1064,14 +1060,17 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
             log(f"stage 2: tracking each object over its moving pairs {[int(f.sum()) for f in moving]} of "
                 f"{moving.shape[1]}")
         base = run.deformed(float(times[0]))  # the reference scene the poses move
-        poses = _tracked_poses(run, scene, order, base, labels, report.n_clusters, flows, cfg, moving, log)
+        g = run.state.params["gaussians"]
+        reference = Gaussians(base[0], base[2], base[1], g.opacity_logits, g.sh)
+        poses = _tracked_poses(run, scene, order, reference, labels, report.n_clusters, flows, cfg, moving, log)
         if cfg.refit_steps > 0:
             rounds = int(cfg.track_rounds) if cfg.track_photo > 0 else 1
+            refit = reference  # the first re-fit starts from the reference the poses move
             for r in range(rounds):
                 if r > 0:  # track again, rendering the last re-fit (module docstring of phototrack)
                     log(f"stage 2: tracking and re-fitting, round {r + 1} of {rounds}")
-                    poses = _photometric_poses(run, scene, order, jax.tree_util.tree_map(jnp.asarray, refit),
-                                               labels, report.n_clusters, cfg, moving, log, init_poses=poses)
+                    poses = _photometric_poses(run, scene, order, refit, labels, report.n_clusters, cfg, moving,
+                                               log, init_poses=poses)
                 refit, labels = refit_gaussians(run, scene, order, labels, poses, cfg.refit_steps, seed=cfg.seed + r,
                                                 relabel_steps=cfg.relabel_steps, relabel_radius=cfg.relabel_radius,
                                                 init=refit, log=log)

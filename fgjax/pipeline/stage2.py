@@ -120,11 +120,12 @@ class Stage2Config:
     that cluster moves; 0: off. The global score is diluted by the frames in which a part rests, so a part
     that moves briefly (the default scene's lid) is found only in pieces by the global cut. Measured
     (docs/benchmarks.md, session 4): ARI 0.69 -> 0.78 on the default scene."""
-    local_threshold: float = 0.4
+    local_threshold: float = 0.2
     """The cut of that score (the fraction of a Gaussian's painted weight on moving pixels in those frames).
     0.2 brings in missing and wrong Gaussians at about the same rate (docs/benchmarks.md, session 8); with
-    ``track_photo=50 relabel_steps=150`` it gives the best held-out states so far (28.47 dB); not measured
-    with the flow tracking, so the default stays."""
+    the photometric tracking and relabelling (the defaults) it gives the best held-out states (default
+    scene, session 9: 29.3 dB, against 27.6 with 0.4). The quick demo keeps 0.4 (with the flow tracking;
+    0.2 is not measured there)."""
     track_masks: str = "frame"
     """Which pixels each tracking step fits (`fgjax.pipeline.track.track_objects`): "frame": those the
     object paints in the stage-1 model at the frame's time (where the image shows it), or "reference":
@@ -139,14 +140,16 @@ class Stage2Config:
     0: off (default). Needs ``track_active > 0``. Measured (docs/benchmarks.md, session 6): the drawer's
     trajectory error falls from 0.020 to 0.007, the door's rises from 0.035 to 0.062, the state PSNR goes
     from 25.07 to 24.70 dB."""
-    track_photo: int = 0
+    track_photo: int = 50
     """Adam steps per frame of photometric tracking (`fgjax.pipeline.phototrack`: the poses fitted to the
     training images by rendering the reference scene, coarse to fine over blurs of 4, 2 and 0.7 pixels
     (2:2:1 of the steps), then one articulation per object); it replaces the flow-based tracking; 0: off
-    (default). Measured (docs/benchmarks.md, session 7), default scene: state PSNR 25.07 -> 26.81 dB,
-    ari_controlled 0.76 -> 0.85, trajectory error 0.029 -> 0.015 (the door's turn is found, the lid's not);
-    with ``relabel_steps=150`` 27.62 dB, and with ``local_threshold=0.2`` as well 28.47 dB (session 8).
-    50 steps cost ~300 s on a 2-core CPU (the full demo would exceed 15 minutes), hence off."""
+    (the flow-based tracking, `fgjax.pipeline.track`; the quick demo's choice). Measured
+    (docs/benchmarks.md, sessions 7-9), default scene: state PSNR 25.07 dB with the flow tracking, 26.81
+    with this alone, 27.62 with ``relabel_steps=150``, 28.5-29.3 with ``local_threshold=0.2`` as well (the
+    defaults); ari_controlled 0.76 -> 0.84. It costs ~250 s of the default scene's stage 2 (45 frames x 50
+    steps on a 2-core CPU). Under pose noise it is worse than the flow tracking (23.0 against 23.7 dB:
+    it fits against uncorrected cameras)."""
     track_photo_radius: float = 0.1
     """Candidates of the photometric tracker's soft membership (scene units; 0: the labels as they are)."""
     track_rounds: int = 1
@@ -170,13 +173,14 @@ class Stage2Config:
     """Steps of `refit_gaussians` (every Gaussian re-fitted to the training images under the tracked
     motion; the controlled scene then starts from them); 0: off (the controlled scene moves stage 1's
     Gaussians at t0). Only with ``trajectories="flow"``."""
-    relabel_steps: int = 0
+    relabel_steps: int = 150
     """The first steps of the re-fit decide, for each Gaussian near a cluster, whether it moves with the
     cluster or stays (`refit_gaussians`' relabelling: both copies rendered, the photometric loss keeps
-    one); 0: off (default). It needs the right motion: with the gt poses (scratch, session 6) it lifts the
+    one); 0: off. It needs the right motion: with the gt poses (scratch, session 6) it lifts the
     re-fit's held-out states from 29.8 to 32.1 dB, but under the tracked poses, which under-rotate the door
     and the lid, it moves a third of the door to static (ARI 0.78 -> 0.65; state PSNR 25.07 -> 25.35).
-    With ``track_photo=50`` (the door turned right) it helps: state PSNR 26.8 -> 27.6 dB (session 7)."""
+    With ``track_photo=50`` (the door turned right) it helps: state PSNR 26.8 -> 27.6 dB (session 7), hence on
+    by default with it."""
     relabel_radius: float = 0.1
     """Candidates of the relabelling: Gaussians within this radius (scene units, at t0) of a cluster."""
     trajectories: str = "flow"
@@ -625,7 +629,10 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
     pts = []
     for k in range(num_objects):
         idx = np.flatnonzero(labels == k)
-        pts.append(m0[rng.choice(idx, min(len(idx), 256), replace=False)] if len(idx) else np.zeros((0, 3)))
+        # 64 points over every frame pin a joint: 256 took ~165 s for three objects on the default scene, 64 take
+        # ~45 s (session 9; the same joint kinds, state PSNR 28.47 -> 29.32 dB, which is within the joint fit's
+        # sensitivity to its inputs)
+        pts.append(m0[rng.choice(idx, min(len(idx), 64), replace=False)] if len(idx) else np.zeros((0, 3)))
     poses, _ = joint_poses(pts, poses, vms, Ks, log=log)
     return poses
 

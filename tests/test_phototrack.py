@@ -77,8 +77,11 @@ def test_track_photometric_recovers_a_turning_part_from_its_images_and_joint_pos
     Ks = np.stack([K] * t)
     logs = []
     est, pi = track_photometric(g, np.ones(len(labels), bool), labels, 1, imgs, vms, Ks, sh_degree=0,
-                                background=np.zeros(3), steps=(15, 15, 10), radius=0.0, log=logs.append)
+                                background=np.zeros(3), steps=(15, 15, 10), radius=0.0, progress_every=2,
+                                log=logs.append)
     assert any("5 of 5 frames fitted" in m for m in logs), logs
+    assert [m.split(",")[0] for m in logs if "fitted (" in m] == ["photometric tracking: frame 3/6",
+                                                                  "photometric tracking: frame 5/6"], logs
     assert pi.shape == labels.shape and np.all(pi[labels == 0] == 1.0) and np.all(pi[labels < 0] == 0.0)
     ang = lambda r: float(np.degrees(np.linalg.norm(np.asarray(geometry.so3_log(jnp.asarray(r))))))
     pts = np.asarray(g.means)[labels == 0]

@@ -126,7 +126,8 @@ def _radii(means: np.ndarray, labels: np.ndarray, num_objects: int) -> np.ndarra
 def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, *, moving=None,
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
-                      radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, log=print):
+                      radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, progress_every: int = 10,
+                      log=print):
     """Poses [K, T, 4, 4] of each object fitted to the images frame by frame (module docstring, 1-3).
 
     Args:
@@ -142,6 +143,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         translation_scale: a shift's unit, in object radii.
         init_poses: [K, T, 4, 4] poses of an earlier fit (e.g. a previous round's), a third start of each
             frame besides the extrapolated and the previous pose (None: two starts).
+        progress_every: a progress line every this many fitted frames (0: none).
 
     Returns:
         (poses [K, T, 4, 4], pi [N]: each candidate's final membership of its nearest cluster; 1 for the
@@ -244,6 +246,8 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         new = np.asarray(jnp.einsum("kij,kjl->kil", pose_delta(x * mask[:, None], cen, scale), pj))
         poses[:, n] = np.where(np.all(np.isfinite(new), (1, 2))[:, None, None], new, p_init)
         n_fit += 1
+        if progress_every > 0 and n_fit % progress_every == 0:
+            log(f"photometric tracking: frame {n + 1}/{t_all}, {n_fit} fitted ({time.perf_counter() - t_start:.0f} s)")
     pi = (labels >= 0).astype(np.float64)
     pi[cand] = np.asarray(jax.nn.sigmoid(lg))
     log(f"photometric tracking: {n_fit} of {t_all - 1} frames fitted, {sum(n for _, n in levels)} steps each "

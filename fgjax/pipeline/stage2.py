@@ -124,7 +124,7 @@ class Stage2Config:
     """The cut of that score (the fraction of a Gaussian's painted weight on moving pixels in those frames).
     0.2 brings in missing and wrong Gaussians at about the same rate (docs/benchmarks.md, session 8); with
     the photometric tracking and relabelling (the defaults) it gives the best held-out states (default
-    scene, session 9: 29.3 dB, against 27.6 with 0.4). The quick demo keeps 0.4 (with the flow tracking;
+    scene: 29.3 dB in session 9; 27.6 with 0.4 in session 7). The quick demo keeps 0.4 (with the flow tracking;
     0.2 is not measured there)."""
     track_masks: str = "frame"
     """Which pixels each tracking step fits (`fgjax.pipeline.track.track_objects`): "frame": those the
@@ -659,6 +659,14 @@ def _render_capacity(run: LoadedRun) -> int | None:
     return None if cap is None else int(cap * 1.5)
 
 
+def _reference_scene(run: LoadedRun, t: float) -> Gaussians:
+    """Stage 1's Gaussians deformed to time `t` (raw parameters, with their opacities and colours): the
+    reference scene that the tracked poses move and the re-fit starts from."""
+    m, q, ls = run.deformed(t)
+    g = run.state.params["gaussians"]
+    return Gaussians(m, ls, q, g.opacity_logits, g.sh)
+
+
 def _guarded_step(loss_fn, opt):
     """jitted (params, opt_state, i) -> (params, opt_state, loss, skipped): one `opt` step on
     ``loss_fn(params, i) -> (loss, overflow)``; a step whose render overflowed the tile capacity or whose
@@ -711,12 +719,8 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     from fgjax.train.optim import OptimSpec, make_optimizer
 
     t_start = time.perf_counter()
-    g = run.state.params["gaussians"]
-    if init is None:
-        m0, q0, ls0 = run.deformed(float(scene.times[order[0]]))
-        params = {"gaussians": Gaussians(m0, ls0, q0, g.opacity_logits, g.sh)}
-    else:
-        params = {"gaussians": jax.tree_util.tree_map(jnp.asarray, init)}
+    ref = _reference_scene(run, float(scene.times[order[0]])) if init is None else init
+    params = {"gaussians": jax.tree_util.tree_map(jnp.asarray, ref)}
     alive = run.state.densify.alive
     pj = jnp.asarray(poses, jnp.float32)  # [K, T, 4, 4]
     images = jnp.asarray(scene.images[order])
@@ -726,7 +730,7 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     cap = _render_capacity(run)
     lam = float(run.cfg.train.lambda_dssim)
     opt = make_optimizer(OptimSpec(steps=max(int(steps), 1), scene_extent=scene_extent(scene.viewmats)),
-                         int(g.sh.shape[1]))
+                         int(ref.sh.shape[1]))
 
     def photo(gs: Gaussians, alive_, i):
         """(photometric loss, overflow) of training frame i (time order) rendered from `gs` as given."""
@@ -1066,9 +1070,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                                            active=cfg.track_active, dilate=1)
             log(f"stage 2: tracking each object over its moving pairs {[int(f.sum()) for f in moving]} of "
                 f"{moving.shape[1]}")
-        base = run.deformed(float(times[0]))  # the reference scene the poses move
-        g = run.state.params["gaussians"]
-        reference = Gaussians(base[0], base[2], base[1], g.opacity_logits, g.sh)
+        reference = _reference_scene(run, float(times[0]))  # the scene the poses move
+        base = (reference.means, reference.quats, reference.log_scales)
         poses = _tracked_poses(run, scene, order, reference, labels, report.n_clusters, flows, cfg, moving, log)
         if cfg.refit_steps > 0:
             rounds = int(cfg.track_rounds) if cfg.track_photo > 0 else 1

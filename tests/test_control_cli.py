@@ -59,6 +59,8 @@ def test_eval_writes_metrics(tiny, capsys):
     m = json.loads((run_dir / "metrics.json").read_text())["control"]
     assert -1.0 <= m["ari"] <= 1.0 and -1.0 <= m["ari_controlled"] <= 1.0 and np.isfinite(m["state_psnr"])
     assert len(m["ari_per_view"]) == len(m["ari_controlled_per_view"]) >= 1
+    if m["num_objects_found"] > 0:  # the ceilings: the same renders with labels from the gt
+        assert -1.0 <= m["ari_gt_labels"] <= 1.0 and -1.0 <= m["ari_controlled_gt_labels"] <= 1.0
     assert m["num_objects_gt"] == 3
     # the tiny scene's poses are written exactly and not refined: both camera errors ~0
     assert m["camera_rotation_error_written_deg"] < 1e-3 and m["camera_centre_error_written"] < 1e-5
@@ -155,6 +157,35 @@ def test_gt_labels_of_gaussians_labels_the_gt_parts(tiny):
     got = gt_labels_of_gaussians(query, gt, gt_objects(meta), states, norm, match, radius=1e-6)
     np.testing.assert_array_equal(got[:-1], np.where(lab > 0, lab - 1, -1))
     assert got[-1] == -1
+
+
+def test_render_clusters_with_given_labels(tiny):
+    """``labels`` replaces the clustering: stage 2's own labels give the same map, no labels an all-static
+    one, and object 1's members alone paint object 1 only where the full map does (the other objects'
+    weight joins the static channel), and somewhere when the full map has object 1 in view."""
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+    from fgjax.pipeline import stage2
+
+    run_dir, data = tiny
+    run = stage2.load_stage2(run_dir)
+    if run.s2.num_objects == 0:
+        pytest.skip("no clusters in the tiny run")
+
+    train = load_scene(data, "train", normalize=Normalization.from_dict(run.meta["normalization"]),
+                       downscale=run.cfg.data.downscale)
+    vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height
+    lab = run.s2.labels
+    for source in ("stage1", "control"):
+        own = stage2.render_clusters(run, vm, K, w, h, source=source)
+        np.testing.assert_array_equal(stage2.render_clusters(run, vm, K, w, h, source=source, labels=lab.copy()), own)
+        assert not stage2.render_clusters(run, vm, K, w, h, source=source, labels=np.full_like(lab, -1)).any()
+        one = stage2.render_clusters(run, vm, K, w, h, source=source, labels=np.where(lab == 0, 0, -1))
+        assert set(np.unique(one)) <= {0, 1}
+        assert np.all(own[one == 1] == 1)
+        assert (one == 1).any() or not (own == 1).any()
+    with pytest.raises(ValueError, match="labels must have shape"):
+        stage2.render_clusters(run, vm, K, w, h, labels=lab[:-1])
 
 
 def test_camera_errors_against_a_known_perturbation():

@@ -10,6 +10,10 @@ kept):
   the reconstruction belong to which object.
 - ``ari_controlled``: the same with the controlled scene at the frame's time (each object moved to
   its trajectory vector v_c(t, k)): this one also carries the errors of the trajectories.
+- ``ari_gt_labels`` and ``ari_controlled_gt_labels``: ceilings of the two, the same renders with every
+  Gaussian labelled from the ground truth instead of by stage 2 (`gt_labels_of_gaussians`, radius 0.06;
+  a larger radius changes them by < 0.002 on the default scene): what perfect clustering would give with
+  this geometry (and, for the second, these trajectories). The first is bounded by stage 1's geometry.
 - ``state_psnr``: PSNR of controlled renders of the held-out "state" test frames. Each discovered
   cluster is matched to the gt object under most of its pixels in the training frames (majority
   vote: evaluation only). A control vector is the displacement of the cluster's centroid (its
@@ -165,6 +169,15 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
     c_test = np.load(gt / "test" / "centres.npy")
     objs = gt_objects(meta)
     states_train = np.load(gt / "train" / "states.npy") if (gt / "train" / "states.npy").is_file() else None
+    if states_train is not None and k and "view" in kinds:  # the ARI ceilings: labels from the gt
+        for key, source, means in (("ari_gt_labels", "stage1", run.deformed(s2.t0)[0]),
+                                   ("ari_controlled_gt_labels", "control", run.base()[0])):
+            lab = gt_labels_of_gaussians(np.asarray(means), gt, objs, states_train[ref], norm, match, 0.06)
+            res[key] = float(np.mean([
+                metrics.ari(ids_test[i][ids_test[i] >= 0],
+                            stage2.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height,
+                                                   t=test.times[i], source=source, labels=lab)[ids_test[i] >= 0])
+                for i, kd in enumerate(kinds) if kd == "view"]))
     # trajectory error: each cluster's centroid trajectory against the gt motion of the same point
     if states_train is not None and k:
         errs = {}

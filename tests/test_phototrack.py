@@ -11,7 +11,15 @@ from test_track import H, K, W, _hinge_scene
 
 from fgjax import geometry
 from fgjax.gaussians import Gaussians
-from fgjax.pipeline.phototrack import blur, joint_poses, mixed_copies, pose_delta, track_photometric
+from fgjax.pipeline.phototrack import (
+    blur,
+    blur_kernel,
+    blur_with,
+    joint_poses,
+    mixed_copies,
+    pose_delta,
+    track_photometric,
+)
 from fgjax.pipeline.track import transform_gaussians
 
 
@@ -24,6 +32,12 @@ def test_blur_matches_opencv_with_zero_border(sigma):
     ref = cv2.GaussianBlur(img, (2 * r + 1, 2 * r + 1), sigma, borderType=cv2.BORDER_CONSTANT)
     np.testing.assert_allclose(np.asarray(blur(jnp.asarray(img), sigma)), ref, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(blur(jnp.asarray(img), 0.0)), img)
+    # the tracker's form: every level's kernel zero-padded to the widest (12 taps a side), the same blur
+    for sg in (sigma, 0.0):
+        wide = blur_with(jnp.asarray(img), jnp.asarray(blur_kernel(sg, 12)))
+        np.testing.assert_allclose(np.asarray(wide), ref if sg else img, atol=1e-6)
+    with pytest.raises(ValueError, match="radius 1 is below"):
+        blur_kernel(sigma, 1)
 
 
 def test_pose_delta_turns_about_the_centre_and_is_finite_on_extreme_updates():

@@ -249,7 +249,8 @@ def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
     # the quick demo: the flow tracking and fewer steps; the full demo: stage 2's defaults less 20% of the
     # photometric tracking's steps and without the control network's photometric phase (from the re-fitted
     # scene it did not lower the loss: 0.0121 -> 0.0122), to stay under 15 minutes (docs/benchmarks.md, session 9),
-    # and session 9's re-fit (300 steps, the first 150 relabelling; the default's 600 cost ~25 s more)
+    # and session 9's re-fit (300 steps, the first 150 relabelling: 75 s in session 9; the default's 600 of 600
+    # took 93 s in session 10, not timed side by side)
     s2cfg = stage2.Stage2Config(flow_cache=str(cache), auto_eps=quick,
                                 **({"distill_steps": 100, "photo_steps": 20, "refit_steps": 100, "track_photo": 0,
                                     "relabel_steps": 0, "local_threshold": 0.4} if quick else

@@ -139,16 +139,20 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         true = norm.viewmats_to_scene(np.load(gt / "train" / "viewmats_true.npy"))
         for key, vm in (("written", train.viewmats), ("used", refined_viewmats(run.state.params, train.viewmats))):
             res[f"camera_rotation_error_{key}_deg"], res[f"camera_centre_error_{key}"] = camera_errors(vm, true)
-    # ARI on "view" frames
-    for key, source in (("ari", "stage1"), ("ari_controlled", "control")):
-        aris = []
+    def view_aris(source: str, labels=None) -> list[float]:
+        """ARI of each "view" test frame's rendered ids (`stage2.render_clusters`) against the gt ids."""
+        out = []
         for i, kd in enumerate(kinds):
             if kd != "view":
                 continue
             pred = stage2.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height,
-                                          t=test.times[i], source=source)
+                                          t=test.times[i], source=source, labels=labels)
             ok = ids_test[i] >= 0
-            aris.append(float(metrics.ari(ids_test[i][ok], pred[ok])))
+            out.append(float(metrics.ari(ids_test[i][ok], pred[ok])))
+        return out
+
+    for key, source in (("ari", "stage1"), ("ari_controlled", "control")):
+        aris = view_aris(source)
         if aris:
             res[key] = float(np.mean(aris))
             res[f"{key}_per_view"] = aris
@@ -173,11 +177,7 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         for key, source, means in (("ari_gt_labels", "stage1", run.deformed(s2.t0)[0]),
                                    ("ari_controlled_gt_labels", "control", run.base()[0])):
             lab = gt_labels_of_gaussians(np.asarray(means), gt, objs, states_train[ref], norm, match, 0.06)
-            res[key] = float(np.mean([
-                metrics.ari(ids_test[i][ids_test[i] >= 0],
-                            stage2.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height,
-                                                   t=test.times[i], source=source, labels=lab)[ids_test[i] >= 0])
-                for i, kd in enumerate(kinds) if kd == "view"]))
+            res[key] = float(np.mean(view_aris(source, lab)))
     # trajectory error: each cluster's centroid trajectory against the gt motion of the same point
     if states_train is not None and k:
         errs = {}

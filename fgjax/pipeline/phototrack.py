@@ -43,8 +43,31 @@ from fgjax import geometry
 from fgjax.gaussians import Gaussians
 from fgjax.pipeline.track import JOINT_KINDS, _project_rows, fit_joint, transform_gaussians
 
-__all__ = ["blur", "pose_delta", "relabel_candidates", "mixed_opacity_logits", "mixed_copies", "soft_members",
+__all__ = ["blur", "blur_kernel", "blur_with", "pose_delta", "relabel_candidates", "mixed_opacity_logits", "mixed_copies", "soft_members",
            "track_photometric", "joint_poses"]
+
+
+def blur_kernel(sigma: float, radius: int | None = None) -> np.ndarray:
+    """The 1-D kernel [2 radius + 1] of `blur`: a normalised Gaussian of `sigma` pixels truncated at
+    ceil(3 sigma) taps, zero beyond (``radius`` >= that; None: exactly that); sigma <= 0: a unit impulse."""
+    r = int(np.ceil(3.0 * sigma)) if sigma > 0 else 0
+    radius = r if radius is None else int(radius)
+    if radius < r:
+        raise ValueError(f"blur_kernel: radius {radius} is below ceil(3 sigma) = {r}")
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    k = np.where(np.abs(x) <= r, np.exp(-0.5 * (x / max(sigma, 1e-12)) ** 2), 0.0) if sigma > 0 else (x == 0) * 1.0
+    return k / k.sum()
+
+
+def blur_with(img, k):
+    """Image [H, W, C] convolved separably with the 1-D kernel `k` [2R + 1] (a jax array, traceable), zero
+    padding."""
+    r = (k.shape[0] - 1) // 2
+    k = k.astype(img.dtype)
+    chw = jnp.moveaxis(img, -1, 0)[:, None]  # [C, 1, H, W]
+    chw = jax.lax.conv_general_dilated(chw, k[None, None, :, None], (1, 1), [(r, r), (0, 0)])
+    chw = jax.lax.conv_general_dilated(chw, k[None, None, None, :], (1, 1), [(0, 0), (r, r)])
+    return jnp.moveaxis(chw[:, 0], 0, -1)
 
 
 def blur(img, sigma: float):
@@ -52,14 +75,7 @@ def blur(img, sigma: float):
     padding); sigma <= 0 returns `img`."""
     if sigma <= 0:
         return img
-    r = int(np.ceil(3.0 * sigma))
-    x = np.arange(-r, r + 1, dtype=np.float64)
-    k = np.exp(-0.5 * (x / sigma) ** 2)
-    k = jnp.asarray(k / k.sum(), img.dtype)
-    chw = jnp.moveaxis(img, -1, 0)[:, None]  # [C, 1, H, W]
-    chw = jax.lax.conv_general_dilated(chw, k[None, None, :, None], (1, 1), [(r, r), (0, 0)])
-    chw = jax.lax.conv_general_dilated(chw, k[None, None, None, :], (1, 1), [(0, 0), (r, r)])
-    return jnp.moveaxis(chw[:, 0], 0, -1)
+    return blur_with(img, jnp.asarray(blur_kernel(sigma)))
 
 
 def pose_delta(x, centres, scale):
@@ -195,28 +211,28 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     opt_x, opt_l = optax.adam(lr), optax.adam(member_lr)
     learn_members = radius > 0
 
-    def make_step(sigma: float):
-        target = jax.vmap(lambda im: blur(im, sigma))(images) if sigma > 0 else images  # [T, H, W, 3]
+    # every level in one compiled step: the level's kernel (zero-padded to the widest) and target are inputs
+    radius = max(int(np.ceil(3.0 * float(sg))) if sg > 0 else 0 for sg in sigmas)
+    kernels = jnp.asarray(np.stack([blur_kernel(float(sg), radius) for sg in sigmas]), jnp.float32)  # [L, 2R+1]
+    targets = jnp.stack([jax.vmap(lambda im, kk=kk: blur_with(im, kk))(images) for kk in kernels])  # [L, T, H, W, 3]
 
-        @jax.jit
-        def step(x, lg, st, i, p_init, centres, mask):
-            def loss_fn(x_, lg_):
-                P = jnp.einsum("kij,kjl->kil", pose_delta(x_ * mask[:, None], centres, scale), p_init)
-                img, over = render(P, lg_, i)
-                return jnp.mean(jnp.abs(blur(img, sigma) - target[i])), over
+    @jax.jit
+    def step(x, lg, st, i, p_init, centres, mask, level):
+        def loss_fn(x_, lg_):
+            P = jnp.einsum("kij,kjl->kil", pose_delta(x_ * mask[:, None], centres, scale), p_init)
+            img, over = render(P, lg_, i)
+            return jnp.mean(jnp.abs(blur_with(img, kernels[level]) - targets[level, i])), over
 
-            (loss, over), (gx, gl) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(x, lg)
-            ux, sx = opt_x.update(gx, st[0], x)
-            ul, sl = opt_l.update(gl, st[1], lg)
-            x2 = optax.apply_updates(x, ux)
-            lg2 = optax.apply_updates(lg, ul) if learn_members else lg
-            bad = over | ~jnp.isfinite(loss)
-            keep = lambda a, b: jax.tree_util.tree_map(lambda u, v: jnp.where(bad, v, u), a, b)
-            return keep(x2, x), keep(lg2, lg), keep((sx, sl), st), loss, bad
+        (loss, over), (gx, gl) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(x, lg)
+        ux, sx = opt_x.update(gx, st[0], x)
+        ul, sl = opt_l.update(gl, st[1], lg)
+        x2 = optax.apply_updates(x, ux)
+        lg2 = optax.apply_updates(lg, ul) if learn_members else lg
+        bad = over | ~jnp.isfinite(loss)
+        keep = lambda a, b: jax.tree_util.tree_map(lambda u, v: jnp.where(bad, v, u), a, b)
+        return keep(x2, x), keep(lg2, lg), keep((sx, sl), st), loss, bad
 
-        return step
-
-    levels = [(make_step(float(s)), int(n)) for s, n in zip(sigmas, steps, strict=True)]
+    levels = [(jnp.asarray(lv, jnp.int32), int(n)) for lv, n in enumerate(steps)]
     mov = np.ones((num_objects, t_all - 1), bool) if moving is None else np.asarray(moving, bool)
     eye = np.eye(4, dtype=np.float32)
     n_fit, n_bad = 0, 0
@@ -238,10 +254,10 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
                             if np.any(labels == k) else p_init[k, :3, 3] for k in range(num_objects)])
         x = jnp.zeros((num_objects, 6), jnp.float32)
         pj, cen, mask = jnp.asarray(p_init), jnp.asarray(centres, jnp.float32), jnp.asarray(mk, jnp.float32)
-        for step, count in levels:
+        for level, count in levels:
             st = (opt_x.init(x), opt_l.init(lg))
             for _ in range(count):
-                x, lg, st, _, bad = step(x, lg, st, i, pj, cen, mask)
+                x, lg, st, _, bad = step(x, lg, st, i, pj, cen, mask, level)
                 n_bad += int(bad)
         new = np.asarray(jnp.einsum("kij,kjl->kil", pose_delta(x * mask[:, None], cen, scale), pj))
         poses[:, n] = np.where(np.all(np.isfinite(new), (1, 2))[:, None, None], new, p_init)

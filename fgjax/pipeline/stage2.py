@@ -182,7 +182,8 @@ class Stage2Config:
     With ``track_photo=50`` (the door turned right) it helps: state PSNR 26.8 -> 27.6 dB (session 7), hence on
     by default with it. The labels improve with the number of steps (session 10, default scene, the same
     tracked poses; ari_controlled / state PSNR): 150 of 300 steps 0.839 / 29.32, 300 of 300 0.857 / 27.87,
-    600 of 600 (the default) 0.871 / 28.90, 600 of 750 0.873 / 28.94; the re-fit takes ~25 s longer."""
+    600 of 600 (the default) 0.871 / 28.90, 600 of 750 0.873 / 28.94. The re-fit took 93 s at 600 of 600
+    (session 10) against 75 s at 150 of 300 (session 9's phase timing, another day); not timed side by side."""
     relabel_radius: float = 0.1
     """Candidates of the relabelling: Gaussians within this radius (scene units, at t0) of a cluster."""
     trajectories: str = "flow"

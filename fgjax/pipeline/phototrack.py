@@ -55,7 +55,7 @@ def blur_kernel(sigma: float, radius: int | None = None) -> np.ndarray:
     if radius < r:
         raise ValueError(f"blur_kernel: radius {radius} is below ceil(3 sigma) = {r}")
     x = np.arange(-radius, radius + 1, dtype=np.float64)
-    k = np.where(np.abs(x) <= r, np.exp(-0.5 * (x / max(sigma, 1e-12)) ** 2), 0.0) if sigma > 0 else (x == 0) * 1.0
+    k = np.where(np.abs(x) <= r, np.exp(-0.5 * (x / sigma) ** 2), 0.0) if sigma > 0 else (x == 0) * 1.0
     return k / k.sum()
 
 
@@ -212,7 +212,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     learn_members = radius > 0
 
     # every level in one compiled step: the level's kernel (zero-padded to the widest) and target are inputs
-    radius = max(int(np.ceil(3.0 * float(sg))) if sg > 0 else 0 for sg in sigmas)
+    radius = max(len(blur_kernel(float(sg))) for sg in sigmas) // 2
     kernels = jnp.asarray(np.stack([blur_kernel(float(sg), radius) for sg in sigmas]), jnp.float32)  # [L, 2R+1]
     targets = jnp.stack([jax.vmap(lambda im, kk=kk: blur_with(im, kk))(images) for kk in kernels])  # [L, T, H, W, 3]
 

@@ -176,14 +176,18 @@ def _joint_residuals(x, args, kind: str):
 def _fit_joint_jit(x0, pts, target, weights, viewmats, K, centre, *, kind: str, irls: int, huber_px: float):
     solver = optx.LevenbergMarquardt(rtol=1e-7, atol=1e-7)
     fn = functools.partial(_joint_residuals, kind=kind)
-    w, x = weights, x0
-    for _ in range(irls + 1):
+
+    def round_(carry, _):  # one reweighting round; a loop, so that the solver compiles once, not irls + 1 times
+        x, w, _r = carry
         sol = optx.least_squares(fn, solver, x, args=(pts, target, w, viewmats, K, 1e-3, centre), max_steps=60,
                                  throw=False)
         x = jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, x)
         uv, ok = _project_rows(_joint_moved(x, pts, kind), viewmats, K)
         r = jnp.where(ok, jnp.linalg.norm(uv - target, axis=-1), 1e3)  # [J, M]
         w = weights * jnp.minimum(1.0, huber_px / jnp.maximum(r, 1e-9))
+        return (x, w, r), None
+
+    (x, _, r), _ = jax.lax.scan(round_, (x0, weights, jnp.zeros_like(weights)), None, length=irls + 1)
     inl = (weights > 0) & (r < 3.0 * huber_px)
     rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0.0)) / jnp.maximum(jnp.sum(inl), 1))
     frac = jnp.sum(inl) / jnp.maximum(jnp.sum(weights > 0), 1)
@@ -222,18 +226,24 @@ def fit_joint(pts, target, weights, viewmats, K, kind: str, *, axes=None, huber_
                          f"{list(pts.shape)}, {list(target.shape)}, {list(weights.shape)}")
     j = pts.shape[0]
     centre = jnp.sum(weights[..., None] * pts, (0, 1)) / jnp.maximum(jnp.sum(weights), 1e-9)
+    # pairs padded to a multiple of 8 (weight 0, amount damped to 0), so that objects moving over different
+    # numbers of pairs share compiled solvers (each compile takes seconds)
+    jp = -(-j // 8) * 8
+    pad = lambda a, v=0.0: jnp.concatenate([a, jnp.full((jp - j,) + a.shape[1:], v, a.dtype)]) if jp > j else a
+    pts, target, weights = pad(pts), pad(target), pad(weights)
+    viewmats, K = pad(viewmats), pad(K)  # zero cameras: their rows have weight 0 (projections masked)
     axes = np.eye(3) if axes is None else np.asarray(axes, np.float64).reshape(-1, 3)
     best = None
     for a in axes:
         a = a / max(np.linalg.norm(a), 1e-12)
-        x0 = jnp.concatenate([jnp.asarray(a, dt), centre, jnp.zeros(j, dt)])
+        x0 = jnp.concatenate([jnp.asarray(a, dt), centre, jnp.zeros(jp, dt)])
         x, rms, frac = _fit_joint_jit(x0, pts, target, weights, viewmats, K, centre, kind=kind, irls=irls,
                                       huber_px=huber_px)
         if best is None or float(rms) / max(float(frac), 1e-3) < best[1] / max(best[2], 1e-3):
             best = (x, float(rms), float(frac))
     x = np.asarray(best[0], np.float64)
     axis = x[:3] / max(np.linalg.norm(x[:3]), 1e-12)
-    pivot, amt = x[3:6], x[6:]
+    pivot, amt = x[3:6], x[6:6 + j]
     inc = np.tile(np.eye(4), (j, 1, 1))
     if kind == "revolute":
         rot = np.asarray(geometry.so3_exp(jnp.asarray(amt[:, None] * axis)), np.float64)

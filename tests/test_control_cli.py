@@ -67,6 +67,41 @@ def test_eval_writes_metrics(tiny, capsys):
     assert m["camera_rotation_error_used_deg"] == m["camera_rotation_error_written_deg"]
     if m["num_objects_found"]:
         assert np.isfinite(m["state_psnr_true_motion"]) and np.isfinite(m["state_psnr_true_motion_labels"])
+    for row in m.get("motion_preference", {}).values():
+        assert 1 <= row["frames"] <= 8 and 0.0 <= row["true_wins"] <= 1.0 and 0.0 <= row["true_wins_gt_labels"] <= 1.0
+        assert all(0.0 < row[key] < 1.0 for key in ("l1_learned", "l1_true", "l1_true_gt_labels"))
+
+
+def test_motion_preference_compares_the_three_renders_with_the_same_frames(tiny, monkeypatch):
+    """With the gt motion replaced by the identity and the learned render by the unmoved reference (both
+    then draw the same scene), every frame ties: l1_learned == l1_true and the true motion never wins; a
+    learned render that is all black loses every frame to the true motion."""
+    from fgjax.pipeline import evaluate, stage2
+
+    run_dir, data = tiny
+    seen = {}
+    orig = evaluate._motion_preference
+    monkeypatch.setattr(evaluate, "_motion_preference", lambda *a, **kw: seen.setdefault("args", a) and {})
+    evaluate.evaluate_control(stage2.load_stage2(run_dir), Path(data))
+    run, train, objs = seen["args"][:3]
+    if run.s2.num_objects == 0:
+        pytest.skip("the tiny run found no object")
+    args = list(seen["args"])
+    args[3] = {c: 1 + c % len(objs) for c in range(run.s2.num_objects)}  # every cluster on a gt object
+
+    def reference(run_, vec, vm, K, w, h):
+        img, _, _ = run_.render_geometry(*run_.base(), vm, K, w, h, params=run_.control_params())
+        return np.clip(np.asarray(img), 0.0, 1.0)
+
+    monkeypatch.setattr(evaluate, "gt_motion_scene", lambda *a: np.eye(4))
+    monkeypatch.setattr(stage2, "render_controlled", reference)
+    out = orig(*args, min_move=-1.0)
+    assert len(out) == run.s2.num_objects and all(r["frames"] >= 1 for r in out.values())
+    for r in out.values():
+        assert r["l1_learned"] == pytest.approx(r["l1_true"], rel=1e-6) and r["true_wins"] == 0.0
+    monkeypatch.setattr(stage2, "render_controlled", lambda run_, vec, vm, K, w, h: np.zeros((h, w, 3)))
+    out = orig(*args, min_move=-1.0)
+    assert all(r["true_wins"] == 1.0 and r["l1_learned"] > r["l1_true"] for r in out.values())
 
 
 def test_render_clusters_writes_id_maps(tiny, tmp_path):

@@ -33,6 +33,16 @@ kept):
 - ``camera_rotation_error_{written,used}_deg`` and ``camera_centre_error_{written,used}`` (scene units):
   the training cameras as written and as the run used them (stage 1's pose deltas, which start from the
   flow bundle adjustment with ``pose.bundle``) against the gt cameras; means over the frames.
+- ``motion_preference`` (per matched cluster): does the image loss prefer the learned motion or the true
+  one? On up to 8 training frames where the gt motion moves the cluster's centroid by more than 0.01
+  (scene units) from the reference, the controlled scene's reference with only this cluster moved, once
+  by the control network (its trajectory vector at the frame's time, ``l1_learned``) and once by the gt
+  motion of its object (``l1_true``; ``l1_true_gt_labels`` with labels from the gt,
+  `gt_labels_of_gaussians`, radius 0.03), is compared with the training image (mean absolute error over
+  the image; the other objects stay at the reference in all three, so the differences come from this
+  cluster). ``true_wins`` (``true_wins_gt_labels``) is the fraction of those frames where the true motion
+  renders closer. A cluster whose true motion loses under its discovered labels but wins under gt labels
+  cannot be tracked right by any photometric optimiser with those labels: its labels are the limit.
 - ``trajectory_error``: mean over the matched clusters and the training times of the distance (scene
   units) between the cluster's centroid trajectory ς(t, k) and where the gt motion of its object takes
   the cluster's reference centroid: the tracking error alone, free of appearance and label errors.
@@ -227,7 +237,58 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         res["state_psnr_stage1"] = float(np.mean(ps1))
     if ps and k and states_train is not None:
         res.update(_true_motion_psnr(run, test, meta, objs, match, states_train[ref], norm, gt))
+    if k and states_train is not None:
+        pref = _motion_preference(run, train, objs, match, states_train, ref, norm, gt)
+        if pref:
+            res["motion_preference"] = pref
     return res
+
+
+def _motion_preference(run, train, objs: dict, match: dict[int, int], states, ref: int, norm, gt: Path,
+                       max_frames: int = 8, min_move: float = 0.01) -> dict:
+    """``motion_preference`` (module docstring): {cluster (1-based, str): {frames, l1_learned, l1_true,
+    l1_true_gt_labels, true_wins, true_wins_gt_labels}} over training frames `train` with gt `states`
+    [T, K_gt] (``ref``: the reference frame's row)."""
+    import jax.numpy as jnp
+
+    from fgjax.pipeline import stage2
+    from fgjax.pipeline.track import transform_gaussians
+
+    s2 = run.s2
+    m0, q0, ls0 = run.base()
+    lab_gt = gt_labels_of_gaussians(np.asarray(m0), gt, objs, states[ref], norm, match, 0.03)
+    out: dict = {}
+    for c, j in sorted(match.items()):
+        if j < 1 or j not in objs:
+            continue
+        s_ref = float(states[ref, j - 1])
+        moved = [i for i in range(train.num_frames)
+                 if np.linalg.norm(gt_point_motion(objs[j], s_ref, states[i, j - 1], s2.traj[c, 0], norm)
+                                   - s2.traj[c, 0]) > min_move]
+        if not moved:
+            continue
+        frames = [moved[a] for a in np.unique(np.linspace(0, len(moved) - 1, min(len(moved), max_frames)).round()
+                                              .astype(int))]
+        rows = []
+        for i in frames:
+            image = np.asarray(train.images[i], np.float64)
+            vec = np.zeros((s2.num_objects, 3))
+            vec[c] = stage2.cluster_vectors_at(s2, float(train.times[i]))[c]
+            learned = stage2.render_controlled(run, vec, train.viewmats[i], train.Ks[i], train.width, train.height)
+            poses = np.tile(np.eye(4), (s2.num_objects, 1, 1))
+            poses[c] = gt_motion_scene(objs[j], s_ref, float(states[i, j - 1]), norm)
+            row = [float(np.abs(learned - image).mean())]
+            for labels in (s2.labels, lab_gt):
+                m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses, jnp.float32))
+                img, _, _ = run.render_geometry(m, q, ls0, train.viewmats[i], train.Ks[i], train.width, train.height,
+                                                params=run.control_params())
+                row.append(float(np.abs(np.clip(np.asarray(img), 0.0, 1.0) - image).mean()))
+            rows.append(row)
+        r = np.asarray(rows)
+        out[str(c + 1)] = {"frames": len(frames), "l1_learned": float(r[:, 0].mean()), "l1_true": float(r[:, 1].mean()),
+                           "l1_true_gt_labels": float(r[:, 2].mean()), "true_wins": float(np.mean(r[:, 1] < r[:, 0])),
+                           "true_wins_gt_labels": float(np.mean(r[:, 2] < r[:, 0]))}
+    return out
 
 
 def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], s_ref, norm, gt: Path) -> dict:

@@ -192,7 +192,7 @@ _TWO_DEVICES = textwrap.dedent(
 def test_data_parallel_two_devices_matches_one():
     """The step sharded over a 2-device CPU mesh (cameras split) gives the single-device losses."""
     env = dict(os.environ)
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
     env["JAX_PLATFORMS"] = "cpu"
     code = _TWO_DEVICES.format(tests=str(stage1.Path(__file__).parent))
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)

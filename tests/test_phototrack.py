@@ -83,8 +83,10 @@ def _images(g, labels, vms, poses):
 def test_track_photometric_recovers_a_turning_part_from_its_images_and_joint_poses_make_it_a_hinge():
     """Images rendered with a part turning 0.12 rad per frame about a hinge: from identity, frame by frame
     (each start extrapolated from the last two poses), the fitted poses follow the turn; the articulation
-    fitted to them is revolute about the hinge and closer to the truth than they are. A part that rests
-    (no moving pair) keeps the identity."""
+    fitted to them is revolute about the hinge and as close to the truth. (Whether it is closer than the
+    per-frame poses is not stable on this toy: perturbing the images by 1e-6 moves the per-frame errors
+    by up to 50% and flips that order, measured in session 12; so the bound is absolute.) A part that
+    rests (no moving pair) keeps the identity."""
     t = 6
     g, labels, vms, true = _coloured_hinge(t, 0.12)
     imgs = _images(g, labels, vms, true[None])
@@ -113,7 +115,7 @@ def test_track_photometric_recovers_a_turning_part_from_its_images_and_joint_pos
     assert kinds == ["revolute"], logs
     axis = np.asarray(geometry.so3_log(jnp.asarray(joint[0, -1, :3, :3])))
     assert abs(abs(axis[2]) / np.linalg.norm(axis) - 1.0) < 0.01, axis  # the hinge is vertical (z)
-    assert err(joint[0]).mean() <= err(est[0]).mean() + 1e-3, (err(joint[0]), err(est[0]))
+    assert err(joint[0]).mean() < 0.02 and err(joint[0]).max() < 0.04, (err(joint[0]), err(est[0]))
     with pytest.raises(ValueError, match="2 step counts for 3 blur levels"):
         track_photometric(g, np.ones(len(labels), bool), labels, 1, imgs, vms, Ks, sh_degree=0,
                           background=np.zeros(3), steps=(5, 5), sigmas=(4.0, 2.0, 0.7))

@@ -254,7 +254,7 @@ def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
     # and session 9's re-fit (300 steps, the first 150 relabelling: 75 s in session 9; the default's 600 of 600
     # took 93 s in session 10, not timed side by side)
     s2cfg = stage2.Stage2Config(flow_cache=str(cache), auto_eps=quick, photo_steps=0,
-                                **({"distill_steps": 100, "refit_steps": 60, "track_photo": 0,
+                                **({"distill_steps": 100, "refit_steps": 100, "track_photo": 0,
                                     "relabel_steps": 0, "local_threshold": 0.4} if quick else
                                    {"track_photo": 40, "distill_steps": 300, "refit_steps": 300,
                                     "relabel_steps": 150}))

@@ -60,6 +60,9 @@ def _dispatch(table: dict[str, tuple[str, str]], name: str, argv: list[str], pro
 
 
 def main(argv: list[str] | None = None) -> int:
+    from fgjax.xla_env import use_fast_cpu_compile
+
+    use_fast_cpu_compile()  # before any computation starts XLA's backend
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(_usage())

@@ -5,9 +5,13 @@ from __future__ import annotations
 import os
 import pathlib
 
-import jax
-import numpy as np
-import pytest
+from fgjax.xla_env import use_fast_cpu_compile
+
+use_fast_cpu_compile()  # as the command line does; before jax starts its backend
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_default_matmul_precision", "highest")

@@ -229,7 +229,7 @@ def fit_joint(pts, target, weights, viewmats, K, kind: str, *, axes=None, huber_
     # pairs padded to a multiple of 8 (weight 0, amount damped to 0), so that objects moving over different
     # numbers of pairs share compiled solvers (each compile takes seconds)
     jp = -(-j // 8) * 8
-    pad = lambda a, v=0.0: jnp.concatenate([a, jnp.full((jp - j,) + a.shape[1:], v, a.dtype)]) if jp > j else a
+    pad = lambda a: jnp.concatenate([a, jnp.zeros((jp - j,) + a.shape[1:], a.dtype)])  # [jp, ...]
     pts, target, weights = pad(pts), pad(target), pad(weights)
     viewmats, K = pad(viewmats), pad(K)  # zero cameras: their rows have weight 0 (projections masked)
     axes = np.eye(3) if axes is None else np.asarray(axes, np.float64).reshape(-1, 3)

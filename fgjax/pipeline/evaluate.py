@@ -235,28 +235,38 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         res["state_psnr_per_frame"] = ps
         res["state_psnr_centre"] = float(np.mean(ps_c))
         res["state_psnr_stage1"] = float(np.mean(ps1))
-    if ps and k and states_train is not None:
-        res.update(_true_motion_psnr(run, test, meta, objs, match, states_train[ref], norm, gt))
     if k and states_train is not None:
-        pref = _motion_preference(run, train, objs, match, states_train, ref, norm, gt)
+        # the controlled scene's reference labelled from the gt (radius 0.03): the ceilings' and motion_preference's
+        lab_gt = gt_labels_of_gaussians(np.asarray(run.base()[0]), gt, objs, states_train[ref], norm, match, 0.03)
+        if ps:
+            res.update(_true_motion_psnr(run, test, meta, objs, match, states_train[ref], norm, lab_gt))
+        pref = _motion_preference(run, train, objs, match, states_train, ref, norm, lab_gt)
         if pref:
             res["motion_preference"] = pref
     return res
 
 
-def _motion_preference(run, train, objs: dict, match: dict[int, int], states, ref: int, norm, gt: Path,
+def _render_posed(run, labels, poses, viewmat, K, width: int, height: int) -> np.ndarray:
+    """Image [H, W, 3] in [0, 1] of the controlled scene's reference (`LoadedRun.base`, no control network)
+    with each cluster's Gaussians (`labels` [N], -1 static) moved by its pose (`poses` [K, 4, 4])."""
+    import jax.numpy as jnp
+
+    from fgjax.pipeline.track import transform_gaussians
+
+    m0, q0, ls0 = run.base()
+    m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses, jnp.float32))
+    img, _, _ = run.render_geometry(m, q, ls0, viewmat, K, width, height, params=run.control_params())
+    return np.clip(np.asarray(img), 0.0, 1.0)
+
+
+def _motion_preference(run, train, objs: dict, match: dict[int, int], states, ref: int, norm, lab_gt,
                        max_frames: int = 8, min_move: float = 0.01) -> dict:
     """``motion_preference`` (module docstring): {cluster (1-based, str): {frames, l1_learned, l1_true,
     l1_true_gt_labels, true_wins, true_wins_gt_labels}} over training frames `train` with gt `states`
-    [T, K_gt] (``ref``: the reference frame's row)."""
-    import jax.numpy as jnp
-
+    [T, K_gt] (``ref``: the reference frame's row); ``lab_gt`` [N]: the reference's labels from the gt."""
     from fgjax.pipeline import stage2
-    from fgjax.pipeline.track import transform_gaussians
 
     s2 = run.s2
-    m0, q0, ls0 = run.base()
-    lab_gt = gt_labels_of_gaussians(np.asarray(m0), gt, objs, states[ref], norm, match, 0.03)
     out: dict = {}
     for c, j in sorted(match.items()):
         if j < 1 or j not in objs:
@@ -279,10 +289,8 @@ def _motion_preference(run, train, objs: dict, match: dict[int, int], states, re
             poses[c] = gt_motion_scene(objs[j], s_ref, float(states[i, j - 1]), norm)
             row = [float(np.abs(learned - image).mean())]
             for labels in (s2.labels, lab_gt):
-                m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses, jnp.float32))
-                img, _, _ = run.render_geometry(m, q, ls0, train.viewmats[i], train.Ks[i], train.width, train.height,
-                                                params=run.control_params())
-                row.append(float(np.abs(np.clip(np.asarray(img), 0.0, 1.0) - image).mean()))
+                img = _render_posed(run, labels, poses, train.viewmats[i], train.Ks[i], train.width, train.height)
+                row.append(float(np.abs(img - image).mean()))
             rows.append(row)
         r = np.asarray(rows)
         out[str(c + 1)] = {"frames": len(frames), "l1_learned": float(r[:, 0].mean()), "l1_true": float(r[:, 1].mean()),
@@ -291,23 +299,17 @@ def _motion_preference(run, train, objs: dict, match: dict[int, int], states, re
     return out
 
 
-def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], s_ref, norm, gt: Path) -> dict:
+def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], s_ref, norm, lab_gt) -> dict:
     """Ceilings of the state PSNR: the controlled scene's reference Gaussians (`LoadedRun.base`, no control
     network) with every matched cluster moved by the gt motion of its object from the reference state
     `s_ref` [K_gt] to the held-out state. ``state_psnr_true_motion`` keeps the discovered labels,
     ``state_psnr_true_motion_labels`` takes them from the gt (`gt_labels_of_gaussians`, radius 0.03): the
-    first is what perfect tracking would give, the second what perfect tracking and clustering would."""
-    import jax.numpy as jnp
-
+    first is what perfect tracking would give, the second what perfect tracking and clustering would
+    (``lab_gt`` [N]: the reference's labels from the gt)."""
     from fgjax import metrics
-    from fgjax.pipeline.track import transform_gaussians
 
     s2 = run.s2
-    m0, q0, ls0 = run.base()
-    label_sets = {
-        "state_psnr_true_motion": np.asarray(s2.labels),
-        "state_psnr_true_motion_labels": gt_labels_of_gaussians(np.asarray(m0), gt, objs, s_ref, norm, match, 0.03),
-    }
+    label_sets = {"state_psnr_true_motion": np.asarray(s2.labels), "state_psnr_true_motion_labels": lab_gt}
     out: dict = {key: [] for key in label_sets}
     for i, f in enumerate(meta.get("test_frames", [])):
         if f.get("kind") != "state" or f.get("states") is None:
@@ -317,10 +319,8 @@ def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], 
             if j >= 1 and j in objs:
                 poses[c] = gt_motion_scene(objs[j], float(s_ref[j - 1]), float(f["states"][j - 1]), norm)
         for key, labels in label_sets.items():
-            m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses, jnp.float32))
-            img, _, _ = run.render_geometry(m, q, ls0, test.viewmats[i], test.Ks[i], test.width, test.height,
-                                            params=run.control_params())
-            out[key].append(float(metrics.psnr(np.clip(np.asarray(img), 0.0, 1.0), test.images[i])))
+            img = _render_posed(run, labels, poses, test.viewmats[i], test.Ks[i], test.width, test.height)
+            out[key].append(float(metrics.psnr(img, test.images[i])))
     return {key: float(np.mean(v)) for key, v in out.items() if v}
 
 

@@ -49,12 +49,49 @@ def gaussian_window(size: int = 11, sigma: float = 1.5) -> np.ndarray:
     return g / g.sum()
 
 
-def _filter_valid(x: Array, taps: Array) -> Array:
-    """Separable 'valid' filtering of [H, W, C] with the 1D taps along H then W."""
-    k = taps.shape[0]
-    h, w = x.shape[0] - k + 1, x.shape[1] - k + 1
-    y = sum(taps[i] * x[i : i + h] for i in range(k))
-    return sum(taps[j] * y[:, j : j + w] for j in range(k))
+def _band(taps: np.ndarray, n: int) -> np.ndarray:
+    """The 'valid' correlation with `taps` [k] along an axis of length n as a matrix [n - k + 1, n]."""
+    k = len(taps)
+    m = np.zeros((n - k + 1, n))
+    for i in range(n - k + 1):
+        m[i, i : i + k] = taps
+    return m
+
+
+def _filter_last(x: Array, taps: np.ndarray, block: int = 256) -> Array:
+    """'Valid' correlation of [M, n] with `taps` [k] along the last axis: [M, n - k + 1].
+
+    Outputs in nb = ceil((n - k + 1) / block) equal blocks of T: each block is one product of its T + k - 1
+    inputs with a banded matrix [T, T + k - 1], so the cost per output is at most block + k - 1 multiplies
+    whatever n."""
+    k = len(taps)
+    n_out = x.shape[1] - k + 1
+    nb = -(-n_out // int(block))
+    t = -(-n_out // nb)
+    hi = jax.lax.Precision.HIGHEST
+    band = jnp.asarray(_band(taps, t + k - 1), x.dtype)  # [T, T + k - 1]
+    if nb == 1:
+        return jnp.einsum("mj,tj->mt", x[:, : t + k - 1], band, precision=hi)
+    r = -(-(t + k - 1) // t)  # blocks spanned by one window
+    xp = jnp.pad(x, ((0, 0), (0, (nb + r - 1) * t - x.shape[1])))  # [M, (nb + r - 1) T]
+    # window b = inputs b T ... b T + T + k - 2: block b and the start of the next r - 1 blocks
+    win = jnp.concatenate([xp[:, s * t : (s + nb) * t].reshape(-1, nb, t)[:, :, : min(t, t + k - 1 - s * t)]
+                           for s in range(r)], axis=2)  # [M, nb, T + k - 1]
+    return jnp.einsum("mbj,tj->mbt", win, band, precision=hi).reshape(x.shape[0], nb * t)[:, :n_out]
+
+
+def _filter_valid(x: Array, taps: np.ndarray) -> Array:
+    """Separable 'valid' filtering of a stack [B, H, W] with the 1D taps along H then W: [B, H - k + 1, W - k + 1].
+
+    Products with banded matrices (`_filter_last`; full float32 precision on every backend). An unrolled sum
+    of k shifted slices per axis gives the same numbers but made XLA:CPU compile stage 1's training step in
+    8.7 s instead of 4.3 s and ran 6x slower at 160x120; two 1-D convolutions ran 3x slower
+    (docs/benchmarks.md, session 13)."""
+    b, h, w = x.shape
+    k = len(taps)
+    y = _filter_last(x.reshape(b * h, w), taps).reshape(b, h, w - k + 1)  # along W
+    y = _filter_last(jnp.swapaxes(y, 1, 2).reshape(b * (w - k + 1), h), taps)  # along H
+    return jnp.swapaxes(y.reshape(b, w - k + 1, h - k + 1), 1, 2)
 
 
 def ssim_map(
@@ -75,12 +112,14 @@ def ssim_map(
         raise ValueError(f"ssim: images must share a shape [H, W, C]; got {a.shape} and {b.shape}")
     if a.shape[0] < win_size or a.shape[1] < win_size:
         raise ValueError(f"ssim: images must be at least {win_size}x{win_size}; got {a.shape[:2]}")
-    taps = jnp.asarray(gaussian_window(win_size, sigma), dtype)
-    mu_a = _filter_valid(a, taps)
-    mu_b = _filter_valid(b, taps)
-    s_aa = _filter_valid(a * a, taps) - mu_a * mu_a
-    s_bb = _filter_valid(b * b, taps) - mu_b * mu_b
-    s_ab = _filter_valid(a * b, taps) - mu_a * mu_b
+    taps = gaussian_window(win_size, sigma)
+    c = a.shape[-1]
+    stack = jnp.stack([a, b, a * a, b * b, a * b])  # [5, H, W, C]: the five local means, one filter call
+    f = _filter_valid(jnp.moveaxis(stack, -1, 1).reshape(5 * c, *a.shape[:2]), taps)  # [5 C, H', W']
+    mu_a, mu_b, e_aa, e_bb, e_ab = jnp.moveaxis(f.reshape(5, c, *f.shape[1:]), 1, -1)  # each [H', W', C]
+    s_aa = e_aa - mu_a * mu_a
+    s_bb = e_bb - mu_b * mu_b
+    s_ab = e_ab - mu_a * mu_b
     c1 = (k1 * data_range) ** 2
     c2 = (k2 * data_range) ** 2
     num = (2 * mu_a * mu_b + c1) * (2 * s_ab + c2)

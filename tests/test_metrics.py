@@ -35,6 +35,27 @@ def test_ssim_matches_scipy_reference(seed):
     assert float(metrics.ssim(a, b)) == pytest.approx(_ssim_reference(a, b), abs=1e-10)
 
 
+@pytest.mark.parametrize("shape", [(12, 300, 2), (280, 14, 1)])
+def test_ssim_matches_scipy_reference_beyond_one_filter_block(shape):
+    """Sides above `_filter_last`'s block (256 outputs): the filter runs in several banded blocks."""
+    rng = np.random.default_rng(5)
+    a = rng.uniform(size=shape)
+    b = np.clip(a + 0.2 * rng.normal(size=a.shape), 0, 1)
+    assert float(metrics.ssim(a, b)) == pytest.approx(_ssim_reference(a, b), abs=1e-10)
+
+
+@pytest.mark.parametrize("n", [11, 12, 20, 37])
+@pytest.mark.parametrize("block", [1, 3, 4, 256])
+def test_filter_blocks_match_numpy_valid_correlation(n, block):
+    """Every block split (equal blocks, the last one padded) gives numpy's 'valid' correlation."""
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=(3, n))
+    taps = metrics.gaussian_window(11, 1.5) * rng.uniform(0.5, 1.5, 11)  # not symmetric: orientation matters
+    ref = np.stack([np.correlate(r, taps, mode="valid") for r in x])
+    out = np.asarray(metrics._filter_last(jnp.asarray(x), taps, block=block))
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12)
+
+
 def test_ssim_known_values():
     a = np.full((16, 16, 1), 0.3)
     assert float(metrics.ssim(a, a)) == pytest.approx(1.0, abs=1e-12)

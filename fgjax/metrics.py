@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-__all__ = ["psnr", "mse", "ssim", "ssim_map", "masked_psnr", "epe", "ari", "gaussian_window"]
+__all__ = ["psnr", "mse", "ssim", "ssim_map", "masked_psnr", "epe", "ari", "gaussian_window", "filter_valid"]
 
 
 def mse(a: Float[ArrayLike, "... C"], b: Float[ArrayLike, "... C"]) -> Float[Array, ""]:
@@ -49,27 +49,27 @@ def gaussian_window(size: int = 11, sigma: float = 1.5) -> np.ndarray:
     return g / g.sum()
 
 
-def _band(taps: np.ndarray, n: int) -> np.ndarray:
-    """The 'valid' correlation with `taps` [k] along an axis of length n as a matrix [n - k + 1, n]."""
-    k = len(taps)
-    m = np.zeros((n - k + 1, n))
-    for i in range(n - k + 1):
-        m[i, i : i + k] = taps
-    return m
+def _band(taps, n: int) -> Array:
+    """The 'valid' correlation with `taps` [k] (numpy or jax, traceable) along an axis of length n as a matrix
+    [n - k + 1, n]: band[i, j] = taps[j - i] for 0 <= j - i < k, else 0."""
+    k = taps.shape[0]
+    d = np.arange(n)[None, :] - np.arange(n - k + 1)[:, None]  # [n - k + 1, n]: j - i
+    inside = (d >= 0) & (d < k)
+    return jnp.where(inside, jnp.asarray(taps)[np.clip(d, 0, k - 1)], 0.0)
 
 
-def _filter_last(x: Array, taps: np.ndarray, block: int = 256) -> Array:
-    """'Valid' correlation of [M, n] with `taps` [k] along the last axis: [M, n - k + 1].
+def _filter_last(x: Array, taps, block: int = 256) -> Array:
+    """'Valid' correlation of [M, n] with `taps` [k] (numpy or jax) along the last axis: [M, n - k + 1].
 
     Outputs in nb = ceil((n - k + 1) / block) equal blocks of T: each block is one product of its T + k - 1
     inputs with a banded matrix [T, T + k - 1], so the cost per output is at most block + k - 1 multiplies
     whatever n."""
-    k = len(taps)
+    k = taps.shape[0]
     n_out = x.shape[1] - k + 1
     nb = -(-n_out // int(block))
     t = -(-n_out // nb)
     hi = jax.lax.Precision.HIGHEST
-    band = jnp.asarray(_band(taps, t + k - 1), x.dtype)  # [T, T + k - 1]
+    band = _band(taps, t + k - 1).astype(x.dtype)  # [T, T + k - 1]
     if nb == 1:
         return jnp.einsum("mj,tj->mt", x[:, : t + k - 1], band, precision=hi)
     r = -(-(t + k - 1) // t)  # blocks spanned by one window
@@ -80,15 +80,16 @@ def _filter_last(x: Array, taps: np.ndarray, block: int = 256) -> Array:
     return jnp.einsum("mbj,tj->mbt", win, band, precision=hi).reshape(x.shape[0], nb * t)[:, :n_out]
 
 
-def _filter_valid(x: Array, taps: np.ndarray) -> Array:
-    """Separable 'valid' filtering of a stack [B, H, W] with the 1D taps along H then W: [B, H - k + 1, W - k + 1].
+def filter_valid(x: Array, taps) -> Array:
+    """Separable 'valid' filtering of a stack [B, H, W] with the 1D `taps` [k] (numpy or jax, traceable) along
+    H and W: [B, H - k + 1, W - k + 1]. SSIM's local means, and the photometric tracker's blur.
 
     Products with banded matrices (`_filter_last`; full float32 precision on every backend). An unrolled sum
     of k shifted slices per axis gives the same numbers but made XLA:CPU compile stage 1's training step in
     8.7 s instead of 4.3 s and ran 6x slower at 160x120; two 1-D convolutions ran 3x slower
     (docs/benchmarks.md, session 13)."""
     b, h, w = x.shape
-    k = len(taps)
+    k = taps.shape[0]
     y = _filter_last(x.reshape(b * h, w), taps).reshape(b, h, w - k + 1)  # along W
     y = _filter_last(jnp.swapaxes(y, 1, 2).reshape(b * (w - k + 1), h), taps)  # along H
     return jnp.swapaxes(y.reshape(b, w - k + 1, h - k + 1), 1, 2)
@@ -115,7 +116,7 @@ def ssim_map(
     taps = gaussian_window(win_size, sigma)
     c = a.shape[-1]
     stack = jnp.stack([a, b, a * a, b * b, a * b])  # [5, H, W, C]: the five local means, one filter call
-    f = _filter_valid(jnp.moveaxis(stack, -1, 1).reshape(5 * c, *a.shape[:2]), taps)  # [5 C, H', W']
+    f = filter_valid(jnp.moveaxis(stack, -1, 1).reshape(5 * c, *a.shape[:2]), taps)  # [5 C, H', W']
     mu_a, mu_b, e_aa, e_bb, e_ab = jnp.moveaxis(f.reshape(5, c, *f.shape[1:]), 1, -1)  # each [H', W', C]
     s_aa = e_aa - mu_a * mu_a
     s_bb = e_bb - mu_b * mu_b

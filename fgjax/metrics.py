@@ -86,7 +86,7 @@ def filter_valid(x: Array, taps) -> Array:
 
     Products with banded matrices (`_filter_last`; full float32 precision on every backend). An unrolled sum
     of k shifted slices per axis gives the same numbers but made XLA:CPU compile stage 1's training step in
-    8.7 s instead of 4.3 s and ran 6x slower at 160x120; two 1-D convolutions ran 3x slower
+    8.7 s instead of 3.9 s and ran 5.5x slower at 160x120; two 1-D convolutions ran 3x slower than the slices
     (docs/benchmarks.md, session 13)."""
     b, h, w = x.shape
     k = taps.shape[0]

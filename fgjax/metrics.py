@@ -70,8 +70,8 @@ def _filter_last(x: Array, taps, block: int = 256) -> Array:
     t = -(-n_out // nb)
     hi = jax.lax.Precision.HIGHEST
     band = _band(taps, t + k - 1).astype(x.dtype)  # [T, T + k - 1]
-    if nb == 1:
-        return jnp.einsum("mj,tj->mt", x[:, : t + k - 1], band, precision=hi)
+    if nb == 1:  # t + k - 1 = n: the band is the whole axis
+        return jnp.einsum("mj,tj->mt", x, band, precision=hi)
     r = -(-(t + k - 1) // t)  # blocks spanned by one window
     xp = jnp.pad(x, ((0, 0), (0, (nb + r - 1) * t - x.shape[1])))  # [M, (nb + r - 1) T]
     # window b = inputs b T ... b T + T + k - 2: block b and the start of the next r - 1 blocks
@@ -88,8 +88,11 @@ def filter_valid(x: Array, taps) -> Array:
     of k shifted slices per axis gives the same numbers but made XLA:CPU compile stage 1's training step in
     8.7 s instead of 3.9 s and ran 5.5x slower at 160x120; two 1-D convolutions ran 3x slower than the slices
     (docs/benchmarks.md, session 13)."""
-    b, h, w = x.shape
     k = taps.shape[0]
+    if x.ndim != 3 or x.shape[1] < k or x.shape[2] < k or taps.ndim != 1 or k < 1:
+        raise ValueError(f"filter_valid: needs a stack [B, H, W] with H, W >= the {k} taps and 1-D taps; got x "
+                         f"{tuple(x.shape)} and taps {tuple(taps.shape)}")
+    b, h, w = x.shape
     y = _filter_last(x.reshape(b * h, w), taps).reshape(b, h, w - k + 1)  # along W
     y = _filter_last(jnp.swapaxes(y, 1, 2).reshape(b * (w - k + 1), h), taps)  # along H
     return jnp.swapaxes(y.reshape(b, w - k + 1, h - k + 1), 1, 2)

@@ -56,6 +56,16 @@ def test_filter_blocks_match_numpy_valid_correlation(n, block):
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-12)
 
 
+def test_filter_valid_names_bad_shapes():
+    taps = metrics.gaussian_window(11, 1.5)
+    for bad in (jnp.zeros((2, 10, 20)), jnp.zeros((2, 20, 10)), jnp.zeros((20, 20))):
+        with pytest.raises(ValueError, match="filter_valid: needs a stack"):
+            metrics.filter_valid(bad, taps)
+    with pytest.raises(ValueError, match="1-D taps"):
+        metrics.filter_valid(jnp.zeros((1, 20, 20)), np.ones((3, 3)))
+    assert metrics.filter_valid(jnp.zeros((1, 11, 12)), taps).shape == (1, 1, 2)
+
+
 def test_ssim_known_values():
     a = np.full((16, 16, 1), 0.3)
     assert float(metrics.ssim(a, a)) == pytest.approx(1.0, abs=1e-12)

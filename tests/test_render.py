@@ -178,6 +178,65 @@ def test_overflow_raises_outside_jit_and_flags_inside():
     assert not bool(ok)
 
 
+@pytest.mark.parametrize("chunk,batch", [(64, 64), (8, 2), (4, 1)])
+def test_active_tiles_exact_for_active_gaussians(chunk, batch):
+    """``active``: only tiles an active Gaussian reaches are composited; pasted over a render without the
+    active Gaussians they give the full image, and the active Gaussians' gradients are the full render's."""
+    args = f32(random_scene(11, n=150, spread=0.8))
+    bg = jnp.asarray([0.2, 0.4, 0.6], jnp.float32)
+    act = np.asarray(args[0][:, 0]) < -0.3  # a spatial subset: the left part of the scene
+    kw = dict(background=bg, tile_size=8, chunk=chunk, batch=batch, capacity=8192)
+    img, alpha, info = fgjax.rasterization(*args, W, H, **kw, active=jnp.asarray(act))
+    on = np.asarray(info["tile_on"])
+    assert on.shape == (-(-H // 8), -(-W // 8)) and 0 < on.sum() < on.size
+    pix = np.repeat(np.repeat(on, 8, 0), 8, 1)[:H, :W]
+    np.testing.assert_array_equal(np.asarray(img)[~pix], np.broadcast_to(np.asarray(bg), img.shape)[~pix])
+    assert np.all(np.asarray(alpha)[~pix] == 0)
+    # every pixel an active Gaussian reaches (float64 dense reference of the active ones alone) is in a tile on
+    only = [a[act] for a in random_scene(11, n=150, spread=0.8)[:5]] + random_scene(11, n=150, spread=0.8)[5:]
+    assert np.all(pix[np.asarray(dense(only)[1]) > 0])
+    # pasted over a render without the active Gaussians: the full render
+    full = fgjax.rasterization(*args, W, H, **kw)[0]
+    rest_args = list(args)
+    rest_args[3] = jnp.where(jnp.asarray(act), 0.0, args[3])
+    rest = fgjax.rasterization(*rest_args, W, H, **kw)[0]
+    np.testing.assert_allclose(np.asarray(jnp.where(pix[..., None], img, rest)), np.asarray(full), atol=2e-6)
+    # gradients of a per-pixel loss: equal for the active Gaussians, zero for those that reach no tile on
+    wc, wa, _ = _loss_weights(3, 3)
+
+    def loss(means, scales, opac, colors, active):
+        im, al, _ = fgjax.rasterization(means, args[1], scales, opac, colors, args[5], args[6], W, H, **kw,
+                                        active=active)
+        return jnp.sum(im * wc.astype(jnp.float32)) + jnp.sum(al * wa.astype(jnp.float32))
+
+    ga = jax.grad(loss, argnums=(0, 1, 2, 3))(args[0], args[2], args[3], args[4], jnp.asarray(act))
+    gf = jax.grad(loss, argnums=(0, 1, 2, 3))(args[0], args[2], args[3], args[4], None)
+    rect = np.asarray(info["tile_rect"])
+    reach_on = np.array([on[r[1]:r[3], r[0]:r[2]].any() for r in rect])
+    for a, f in zip(ga, gf):
+        a, f = np.asarray(a), np.asarray(f)
+        assert np.all(np.isfinite(a)) and np.linalg.norm(f[act]) > 0
+        np.testing.assert_allclose(a[act], f[act], rtol=1e-4, atol=1e-6 * np.abs(f).max())
+        assert np.all(a[~reach_on] == 0)
+    # no Gaussian active: the background, no gradient
+    none = jnp.zeros(args[0].shape[0], bool)
+    img0, alpha0, info0 = fgjax.rasterization(*args, W, H, **kw, active=none)
+    assert not np.asarray(info0["tile_on"]).any() and np.all(np.asarray(alpha0) == 0)
+    np.testing.assert_array_equal(np.asarray(img0), np.broadcast_to(np.asarray(bg), img0.shape))
+    g0 = jax.grad(loss)(args[0], args[2], args[3], args[4], none)
+    assert np.all(np.asarray(g0) == 0)
+
+
+def test_active_must_be_a_bool_per_gaussian():
+    args = f32(random_scene(2))
+    for bad in (np.ones(args[0].shape[0]), np.ones(args[0].shape[0] + 1, bool)):
+        with pytest.raises(ValueError, match="active must be a bool array"):
+            fgjax.rasterization(*args, W, H, active=bad)
+    empty = [a[:0] for a in args[:5]] + args[5:]
+    img, alpha, info = fgjax.rasterization(*empty, W, H, active=np.zeros(0, bool))
+    assert info["tile_on"].shape == (-(-H // 8), -(-W // 8)) and not np.asarray(info["tile_on"]).any()
+
+
 def test_bad_shapes_raise_clear_errors():
     args = f32(random_scene(2))
     bad = list(args)

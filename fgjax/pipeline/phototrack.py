@@ -194,18 +194,33 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     bg = jnp.asarray(background, jnp.float32)
     width, height = int(images.shape[2]), int(images.shape[1])
 
-    def render(P, lg, i):
-        """(image [H, W, 3], overflow) of frame i, objects moved by P [K, 4, 4], candidates mixed by lg [C]."""
+    # The poses move the clusters' Gaussians and the logits mix the candidates' copies; the other Gaussians
+    # never change, so the tiles none of the changing ones reaches are composited once per frame (`rest`).
+    changing = jnp.concatenate([lab_m >= 0, jnp.ones(cj.shape[0], bool)])  # [N + C]
+
+    def render(P, lg, i, rest):
+        """(image [H, W, 3], overflow) of frame i, objects moved by P [K, 4, 4], candidates mixed by lg [C];
+        rest [H, W, 3]: frame i without the changing Gaussians (`render_rest`), for the tiles they miss."""
         m, q = transform_gaussians(g.means, g.quats, lab_m, P)
         both = mixed_copies(g, m, q, cj, lg)
         img, _, info, _ = render_params({"gaussians": both}, alive2, vms[i], Kj[i], 0.0, spec=None,
                                         sh_degree=sh_degree, width=width, height=height, background=bg,
-                                        capacity=capacity, tile_size=tile_size)
-        return img, info["overflow"]
+                                        capacity=capacity, tile_size=tile_size, active=changing)
+        on = jnp.repeat(jnp.repeat(info["tile_on"], tile_size, 0), tile_size, 1)[:height, :width]  # [H, W]
+        return jnp.where(on[..., None], img, rest), info["overflow"]
 
     @jax.jit
-    def first_loss(P, lg, i):
-        img, _ = render(P, lg, i)
+    def render_rest(i):
+        """Frame i without the changing Gaussians: [H, W, 3]."""
+        both = mixed_copies(g, g.means, g.quats, cj, jnp.zeros(cj.shape[0], jnp.float32))
+        img, _, _, _ = render_params({"gaussians": both}, alive2 & ~changing, vms[i], Kj[i], 0.0, spec=None,
+                                     sh_degree=sh_degree, width=width, height=height, background=bg,
+                                     capacity=capacity, tile_size=tile_size)
+        return img
+
+    @jax.jit
+    def first_loss(P, lg, i, rest):
+        img, _ = render(P, lg, i, rest)
         return jnp.mean(jnp.abs(img - images[i]))
 
     opt_x, opt_l = optax.adam(lr), optax.adam(member_lr)
@@ -217,10 +232,10 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     targets = jnp.stack([jax.vmap(lambda im, kk=kk: blur_with(im, kk))(images) for kk in kernels])  # [L, T, H, W, 3]
 
     @jax.jit
-    def step(x, lg, st, i, p_init, centres, mask, level):
+    def step(x, lg, st, i, rest, p_init, centres, mask, level):
         def loss_fn(x_, lg_):
             P = jnp.einsum("kij,kjl->kil", pose_delta(x_ * mask[:, None], centres, scale), p_init)
-            img, over = render(P, lg_, i)
+            img, over = render(P, lg_, i, rest)
             return jnp.mean(jnp.abs(blur_with(img, kernels[level]) - targets[level, i])), over
 
         (loss, over), (gx, gl) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(x, lg)
@@ -248,7 +263,8 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         if init_poses is not None:  # the earlier fit's pose for the moving objects
             starts.append(np.where(mk[:, None, None], init_poses[:, n], prev).astype(np.float32))
         i = jnp.asarray(n, jnp.int32)
-        l0 = [float(first_loss(jnp.asarray(s), lg, i)) for s in starts]
+        rest = render_rest(i)
+        l0 = [float(first_loss(jnp.asarray(s), lg, i, rest)) for s in starts]
         p_init = starts[int(np.argmin(np.where(np.isfinite(l0), l0, np.inf)))] if np.any(np.isfinite(l0)) else prev
         centres = np.stack([(m_ref[labels == k] @ p_init[k, :3, :3].T + p_init[k, :3, 3]).mean(0)
                             if np.any(labels == k) else p_init[k, :3, 3] for k in range(num_objects)])
@@ -257,7 +273,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         for level, count in levels:
             st = (opt_x.init(x), opt_l.init(lg))
             for _ in range(count):
-                x, lg, st, _, bad = step(x, lg, st, i, pj, cen, mask, level)
+                x, lg, st, _, bad = step(x, lg, st, i, rest, pj, cen, mask, level)
                 n_bad += int(bad)
         new = np.asarray(jnp.einsum("kij,kjl->kil", pose_delta(x * mask[:, None], cen, scale), pj))
         poses[:, n] = np.where(np.all(np.isfinite(new), (1, 2))[:, None, None], new, p_init)

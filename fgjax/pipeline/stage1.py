@@ -177,12 +177,14 @@ def _deformed(params, alive, t, spec: DeformSpec | None):
 def render_params(
     params, alive, viewmat, K, t, *, spec: DeformSpec | None, sh_degree: int, width: int, height: int,
     background, capacity: int | None, tile_size: int = 8, delta2d=None, render_depth: bool = False, sh_mask=None,
+    active=None,
 ):
     """Render the model at time t from one camera: (image [H, W, 3], alpha, info, geometry) with geometry =
     {"means": deformed centres [N, 3], "log_scales": deformed log-scales [N, 3]}.
 
     ``delta2d`` [N, 2] (zeros) shifts each Gaussian by that many pixels on screen (a camera-space
     offset proportional to depth); its gradient is the screen-space gradient densification needs.
+    ``active`` [N] bool: composite only the tiles these Gaussians reach (`fgjax.rasterization`'s ``active``).
     """
     from fgjax.render.api import rasterization, spherical_harmonics
 
@@ -200,7 +202,7 @@ def render_params(
     colors = jnp.maximum(spherical_harmonics(sh_degree, means - campos, sh) + 0.5, 0.0)
     img, alpha, info = rasterization(
         means, q, s, o, colors, viewmat, K, width, height, background=background, capacity=capacity,
-        tile_size=tile_size, render_depth=render_depth,
+        tile_size=tile_size, render_depth=render_depth, active=active,
     )
     return img, alpha, info, geometry
 

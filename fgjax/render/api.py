@@ -14,9 +14,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
-from fgjax.render.composite import composite, make_chunks
+from fgjax.render.composite import composite, make_chunks, restrict_tiles
 from fgjax.render.project import project_gaussians
 from fgjax.render.sh import spherical_harmonics as spherical_harmonics  # re-export
 from fgjax.render.tiles import bin_gaussians, tile_ranges
@@ -123,13 +123,16 @@ def _empty_render(means, colors, background, width, height, render_depth):
     static_argnames=("width", "height", "near_plane", "tile_size", "capacity", "chunk", "batch", "render_depth"),
 )
 def _rasterize(
-    means, quats, scales, opacities, colors, viewmat, K, background, *,
+    means, quats, scales, opacities, colors, viewmat, K, background, active, *,
     width, height, near_plane, tile_size, capacity, chunk, batch, render_depth,
 ):
     n, C = colors.shape
     dtype = colors.dtype
     if n == 0:  # static: an empty scene is the background (and costs nothing)
-        return _empty_render(means, colors, background, width, height, render_depth)
+        image, alpha, info = _empty_render(means, colors, background, width, height, render_depth)
+        if active is not None:
+            info["tile_on"] = jnp.zeros((-(-height // tile_size), -(-width // tile_size)), bool)
+        return image, alpha, info
     proj, rect = _project_and_rect(means, quats, scales, opacities, viewmat, K, width, height, near_plane, tile_size)
     ntx = -(-width // tile_size)
     nty = -(-height // tile_size)
@@ -137,6 +140,8 @@ def _rasterize(
     ellipse = jax.lax.stop_gradient((proj.means2d, proj.conics, r2))
     bins = bin_gaussians(rect, proj.depths, ntx, nty, capacity, ellipse=ellipse, tile_size=tile_size)
     chunks = make_chunks(bins.isect_ids, bins.tile_start, n, chunk)
+    if active is not None:
+        chunks = restrict_tiles(chunks, active, ntx * nty)
     extra = [jnp.ones((n, 1), dtype)]  # alpha channel
     if render_depth:
         extra.append(jnp.where(proj.valid, proj.depths, 0.0)[:, None])
@@ -163,6 +168,8 @@ def _rasterize(
         "n_composited": bins.n_composited,
         "overflow": bins.overflow,
     }
+    if active is not None:
+        info["tile_on"] = chunks.tile_on.reshape(nty, ntx)
     if render_depth:
         has = alpha > 1e-6
         info["depth"] = jnp.where(has, acc[..., C + 1] / jnp.where(has, alpha, 1.0), 0.0)  # expected depth
@@ -188,6 +195,7 @@ def rasterization(
     chunk: int = DEFAULT_CHUNK,
     batch: int = DEFAULT_BATCH,
     render_depth: bool = True,
+    active: Bool[ArrayLike, " N"] | None = None,
 ) -> tuple[Float[Array, "H W C"], Float[Array, "H W"], dict[str, Any]]:
     """Render N Gaussians with the tile rasterizer (gsplat rules; exact, differentiable).
 
@@ -216,6 +224,11 @@ def rasterization(
         the image must not be used.
       chunk, batch: compositor work sizes (speed only).
       render_depth: also composite camera depth (``info["depth"]`` expected depth).
+      active: [N] bool or None (all tiles). Only the tiles that an active Gaussian reaches are
+        composited (``info["tile_on"]`` [ceil(H / tile), ceil(W / tile)]); the others are left empty
+        (background, alpha 0) and pass no gradient. For fits in which only the active Gaussians
+        change (a part's pose): the gradients of the active ones are exact, and the pixels of the
+        tiles off equal a render without the active Gaussians, which can be made once and pasted.
 
     Returns:
       image [H, W, C], alpha [H, W] (= 1 - T_final), and ``info`` with means2d [N, 2], depths [N],
@@ -246,8 +259,13 @@ def rasterization(
             capacity = _round_capacity(needed)
     elif not isinstance(capacity, (int, np.integer)) or capacity <= 0:
         raise ValueError(f"rasterization: capacity must be a positive int, got {capacity!r}")
+    if active is not None:
+        active = jnp.asarray(active)
+        if active.shape != (means.shape[0],) or active.dtype != jnp.bool_:
+            raise ValueError(f"rasterization: active must be a bool array [N] = [{means.shape[0]}], got "
+                             f"{active.dtype}{list(active.shape)}")
     out = _rasterize(
-        means, quats, scales, opacities, colors, viewmat, K, background,
+        means, quats, scales, opacities, colors, viewmat, K, background, active,
         width=width, height=height, near_plane=float(near_plane), tile_size=int(tile_size),
         capacity=int(capacity), chunk=int(chunk), batch=int(batch), render_depth=bool(render_depth),
     )

@@ -39,6 +39,7 @@ class Chunks(NamedTuple):
     live: Bool[Array, "NCH C"]  # entry holds a real intersection
     tile: Int[Array, " NCH"]  # tile of each chunk
     n_used: Int[Array, ""]  # chunks in use (a prefix of the NCH slots)
+    tile_on: Bool[Array, " T"] | None = None  # tiles to composite (None: all); see `restrict_tiles`
 
 
 def make_chunks(
@@ -62,6 +63,25 @@ def make_chunks(
     live = used[:, None] & (idx < tile_start[tile + 1][:, None])
     ids = jnp.where(live, isect_ids[jnp.clip(idx, 0, capacity - 1)], n_gaussians)
     return Chunks(ids=ids, live=live, tile=tile, n_used=cincl[-1])
+
+
+def restrict_tiles(ch: Chunks, active: Bool[Array, " N"], n_tiles: int) -> Chunks:
+    """``ch`` restricted to the tiles that an ``active`` Gaussian reaches (``tile_on`` [T]).
+
+    The compositor skips every batch of chunks whose tiles are all off: those tiles stay empty
+    (zero) and pass no gradient. A tile's chunks are contiguous, so a skipped batch never splits
+    the running prefix of a tile that is composited.
+    """
+    act = jnp.concatenate([jnp.asarray(active, bool), jnp.zeros((1,), bool)])  # padding id N is inactive
+    hit = jnp.any(act[ch.ids] & ch.live, axis=1)  # [NCH]
+    tile_on = jnp.zeros((n_tiles,), bool).at[ch.tile].max(hit)
+    return ch._replace(tile_on=tile_on)
+
+
+def _batch_used(ch: Chunks, bidx, tile, batch: int):
+    """Whether batch ``bidx`` (chunk tiles ``tile`` [B]) holds chunks in use on tiles to composite."""
+    used = bidx * batch < ch.n_used
+    return used if ch.tile_on is None else used & jnp.any(ch.tile_on[tile])
 
 
 class _Static(NamedTuple):
@@ -152,6 +172,7 @@ def _pad_chunks(ch: Chunks, batch: int, n: int) -> Chunks:
         live=jnp.concatenate([ch.live, jnp.zeros((pad, ch.live.shape[1]), bool)]),
         tile=jnp.concatenate([ch.tile, jnp.full((pad,), ch.tile[-1], ch.tile.dtype)]),
         n_used=ch.n_used,
+        tile_on=ch.tile_on,
     )
 
 
@@ -193,7 +214,7 @@ def _forward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks):
         def skip(carry):
             return carry, (jnp.zeros((st.batch, P, K), dtype), jnp.zeros((st.batch, P), dtype))
 
-        return jax.lax.cond(bidx * st.batch < ch.n_used, compute, skip, carry)
+        return jax.lax.cond(_batch_used(ch, bidx, tile, st.batch), compute, skip, carry)
 
     xs = (jnp.arange(nb), _batches(ch.ids, st.batch), _batches(ch.live, st.batch), _batches(ch.tile, st.batch))
     init = (jnp.array(-1, jnp.int32), jnp.zeros((P,), dtype))
@@ -258,7 +279,7 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
         def skip(carry):
             return carry, jnp.zeros((st.batch, st.chunk, G), dtype)
 
-        return jax.lax.cond(bidx * st.batch < ch.n_used, compute, skip, carry)
+        return jax.lax.cond(_batch_used(ch, bidx, tile, st.batch), compute, skip, carry)
 
     xs = (
         jnp.arange(nb),
@@ -311,6 +332,8 @@ def composite(
     """Composite ``colors`` front to back over the binned tiles; returns sum_i T_i alpha_i c_i."""
     st = _Static(width, height, tile_size, chunk, batch)
     acc = _composite(st, means2d, conics, opacities, colors, chunks)  # [T, P, K]
+    if chunks.tile_on is not None:  # tiles off stay empty even where a batch also held tiles on
+        acc = jnp.where(chunks.tile_on[:, None, None], acc, 0.0)
     ntx = -(-width // tile_size)
     nty = -(-height // tile_size)
     K = colors.shape[-1]

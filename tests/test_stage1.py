@@ -317,6 +317,35 @@ def test_pose_refinement_off_by_default_and_moves_noisy_poses_towards_truth():
     assert err(params) < 0.6 * e0
 
 
+@pytest.mark.parametrize("batch", [1, 2])
+def test_cameras_looped_or_vmapped_give_the_same_step(batch):
+    """The one-device step loops over the batch's cameras (vmap would turn the compositor's skips into
+    selects); the mesh path vmaps them. Both must give the same loss, update and densification statistics."""
+    from fgjax.train.optim import OptimSpec
+
+    scene = _tiny_scene(True)
+    state, spec, _ = stage1.initial_state(_cfg(), scene)
+    ospec = OptimSpec(steps=10)
+    i = np.arange(1, 1 + batch)
+    f32 = lambda x: np.asarray(x, np.float32)
+    args = (jnp.ones(4, jnp.float32), f32(scene.images[i]), f32(scene.viewmats[i]), f32(scene.Ks[i]),
+            f32(scene.times[i]), i.astype(np.int32))
+    outs = []
+    for vm in (False, True):
+        ss = stage1.StepSpec(spec, 1, scene.width, scene.height, 16384, 8, 0.2, 0.0, 0.05, False, vmap_cameras=vm)
+        step = stage1._make_step(ss, ospec, 4, (0.0, 0.0, 0.0))
+        copy = lambda x: jax.tree_util.tree_map(lambda a: jnp.array(a, copy=True), x)
+        opt_state = stage1.make_optimizer(ospec, 4).init(state.params)
+        outs.append(step(copy(state.params), opt_state, copy(state.densify), *args))
+    (p0, _, d0, l0, m0, b0), (p1, _, d1, l1, m1, b1) = outs
+    assert not bool(b0) and not bool(b1) and np.asarray(m0).shape == (batch,)
+    np.testing.assert_allclose(float(l0), float(l1), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(m0), np.asarray(m1), rtol=1e-6)
+    for a, b in zip(jax.tree_util.tree_leaves((p0, d0)), jax.tree_util.tree_leaves((p1, d1))):
+        np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=1e-5, atol=1e-7)
+    assert float(jnp.abs(p0["gaussians"].means - state.params["gaussians"].means).max()) > 0  # it did update
+
+
 def test_coarse_to_fine_and_no_recompilation_as_the_count_changes(monkeypatch):
     """The first `coarse_to_fine` steps run a half-resolution step; with a fixed tile capacity each step
     function compiles exactly once although densification changes the number of live Gaussians."""

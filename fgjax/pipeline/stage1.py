@@ -1,7 +1,8 @@
 """Stage 1: deformable 4D Gaussian training (DESIGN.md section 1, step 1) and the ``fgjax train`` command.
 
 Library entry point: ``train_stage1(cfg, scene, out_dir, ...)``. One jitted step renders a batch of
-training cameras (vmapped; data-parallel over a ``jax.sharding`` mesh when several devices exist),
+training cameras (one by one on one device; vmapped and data-parallel over a ``jax.sharding`` mesh when
+several devices exist),
 with the deformation field applied (or not: the warm-up and a detected static scene use a separately
 traced step without it, so they pay nothing for it), and applies one optax update. Densification runs
 between steps over fixed-capacity arrays. Checkpoints hold everything needed to resume bit-for-bit.
@@ -230,6 +231,7 @@ class StepSpec:
     rigid_scale_weight: float = 0.0  # weight of the scale-change regulariser (deformation only)
     rigid_cap: float = 0.0  # saturation of a pair's stretch in the isometry regulariser (0: none)
     freeze_gaussians: bool = False  # only the deformation (and poses) update: the canonical Gaussians stay
+    vmap_cameras: bool = False  # vmap the batch's cameras (a data-parallel mesh splits them); else a loop
 
 
 class FlowBatch(NamedTuple):
@@ -295,8 +297,18 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
         return loss, (mse, overflow, info["valid"])
 
     def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx, fl, nbr):
-        losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0, None))(
-            params, alive, sh_mask, delta2d, images, viewmats, Ks, times, idx, fl, nbr)
+        per_cam = (delta2d, images, viewmats, Ks, times, idx, fl)  # leading axis: the batch's cameras
+        if ss.vmap_cameras:  # a data-parallel mesh: the partitioner splits the vmapped cameras over devices
+            losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0, None))(
+                params, alive, sh_mask, *per_cam, nbr)
+        elif images.shape[0] == 1:
+            # One device: no vmap. Under vmap the compositor's lax.cond (skip the unused chunk batches)
+            # becomes a select that computes every batch: 1.4x the step at 20k Gaussians (docs/benchmarks.md).
+            losses, aux = jax.tree_util.tree_map(
+                lambda x: x[None], cam_loss(params, alive, sh_mask, *jax.tree_util.tree_map(lambda x: x[0], per_cam),
+                                            nbr))
+        else:
+            losses, aux = jax.lax.map(lambda a: cam_loss(params, alive, sh_mask, *a, nbr), per_cam)
         return jnp.mean(losses), aux
 
     def step(params, opt_state, dstate: DensifyState, sh_mask, images, viewmats, Ks, times, idx, flow_batch=None,
@@ -608,7 +620,7 @@ def train_stage1(
                       t.scale_reg, t.scale_reg_max, "pose" in state.params,
                       fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
-                      t.rigid_cap if use_deform else 0.0, freeze)
+                      t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None)
         if ss not in steps_cache:
             steps_cache[ss] = _make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]

@@ -21,6 +21,7 @@ __all__ = [
     "grow_clusters",
     "localize_clusters",
     "split_by_motion",
+    "merge_fragments",
     "true_runs",
     "moving_frames",
     "Localized",
@@ -419,6 +420,66 @@ def split_by_motion(
             if g != big:
                 out[mem[pick == g]] = next_label
                 next_label += 1
+    return relabel_by_size(out)
+
+
+def merge_fragments(
+    points: Float[np.ndarray, "M D"],
+    labels: Int[np.ndarray, " M"],
+    moving_t: Float[np.ndarray, "T M"],
+    total_t: Float[np.ndarray, "T M"],
+    *,
+    eps: float,
+    min_corr: float = 0.0,
+) -> Int[np.ndarray, " M"]:
+    """Join clusters that are fragments of one part: their closest members lie within ``eps`` and their
+    motion profiles are positively correlated (> ``min_corr``).
+
+    DBSCAN links two groups only through core points, so a part whose dynamic set has a thin gap (a
+    Gaussian there scored below the cut) comes out as fragments even when members on both sides are
+    closer than eps; each fragment may then fall below the size cut on its own. A cluster's motion
+    profile is m_k(t) = sum_{i in k} moving_it / sum_{i in k} total_it (as in `moving_frames`); parts that
+    move at different times are not joined. Joins are transitive. Returns labels [M] renumbered 0..K'-1 by
+    decreasing size (noise stays -1).
+    """
+    pts = _points(points, "points")
+    lab = np.asarray(labels, np.int64)
+    mv = np.asarray(moving_t, np.float64)
+    tt = np.asarray(total_t, np.float64)
+    if lab.shape != (len(pts),) or mv.ndim != 2 or mv.shape[1] != len(pts) or tt.shape != mv.shape:
+        raise ValueError(f"merge_fragments: labels [{len(pts)}] and moving_t, total_t [T, {len(pts)}] expected, got "
+                         f"{list(lab.shape)}, {list(mv.shape)}, {list(tt.shape)}")
+    if not eps > 0:
+        raise ValueError(f"merge_fragments: eps must be > 0, got {eps}")
+    ks = np.unique(lab[lab >= 0])
+    if len(ks) < 2:
+        return relabel_by_size(lab)
+    from scipy.spatial import cKDTree
+
+    prof = np.stack([mv[:, lab == k].sum(1) / np.maximum(tt[:, lab == k].sum(1), 1e-12) for k in ks])  # [K, T]
+    parent = {int(k): int(k) for k in ks}
+
+    def root(k):
+        while parent[k] != k:
+            k = parent[k]
+        return k
+
+    trees = {int(k): cKDTree(pts[lab == k]) for k in ks}
+    for a in range(len(ks)):
+        for b in range(a + 1, len(ks)):
+            ka, kb = int(ks[a]), int(ks[b])
+            if root(ka) == root(kb):
+                continue
+            d = trees[ka].query(pts[lab == kb], k=1, distance_upper_bound=eps * (1 + 1e-9))[0]
+            if not np.any(np.isfinite(d)):
+                continue
+            with np.errstate(invalid="ignore", divide="ignore"):
+                c = np.corrcoef(prof[a], prof[b])[0, 1]
+            if np.isfinite(c) and c > min_corr:
+                parent[root(kb)] = root(ka)
+    out = lab.copy()
+    for k in ks:
+        out[lab == k] = root(int(k))
     return relabel_by_size(out)
 
 

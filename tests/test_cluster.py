@@ -313,6 +313,41 @@ def test_localize_clusters_finds_a_briefly_moving_part_that_the_global_score_mis
         C.localize_clusters(pts, labels[:3], moving, total, radius=0.1, threshold=0.4)
 
 
+def test_merge_fragments_joins_close_fragments_that_move_together():
+    from sklearn.cluster import DBSCAN
+
+    rng = np.random.default_rng(0)
+    # one part: two dense blobs joined by a sparse bridge (border points, not core): DBSCAN splits it
+    left = rng.normal([0.0, 0.0, 0.0], 0.01, (40, 3))
+    right = rng.normal([0.12, 0.0, 0.0], 0.01, (40, 3))
+    bridge = np.array([[0.04, 0, 0], [0.06, 0, 0], [0.08, 0, 0]])
+    other = rng.normal([0.12, 0.09, 0.0], 0.01, (30, 3))  # another part, as close, moving at other times
+    far = rng.normal([1.0, 1.0, 1.0], 0.01, (30, 3))  # same times as the first part, far away
+    pts = np.concatenate([left, bridge, right, other, far])
+    raw = C.relabel_by_size(DBSCAN(eps=0.03, min_samples=5).fit_predict(pts))
+    first = np.r_[0:40, 43:83]
+    assert len(set(raw[first])) == 2  # the fragments DBSCAN leaves
+    runs = [*range(5, 9), *range(15, 19)]
+    spans = {i: runs for i in range(83)}
+    spans.update({i: range(25, 30) for i in range(83, 113)})
+    spans.update({i: runs for i in range(113, 143)})
+    moving, total = _activity(40, len(pts), spans)
+    out = C.merge_fragments(pts, raw, moving, total, eps=0.03)
+    assert len(set(out[first])) == 1 and out[first[0]] >= 0  # joined ...
+    assert out[90] not in (out[0], -1) and out[120] not in (out[0], out[90], -1)  # ... the others are not
+    assert np.all(out[raw == -1] == -1)  # noise stays noise
+    assert out[0] == 0 and sorted(set(out[out >= 0])) == [0, 1, 2]  # renumbered by size
+    # closer than eps is required
+    np.testing.assert_array_equal(C.merge_fragments(pts, raw, moving, total, eps=0.01), C.relabel_by_size(raw))
+    # fewer than two clusters: unchanged
+    one = np.where(np.arange(len(pts)) < 40, 0, -1)
+    np.testing.assert_array_equal(C.merge_fragments(pts, one, moving, total, eps=0.05), one)
+    with pytest.raises(ValueError, match="merge_fragments"):
+        C.merge_fragments(pts, raw[:5], moving, total, eps=0.03)
+    with pytest.raises(ValueError, match="eps"):
+        C.merge_fragments(pts, raw, moving, total, eps=0.0)
+
+
 def test_split_by_motion_separates_parts_that_move_at_different_times():
     rng = np.random.default_rng(0)
     a = rng.normal([0.0, 0.0, 0.0], 0.01, (30, 3))  # part A

@@ -222,7 +222,9 @@ def rasterization(
         exact count rounded up to a bucket; under jit/vmap, ``default_capacity``. If a render
         needs more, outside jit a ValueError is raised; under jit ``info["overflow"]`` is True and
         the image must not be used.
-      chunk, batch: compositor work sizes (speed only).
+      chunk, batch: compositor work sizes (speed only). The compositor skips chunk batches past the
+        last intersection with ``lax.cond``; under ``jax.vmap`` (a batch of cameras) that becomes a
+        select that computes every batch, so loop over cameras (``lax.map``) where speed matters.
       render_depth: also composite camera depth (``info["depth"]`` expected depth).
       active: [N] bool or None (all tiles). Only the tiles that an active Gaussian reaches are
         composited (``info["tile_on"]`` [ceil(H / tile), ceil(W / tile)]); the others are left empty

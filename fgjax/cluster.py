@@ -355,6 +355,18 @@ def true_runs(mask: np.ndarray, min_gap: int = 1) -> list[np.ndarray]:
     return np.split(idx, cuts)
 
 
+def _activity_inputs(name: str, points, labels, moving_t, total_t):
+    """(points [M, D], a copy of labels [M] int64, moving_t and total_t [T, M] float64), shapes checked."""
+    pts = _points(points, "points")
+    lab = np.asarray(labels, np.int64).copy()
+    mv = np.asarray(moving_t, np.float64)
+    tt = np.asarray(total_t, np.float64)
+    if lab.shape != (len(pts),) or mv.ndim != 2 or mv.shape[1] != len(pts) or tt.shape != mv.shape:
+        raise ValueError(f"{name}: labels [{len(pts)}] and moving_t, total_t [T, {len(pts)}] expected, got "
+                         f"{list(lab.shape)}, {list(mv.shape)}, {list(tt.shape)}")
+    return pts, lab, mv, tt
+
+
 def split_by_motion(
     points: Float[np.ndarray, "M D"],
     labels: Int[np.ndarray, " M"],
@@ -377,13 +389,7 @@ def split_by_motion(
     no activity in any run: to the group of their nearest active member). Parts smaller than
     ``min_size`` stay merged (with the largest part). Returns new labels [M], 0..K'-1 by decreasing size.
     """
-    pts = _points(points, "points")
-    lab = np.asarray(labels, np.int64).copy()
-    mv = np.asarray(moving_t, np.float64)
-    tt = np.asarray(total_t, np.float64)
-    if lab.shape != (len(pts),) or mv.ndim != 2 or mv.shape[1] != len(pts) or tt.shape != mv.shape:
-        raise ValueError(f"split_by_motion: labels [{len(pts)}] and moving_t, total_t [T, {len(pts)}] expected, got "
-                         f"{list(lab.shape)}, {list(mv.shape)}, {list(tt.shape)}")
+    pts, lab, mv, tt = _activity_inputs("split_by_motion", points, labels, moving_t, total_t)
     frames = moving_frames(lab, mv, tt, active=active)
     out = lab.copy()
     next_label = int(lab.max()) + 1 if np.any(lab >= 0) else 0
@@ -442,13 +448,7 @@ def merge_fragments(
     move at different times are not joined. Joins are transitive. Returns labels [M] renumbered 0..K'-1 by
     decreasing size (noise stays -1).
     """
-    pts = _points(points, "points")
-    lab = np.asarray(labels, np.int64)
-    mv = np.asarray(moving_t, np.float64)
-    tt = np.asarray(total_t, np.float64)
-    if lab.shape != (len(pts),) or mv.ndim != 2 or mv.shape[1] != len(pts) or tt.shape != mv.shape:
-        raise ValueError(f"merge_fragments: labels [{len(pts)}] and moving_t, total_t [T, {len(pts)}] expected, got "
-                         f"{list(lab.shape)}, {list(mv.shape)}, {list(tt.shape)}")
+    pts, lab, mv, tt = _activity_inputs("merge_fragments", points, labels, moving_t, total_t)
     if not eps > 0:
         raise ValueError(f"merge_fragments: eps must be > 0, got {eps}")
     ks = np.unique(lab[lab >= 0])

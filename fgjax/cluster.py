@@ -31,6 +31,7 @@ __all__ = [
     "auto_eps",
     "cluster_dynamic",
     "relabel_by_size",
+    "size_cut",
     "ClusterReport",
     "cluster_report",
     "trajectories",
@@ -200,6 +201,11 @@ def relabel_by_size(labels: Int[np.ndarray, " M"], *, min_size: int = 1) -> Int[
     return out
 
 
+def size_cut(min_fraction: float, m: int) -> int:
+    """The size cut of `cluster_dynamic`: clusters of fewer than max(1, ceil(min_fraction * m)) points drop."""
+    return max(1, int(np.ceil(min_fraction * m)))
+
+
 def cluster_dynamic(
     points: Float[np.ndarray, "M 3"],
     method: Literal["dbscan", "hdbscan"] = "dbscan",
@@ -261,7 +267,7 @@ def cluster_dynamic(
         if m < mcs:
             return np.full(m, -1, np.int64)
         raw = HDBSCAN(min_cluster_size=mcs, min_samples=min_samples, copy=True).fit_predict(p)
-    return relabel_by_size(raw, min_size=max(1, int(np.ceil(min_fraction * m))))
+    return relabel_by_size(raw, min_size=size_cut(min_fraction, m))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1046,7 +1046,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     if merge:  # fragments of one part first, then the size cut
         lab_d = cluster.merge_fragments(canonical[idx], lab_d, disc.scores.moving_t[:, idx],
                                         disc.scores.total_t[:, idx], eps=cfg.merge_eps)
-        lab_d = cluster.relabel_by_size(lab_d, min_size=max(1, int(np.ceil(cfg.min_fraction * len(idx)))))
+        lab_d = cluster.relabel_by_size(lab_d, min_size=cluster.size_cut(cfg.min_fraction, len(idx)))
     labels = np.full(len(canonical), -1, np.int64)
     labels[idx] = lab_d
     report = cluster.cluster_report(lab_d)

@@ -30,3 +30,55 @@ def atomic_write(path: str | Path, write: Callable[[Any], None]) -> Path:
             pass
         raise
     return path
+
+
+def _temp_name(path: Path) -> Path:
+    """A hidden temporary file beside ``path`` that keeps its suffix (writers pick the format from it)."""
+    return path.with_name(f".{path.stem}.{os.getpid()}-{secrets.token_hex(4)}.tmp{path.suffix}")
+
+
+def write_video(frames, path: str | Path, fps: int = 10, *, warn=None) -> Path:
+    """Write RGB frames (a sequence of [H, W, 3] uint8, all the same size) as an H.264 mp4 with imageio's
+    ffmpeg writer; where that fails (no ffmpeg, codec missing), an animated GIF beside it instead.
+    Odd sides are padded by one edge row or column (yuv420p needs even sides). Written to a temporary
+    file and renamed, so no half-written video is left. Returns the file written; ``warn(str)`` hears
+    about a fallback (default: stderr)."""
+    import contextlib
+    import sys
+    import warnings
+
+    import imageio.v2 as iio2
+    import numpy as np
+
+    path = Path(path)
+    frames = [np.asarray(f, np.uint8) for f in frames]
+    if not frames:
+        raise ValueError(f"write_video: no frames for {path}")
+    h, w = frames[0].shape[:2]
+    pad = ((0, h % 2), (0, w % 2), (0, 0))
+    frames = [np.pad(f, pad, mode="edge") for f in frames]
+    tmp = _temp_name(path)
+    try:
+        with warnings.catch_warnings():
+            # JAX warns on any fork; the writer's fork is followed by exec (ffmpeg), which is safe.
+            warnings.filterwarnings("ignore", message=".*os.fork.*", category=RuntimeWarning)
+            with iio2.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
+                                 macro_block_size=2, pixelformat="yuv420p", ffmpeg_log_level="error") as wr:
+                for f in frames:
+                    wr.append_data(f)
+        if tmp.stat().st_size == 0:
+            raise OSError("empty mp4")
+        os.replace(tmp, path)
+        with contextlib.suppress(OSError):
+            path.with_suffix(".gif").unlink()  # a fallback left by an earlier run
+        return path
+    except Exception as e:  # no ffmpeg, codec missing ...
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        gif = path.with_suffix(".gif")
+        (warn or (lambda s: print(s, file=sys.stderr)))(f"mp4 writing failed ({e}); writing {gif.name} instead")
+        import imageio.v3 as iio
+
+        atomic_write(gif, lambda f: f.write(iio.imwrite("<bytes>", np.stack(frames), extension=".gif",
+                                                        duration=1000 // fps, loop=0)))
+        return gif

@@ -191,3 +191,32 @@ def test_mixed_copies_splits_each_candidates_opacity_between_its_two_copies():
     np.testing.assert_allclose(np.asarray(both.means[:n]), np.asarray(moved))
     extreme = mixed_copies(g, moved, g.quats, cand, jnp.asarray([80.0, -80.0]))
     assert np.all(np.isfinite(np.asarray(extreme.opacity_logits)))
+
+
+def test_track_photometric_fitting_only_the_moving_objects_gives_the_same_poses():
+    """Two objects that move in turn (the hinged part in pairs 0-1, then a patch of the wall sliding up in
+    pairs 2-3). A frame redraws only the object it fits and pastes the rest, drawn once with the other
+    object at its pose: without memberships (radius 0) that gives the poses of redrawing both at every
+    step. Both objects are followed, and the one not fitted in a pair keeps its pose."""
+    t = 5
+    g, labels, vms, hinge = _coloured_hinge(t, 0.12)
+    m = np.asarray(g.means)
+    labels = labels.copy()
+    labels[(labels < 0) & (m[:, 0] > 0.45) & (np.abs(m[:, 2]) < 0.5)] = 1  # the patch: next to the part in the images
+    true = np.tile(np.eye(4), (2, t, 1, 1))
+    true[0, :3] = hinge[:3]
+    true[0, 3:] = hinge[2]  # the part turns in pairs 0-1, then rests
+    true[1, 3, 2, 3], true[1, 4, 2, 3] = 0.06, 0.12  # the patch rests, then slides up in pairs 2-3
+    imgs = _images(g, labels, vms, true)
+    moving = np.array([[True, True, False, False], [False, False, True, True]])
+    kw = dict(moving=moving, sh_degree=0, background=np.zeros(3), steps=(6, 4), sigmas=(2.0, 0.7), radius=0.0,
+              log=lambda s: None)
+    est = {flag: track_photometric(g, np.ones(len(labels), bool), labels, 2, imgs, vms, np.stack([K] * t),
+                                   only_moving=flag, **kw)[0] for flag in (True, False)}
+    np.testing.assert_allclose(est[True], est[False], atol=1e-9)
+    e = est[True]
+    np.testing.assert_array_equal(e[1, :3], np.tile(np.eye(4), (3, 1, 1)))  # not fitted before it moves
+    np.testing.assert_array_equal(e[0, 3:], np.stack([e[0, 2]] * 2))  # nor after
+    # followed: the part's turn (0.24) and the patch's rise (0.12; ten steps a frame reach about half of it)
+    turn = float(np.linalg.norm(np.asarray(geometry.so3_log(jnp.asarray(e[0, 2, :3, :3])))))
+    assert abs(turn - 0.24) < 0.05 and e[1, 4, 2, 3] > 0.04, (turn, e[1, 4, :3, 3])

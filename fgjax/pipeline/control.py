@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"object {args.object}: vector {vec.tolist()} snapped to {np.round(v, 5).tolist()} "
               f"(trajectory time {t:.4f})")
         return 0
-    from fgjax.pipeline.demo import write_video
+    from fgjax.io import write_video
 
     name, vm, K, _, w, h = cams[0]
     frames = []

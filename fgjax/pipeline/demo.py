@@ -18,11 +18,9 @@ while the others stay still; ``OUT/run/metrics.json``). Ground-truth pictures:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import cv2
@@ -30,6 +28,7 @@ import imageio.v3 as iio
 import numpy as np
 
 from fgjax.data import synth
+from fgjax.io import write_video
 
 __all__ = ["main", "contact_sheet", "depth_to_color", "ids_to_color", "write_video"]
 
@@ -140,33 +139,6 @@ def _video_frames(scene_dir: Path) -> list[np.ndarray]:
         s = max(1, 320 // rgb.shape[1])
         frames.append(_pad16(_up(np.concatenate([rgb, fc], axis=1), s)))
     return frames
-
-
-def write_video(frames: list[np.ndarray], path: Path, fps: int = 10) -> Path:
-    """Write an mp4 with imageio + ffmpeg; on failure an animated GIF next to it. Returns the file."""
-    path = Path(path)
-    try:
-        import imageio.v2 as iio2
-
-        with warnings.catch_warnings():
-            # JAX warns on any fork; the writer's fork is followed by exec (ffmpeg), which is safe.
-            warnings.filterwarnings("ignore", message=".*os.fork.*", category=RuntimeWarning)
-            with iio2.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
-                                 macro_block_size=16, pixelformat="yuv420p", ffmpeg_log_level="error") as wr:
-                for f in frames:
-                    wr.append_data(f)
-        if path.stat().st_size == 0:
-            raise OSError("empty mp4")
-        with contextlib.suppress(OSError):
-            path.with_suffix(".gif").unlink()  # a fallback left by an earlier run
-        return path
-    except Exception as e:  # no ffmpeg, codec missing ...
-        with contextlib.suppress(OSError):
-            path.unlink()
-        gif = path.with_suffix(".gif")
-        print(f"fgjax demo: mp4 writing failed ({e}); writing {gif.name} instead", file=sys.stderr)
-        iio.imwrite(gif, np.stack(frames), extension=".gif", duration=1000 // fps, loop=0)
-        return gif
 
 
 def _scene_config(args: argparse.Namespace) -> synth.SynthConfig:

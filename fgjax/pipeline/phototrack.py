@@ -21,7 +21,9 @@ the poses are fitted by analysis by synthesis instead:
    cluster (opacity sigma(o) pi) and static (opacity sigma(o) (1 - pi)), as in the re-fit's relabelling
    (`fgjax.pipeline.stage2.refit_gaussians`). pi = sigmoid(l), l starting at +2 for members and -2 for
    the others, is trained with the poses and carried from frame to frame, so it collects the evidence of
-   every frame. It only weights the tracking; the labels are not changed.
+   every frame in which its cluster is fitted. It only weights the tracking; the labels are not changed.
+   A frame composites, at every step, only the tiles that its fitted objects and their candidates reach;
+   the rest of the image (the objects not fitted at their poses included) is drawn once per frame.
 4. `joint_poses` then replaces each object's per-frame poses by one articulation (revolute or
    prismatic, `fgjax.pipeline.track.fit_joint` on its reference points' projected positions): a
    single image pins a pose poorly, all frames together pin an axis.
@@ -142,8 +144,8 @@ def _radii(means: np.ndarray, labels: np.ndarray, num_objects: int) -> np.ndarra
 def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, *, moving=None,
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
-                      radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, progress_every: int = 10,
-                      log=print):
+                      radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, only_moving: bool = True,
+                      progress_every: int = 10, log=print):
     """Poses [K, T, 4, 4] of each object fitted to the images frame by frame (module docstring, 1-3).
 
     Args:
@@ -159,6 +161,10 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         translation_scale: a shift's unit, in object radii.
         init_poses: [K, T, 4, 4] poses of an earlier fit (e.g. a previous round's), a third start of each
             frame besides the extrapolated and the previous pose (None: two starts).
+        only_moving: a frame renders only the objects it fits (and their candidates) at every step; the
+            other objects are drawn once per frame at their poses, and their candidates' memberships do not
+            learn from that frame. False: every object and candidate is redrawn and learns in every frame.
+            With ``radius=0`` (no memberships) both give the same poses.
         progress_every: a progress line every this many fitted frames (0: none).
 
     Returns:
@@ -194,11 +200,18 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     bg = jnp.asarray(background, jnp.float32)
     width, height = int(images.shape[2]), int(images.shape[1])
 
-    # The poses move the clusters' Gaussians and the logits mix the candidates' copies; the other Gaussians
-    # never change, so the tiles none of the changing ones reaches are composited once per frame (`rest`).
-    changing = jnp.concatenate([lab_m >= 0, jnp.ones(cj.shape[0], bool)])  # [N + C]
+    # Within a frame the poses move the fitted objects' Gaussians and the logits mix their candidates' copies;
+    # every other Gaussian stays where it is, so the tiles none of the changing ones reaches are composited
+    # once per frame (`render_rest`) and pasted.
+    k_cj = jnp.asarray(k_c, jnp.int32)  # [C] each candidate's nearest cluster
 
-    def render(P, lg, i, rest):
+    def changing_set(on):
+        """(changing [N + C], learning [C]) for the objects `on` [K] bool: their Gaussians (both copies of
+        their candidates) and their candidates' logits."""
+        learn = on[k_cj] if cj.shape[0] else jnp.zeros(0, bool)
+        return jnp.concatenate([(lab_m >= 0) & on[jnp.maximum(lab_m, 0)], learn]), learn
+
+    def render(P, lg, i, rest, changing):
         """(image [H, W, 3], overflow) of frame i, objects moved by P [K, 4, 4], candidates mixed by lg [C];
         rest [H, W, 3]: frame i without the changing Gaussians (`render_rest`), for the tiles they miss."""
         m, q = transform_gaussians(g.means, g.quats, lab_m, P)
@@ -210,17 +223,18 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         return jnp.where(on[..., None], img, rest), info["overflow"]
 
     @jax.jit
-    def render_rest(i):
-        """Frame i without the changing Gaussians: [H, W, 3]."""
-        both = mixed_copies(g, g.means, g.quats, cj, jnp.zeros(cj.shape[0], jnp.float32))
+    def render_rest(P, lg, i, changing):
+        """Frame i without the changing Gaussians, the others at the poses P and memberships lg: [H, W, 3]."""
+        m, q = transform_gaussians(g.means, g.quats, lab_m, P)
+        both = mixed_copies(g, m, q, cj, lg)
         img, _, _, _ = render_params({"gaussians": both}, alive2 & ~changing, vms[i], Kj[i], 0.0, spec=None,
                                      sh_degree=sh_degree, width=width, height=height, background=bg,
                                      capacity=capacity, tile_size=tile_size)
         return img
 
     @jax.jit
-    def first_loss(P, lg, i, rest):
-        img, _ = render(P, lg, i, rest)
+    def first_loss(P, lg, i, rest, changing):
+        img, _ = render(P, lg, i, rest, changing)
         return jnp.mean(jnp.abs(img - images[i]))
 
     opt_x, opt_l = optax.adam(lr), optax.adam(member_lr)
@@ -232,17 +246,17 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     targets = jnp.stack([jax.vmap(lambda im, kk=kk: blur_with(im, kk))(images) for kk in kernels])  # [L, T, H, W, 3]
 
     @jax.jit
-    def step(x, lg, st, i, rest, p_init, centres, mask, level):
+    def step(x, lg, st, i, rest, p_init, centres, mask, changing, learn, level):
         def loss_fn(x_, lg_):
             P = jnp.einsum("kij,kjl->kil", pose_delta(x_ * mask[:, None], centres, scale), p_init)
-            img, over = render(P, lg_, i, rest)
+            img, over = render(P, lg_, i, rest, changing)
             return jnp.mean(jnp.abs(blur_with(img, kernels[level]) - targets[level, i])), over
 
         (loss, over), (gx, gl) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(x, lg)
         ux, sx = opt_x.update(gx, st[0], x)
         ul, sl = opt_l.update(gl, st[1], lg)
         x2 = optax.apply_updates(x, ux)
-        lg2 = optax.apply_updates(lg, ul) if learn_members else lg
+        lg2 = optax.apply_updates(lg, jnp.where(learn, ul, 0.0)) if learn_members else lg
         bad = over | ~jnp.isfinite(loss)
         keep = lambda a, b: jax.tree_util.tree_map(lambda u, v: jnp.where(bad, v, u), a, b)
         return keep(x2, x), keep(lg2, lg), keep((sx, sl), st), loss, bad
@@ -263,8 +277,10 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         if init_poses is not None:  # the earlier fit's pose for the moving objects
             starts.append(np.where(mk[:, None, None], init_poses[:, n], prev).astype(np.float32))
         i = jnp.asarray(n, jnp.int32)
-        rest = render_rest(i)
-        l0 = [float(first_loss(jnp.asarray(s), lg, i, rest)) for s in starts]
+        changing, learn = changing_set(jnp.asarray(mk if only_moving else np.ones_like(mk)))
+        # the objects not fitted keep their pose (the same in every start), so one `rest` serves all starts
+        rest = render_rest(jnp.asarray(prev), lg, i, changing)
+        l0 = [float(first_loss(jnp.asarray(s), lg, i, rest, changing)) for s in starts]
         p_init = starts[int(np.argmin(np.where(np.isfinite(l0), l0, np.inf)))] if np.any(np.isfinite(l0)) else prev
         centres = np.stack([(m_ref[labels == k] @ p_init[k, :3, :3].T + p_init[k, :3, 3]).mean(0)
                             if np.any(labels == k) else p_init[k, :3, 3] for k in range(num_objects)])
@@ -273,7 +289,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         for level, count in levels:
             st = (opt_x.init(x), opt_l.init(lg))
             for _ in range(count):
-                x, lg, st, _, bad = step(x, lg, st, i, rest, pj, cen, mask, level)
+                x, lg, st, _, bad = step(x, lg, st, i, rest, pj, cen, mask, changing, learn, level)
                 n_bad += int(bad)
         new = np.asarray(jnp.einsum("kij,kjl->kil", pose_delta(x * mask[:, None], cen, scale), pj))
         poses[:, n] = np.where(np.all(np.isfinite(new), (1, 2))[:, None, None], new, p_init)

@@ -842,18 +842,12 @@ def _stage1_test_views(data_dir: Path, cfg: Config, normalization):
 
 
 def write_video(state, spec, cfg: Config, scene, path: Path, frames: int) -> Path:
-    """Time sweep t = 0..1 from the first training camera, as mp4 (GIF without ffmpeg)."""
-    import imageio.v2 as imageio
+    """Time sweep t = 0..1 from the first training camera, as mp4 (GIF without ffmpeg; `fgjax.io.write_video`)."""
+    from fgjax.io import write_video as write_frames
 
     imgs = [(render_frame(state, spec, cfg, scene.viewmats[0], scene.Ks[0], t, scene.width, scene.height) * 255
              + 0.5).astype(np.uint8) for t in np.linspace(0, 1, frames)]
-    try:
-        imageio.mimwrite(path, imgs, fps=15, macro_block_size=1)
-        return path
-    except Exception:  # no ffmpeg backend
-        gif = path.with_suffix(".gif")
-        imageio.mimwrite(gif, imgs, duration=1 / 15)
-        return gif
+    return write_frames(imgs, path, fps=15)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -158,6 +158,11 @@ class Stage2Config:
     it fits against uncorrected cameras)."""
     track_photo_radius: float = 0.1
     """Candidates of the photometric tracker's soft membership (scene units; 0: the labels as they are)."""
+    track_only_moving: bool = True
+    """The photometric tracker redraws, in each frame, only the objects it fits there; the others are drawn
+    once per frame and their candidates' memberships learn only in their own frames (`track_photometric`'s
+    ``only_moving``; docs/benchmarks.md, session 16: the demo's stage 2 498 s instead of 572 s). False: every
+    object in every frame."""
     track_rounds: int = 1
     """Rounds of photometric tracking and re-fitting (with ``track_photo > 0`` and ``refit_steps > 0``).
     From the second round on, the tracker renders the previous round's re-fitted scene with its labels
@@ -636,7 +641,7 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
                                  moving=moving, sh_degree=run.cfg.model.sh_degree,
                                  background=run.cfg.model.background, capacity=_render_capacity(run),
                                  tile_size=run.cfg.train.tile_size, steps=steps, radius=cfg.track_photo_radius,
-                                 init_poses=init_poses, log=log)
+                                 init_poses=init_poses, only_moving=cfg.track_only_moving, log=log)
     rng = np.random.default_rng(cfg.seed)
     m0 = np.asarray(ref.means)
     pts = []

@@ -316,6 +316,12 @@ def grow_clusters(
     return lab
 
 
+def _motion_profile(mv: np.ndarray, tt: np.ndarray, mem: np.ndarray) -> np.ndarray:
+    """A cluster's moving fraction per frame, m(t) = sum_{i in mem} moving_it / sum_{i in mem} total_it:
+    [T] (`moving_t`, `total_t` [T, M]; `mem` [M] bool)."""
+    return mv[:, mem].sum(1) / np.maximum(tt[:, mem].sum(1), 1e-12)
+
+
 def moving_frames(
     labels: Int[np.ndarray, " M"],
     moving_t: Float[np.ndarray, "T M"],
@@ -341,7 +347,7 @@ def moving_frames(
         mem = lab == k
         if not np.any(mem):
             continue
-        prof = mv[:, mem].sum(1) / np.maximum(tt[:, mem].sum(1), 1e-12)  # [T]
+        prof = _motion_profile(mv, tt, mem)
         if prof.max() > 0:
             out[k] = prof >= active * prof.max()
     for _ in range(max(int(dilate), 0)):
@@ -462,7 +468,7 @@ def merge_fragments(
         return relabel_by_size(lab)
     from scipy.spatial import cKDTree
 
-    prof = np.stack([mv[:, lab == k].sum(1) / np.maximum(tt[:, lab == k].sum(1), 1e-12) for k in ks])  # [K, T]
+    prof = np.stack([_motion_profile(mv, tt, lab == k) for k in ks])  # [K, T]
     parent = {int(k): int(k) for k in ks}
 
     def root(k):

@@ -1,12 +1,17 @@
-"""Atomic file writes: the one mechanism every module uses so that no half-written file is seen."""
+"""Atomic file writes (the one mechanism every module uses so that no half-written file is seen) and videos."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
+import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 
 def atomic_write(path: str | Path, write: Callable[[Any], None]) -> Path:
@@ -43,12 +48,7 @@ def write_video(frames, path: str | Path, fps: int = 10, *, warn=None) -> Path:
     Odd sides are padded by one edge row or column (yuv420p needs even sides). Written to a temporary
     file and renamed, so no half-written video is left. Returns the file written; ``warn(str)`` hears
     about a fallback (default: stderr)."""
-    import contextlib
-    import sys
-    import warnings
-
     import imageio.v2 as iio2
-    import numpy as np
 
     path = Path(path)
     frames = [np.asarray(f, np.uint8) for f in frames]

@@ -208,7 +208,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     def changing_set(on):
         """(changing [N + C], learning [C]) for the objects `on` [K] bool: their Gaussians (both copies of
         their candidates) and their candidates' logits."""
-        learn = on[k_cj] if cj.shape[0] else jnp.zeros(0, bool)
+        learn = on[k_cj]  # [C]
         return jnp.concatenate([(lab_m >= 0) & on[jnp.maximum(lab_m, 0)], learn]), learn
 
     def render(P, lg, i, rest, changing):

@@ -211,12 +211,16 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         learn = on[k_cj]  # [C]
         return jnp.concatenate([(lab_m >= 0) & on[jnp.maximum(lab_m, 0)], learn]), learn
 
+    def posed(P, lg):
+        """The two-copy scene (`mixed_copies`) with the objects moved by P [K, 4, 4] and the candidates mixed
+        by lg [C]: [N + C] Gaussians."""
+        m, q = transform_gaussians(g.means, g.quats, lab_m, P)
+        return mixed_copies(g, m, q, cj, lg)
+
     def render(P, lg, i, rest, changing):
         """(image [H, W, 3], overflow) of frame i, objects moved by P [K, 4, 4], candidates mixed by lg [C];
         rest [H, W, 3]: frame i without the changing Gaussians (`render_rest`), for the tiles they miss."""
-        m, q = transform_gaussians(g.means, g.quats, lab_m, P)
-        both = mixed_copies(g, m, q, cj, lg)
-        img, _, info, _ = render_params({"gaussians": both}, alive2, vms[i], Kj[i], 0.0, spec=None,
+        img, _, info, _ = render_params({"gaussians": posed(P, lg)}, alive2, vms[i], Kj[i], 0.0, spec=None,
                                         sh_degree=sh_degree, width=width, height=height, background=bg,
                                         capacity=capacity, tile_size=tile_size, active=changing)
         on = jnp.repeat(jnp.repeat(info["tile_on"], tile_size, 0), tile_size, 1)[:height, :width]  # [H, W]
@@ -225,9 +229,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     @jax.jit
     def render_rest(P, lg, i, changing):
         """Frame i without the changing Gaussians, the others at the poses P and memberships lg: [H, W, 3]."""
-        m, q = transform_gaussians(g.means, g.quats, lab_m, P)
-        both = mixed_copies(g, m, q, cj, lg)
-        img, _, _, _ = render_params({"gaussians": both}, alive2 & ~changing, vms[i], Kj[i], 0.0, spec=None,
+        img, _, _, _ = render_params({"gaussians": posed(P, lg)}, alive2 & ~changing, vms[i], Kj[i], 0.0, spec=None,
                                      sh_degree=sh_degree, width=width, height=height, background=bg,
                                      capacity=capacity, tile_size=tile_size)
         return img

@@ -29,6 +29,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "opticalflow": ("fgjax.bench.opticalflow", "OpenCV optical flow: EPE and time on Middlebury/Sintel"),
     "train": ("fgjax.bench.train", "stage-1 PSNR against wall time"),
     "motion": ("fgjax.bench.motion", "stage-1 run: object vs static PSNR, learned vs true object motion"),
+    "track": ("fgjax.bench.track", "photometric tracker: time a frame drawing all Gaussians vs those near the parts"),
     "step": ("fgjax.bench.step", "stage-1 step (cameras looped vs vmapped), render with active tiles vs all"),
 }
 

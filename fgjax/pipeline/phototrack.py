@@ -42,12 +42,14 @@ import numpy as np
 import optax
 
 from fgjax import geometry
-from fgjax.gaussians import Gaussians
+from fgjax.gaussians import Gaussians, activate
 from fgjax.metrics import filter_valid
 from fgjax.pipeline.track import JOINT_KINDS, _project_rows, fit_joint, transform_gaussians
+from fgjax.render.project import project_gaussians
+from fgjax.render.tiles import tile_ranges
 
 __all__ = ["blur", "blur_kernel", "blur_with", "pose_delta", "relabel_candidates", "mixed_opacity_logits", "mixed_copies", "soft_members",
-           "track_photometric", "joint_poses"]
+           "tile_region", "rects_meeting", "subset_bucket", "track_photometric", "joint_poses"]
 
 
 def blur_kernel(sigma: float, radius: int | None = None) -> np.ndarray:
@@ -141,11 +143,47 @@ def _radii(means: np.ndarray, labels: np.ndarray, num_objects: int) -> np.ndarra
     return out
 
 
+def tile_region(rects: np.ndarray, on: np.ndarray, n_tiles_y: int, n_tiles_x: int, margin: int) -> np.ndarray:
+    """[nty, ntx] bool: the tiles that the rectangles ``rects`` [M, 4] (tile indices x0, y0, x1, y1, half open;
+    `fgjax.render.tiles.tile_ranges`) of the Gaussians ``on`` [M] cover, widened by ``margin`` tiles."""
+    r = np.asarray(rects, np.int64)[np.asarray(on, bool)]
+    r = r[(r[:, 2] > r[:, 0]) & (r[:, 3] > r[:, 1])]  # empty rects (culled Gaussians) cover nothing
+    x0, x1 = np.clip(r[:, 0] - margin, 0, n_tiles_x), np.clip(r[:, 2] + margin, 0, n_tiles_x)
+    y0, y1 = np.clip(r[:, 1] - margin, 0, n_tiles_y), np.clip(r[:, 3] + margin, 0, n_tiles_y)
+    diff = np.zeros((n_tiles_y + 1, n_tiles_x + 1), np.int64)  # 2D difference array of the rectangles
+    np.add.at(diff, (y0, x0), 1)
+    np.add.at(diff, (y0, x1), -1)
+    np.add.at(diff, (y1, x0), -1)
+    np.add.at(diff, (y1, x1), 1)
+    return np.cumsum(np.cumsum(diff, 0), 1)[:n_tiles_y, :n_tiles_x] > 0
+
+
+def rects_meeting(rects: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """[M] bool: whether each rectangle [M, 4] (x0, y0, x1, y1 in tiles, half open) holds a tile of ``region``
+    [nty, ntx] (a summed-area table, O(1) per rectangle)."""
+    r = np.asarray(rects, np.int64)
+    sat = np.zeros((region.shape[0] + 1, region.shape[1] + 1), np.int64)
+    sat[1:, 1:] = np.cumsum(np.cumsum(np.asarray(region, np.int64), 0), 1)
+    x0, y0, x1, y1 = (np.clip(r[:, j], 0, region.shape[1 - j % 2]) for j in range(4))
+    inside = sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0]
+    return (x1 > x0) & (y1 > y0) & (inside > 0)
+
+
+def subset_bucket(n_subset: int, n_all: int, fractions=(0.5, 0.75)) -> int:
+    """The padded size of a subset of ``n_subset`` of ``n_all`` Gaussians: the smallest of ``fractions`` of
+    ``n_all`` (rounded up) that holds it, else ``n_all``; few sizes, so few compiled programs."""
+    for f in sorted(fractions):
+        b = int(np.ceil(f * n_all))
+        if n_subset <= b:
+            return b
+    return int(n_all)
+
+
 def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, *, moving=None,
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
                       radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, only_moving: bool = True,
-                      progress_every: int = 10, log=print):
+                      subset_margin: int | None = 2, progress_every: int = 10, log=print):
     """Poses [K, T, 4, 4] of each object fitted to the images frame by frame (module docstring, 1-3).
 
     Args:
@@ -165,6 +203,13 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
             other objects are drawn once per frame at their poses, and their candidates' memberships do not
             learn from that frame. False: every object and candidate is redrawn and learns in every frame.
             With ``radius=0`` (no memberships) both give the same poses.
+        subset_margin: a frame's steps render only the changing Gaussians and the others whose tile
+            rectangle meets the tiles the changing ones reach at the frame's start pose, widened by this
+            many tiles (the room a part has to move within one frame's fit); the tiles outside show the
+            once-per-frame render. That is the image of rendering every Gaussian while the changing ones
+            stay within the margin; when one leaves it (Adam's first steps can throw a part tens of pixels),
+            the frame is fitted again from its start with every Gaussian, so the poses are those of
+            ``None`` (every Gaussian at every step) up to round-off.
         progress_every: a progress line every this many fitted frames (0: none).
 
     Returns:
@@ -199,6 +244,10 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     vms, Kj = jnp.asarray(viewmats, jnp.float32), jnp.asarray(Ks, jnp.float32)
     bg = jnp.asarray(background, jnp.float32)
     width, height = int(images.shape[2]), int(images.shape[1])
+    nty, ntx = -(-height // tile_size), -(-width // tile_size)
+    n_all = int(alive2.shape[0])  # N + C: the two-copy scene
+    alive2_np = np.asarray(alive2, bool)
+    every = (jnp.arange(n_all, dtype=jnp.int32), jnp.asarray(alive2), jnp.ones((nty, ntx), bool))
 
     # Within a frame the poses move the fitted objects' Gaussians and the logits mix their candidates' copies;
     # every other Gaussian stays where it is, so the tiles none of the changing ones reaches are composited
@@ -217,14 +266,43 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         m, q = transform_gaussians(g.means, g.quats, lab_m, P)
         return mixed_copies(g, m, q, cj, lg)
 
-    def render(P, lg, i, rest, changing):
-        """(image [H, W, 3], overflow) of frame i, objects moved by P [K, 4, 4], candidates mixed by lg [C];
-        rest [H, W, 3]: frame i without the changing Gaussians (`render_rest`), for the tiles they miss."""
-        img, _, info, _ = render_params({"gaussians": posed(P, lg)}, alive2, vms[i], Kj[i], 0.0, spec=None,
+    def render(P, lg, i, rest, changing, subset):
+        """(image [H, W, 3], overflow, escaped) of frame i, objects moved by P [K, 4, 4], candidates mixed by
+        lg [C]; rest [H, W, 3]: frame i without the changing Gaussians (`render_rest`), for the tiles they
+        miss; subset = (ids [B], live [B], region [nty, ntx]): the Gaussians drawn and the tiles they may paint
+        (`every`: all of them). escaped: a changing Gaussian reaches a tile outside the region (the image is
+        then not the full render's)."""
+        ids, live, region = subset
+        drawn = jax.tree_util.tree_map(lambda a: a[ids], posed(P, lg))
+        img, _, info, _ = render_params({"gaussians": drawn}, live, vms[i], Kj[i], 0.0, spec=None,
                                         sh_degree=sh_degree, width=width, height=height, background=bg,
-                                        capacity=capacity, tile_size=tile_size, active=changing)
-        on = jnp.repeat(jnp.repeat(info["tile_on"], tile_size, 0), tile_size, 1)[:height, :width]  # [H, W]
-        return jnp.where(on[..., None], img, rest), info["overflow"]
+                                        capacity=capacity, tile_size=tile_size, active=changing[ids] & live)
+        on = info["tile_on"] & region  # [nty, ntx]
+        escaped = jnp.any(info["tile_on"] & ~region)
+        on = jnp.repeat(jnp.repeat(on, tile_size, 0), tile_size, 1)[:height, :width]  # [H, W]
+        return jnp.where(on[..., None], img, rest), info["overflow"], escaped
+
+    @jax.jit
+    def frame_rects(P, lg, i):
+        """Tile rectangles [N + C, 4] of the two-copy scene in frame i (`fgjax.render.tiles.tile_ranges`)."""
+        s = posed(P, lg)
+        q, sc, o = activate(s, alive2)
+        proj = project_gaussians(s.means, q, sc, o, vms[i], Kj[i], width, height)
+        return tile_ranges(proj.means2d, proj.extent, proj.valid, tile_size, width, height)
+
+    def frame_subset(P, lg, i, changing):
+        """(ids [B], live [B], region [nty, ntx]) for a frame fitted from the poses P (`render`'s subset):
+        the changing Gaussians and every other live one whose rectangle meets the tiles the changing ones
+        reach, widened by `subset_margin`; B is a `subset_bucket` size (padding: id 0, not live)."""
+        if subset_margin is None:
+            return every
+        rects = np.asarray(frame_rects(P, lg, i))
+        ch = np.asarray(changing)
+        region = tile_region(rects, ch & alive2_np, nty, ntx, int(subset_margin))
+        idx = np.flatnonzero(alive2_np & (ch | rects_meeting(rects, region)))
+        ids = np.zeros(subset_bucket(len(idx), n_all), np.int32)
+        ids[:len(idx)] = idx
+        return jnp.asarray(ids), jnp.asarray(np.arange(len(ids)) < len(idx)), jnp.asarray(region)
 
     @jax.jit
     def render_rest(P, lg, i, changing):
@@ -236,7 +314,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
 
     @jax.jit
     def first_loss(P, lg, i, rest, changing):
-        img, _ = render(P, lg, i, rest, changing)
+        img, _, _ = render(P, lg, i, rest, changing, every)
         return jnp.mean(jnp.abs(img - images[i]))
 
     opt_x, opt_l = optax.adam(lr), optax.adam(member_lr)
@@ -248,25 +326,25 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     targets = jnp.stack([jax.vmap(lambda im, kk=kk: blur_with(im, kk))(images) for kk in kernels])  # [L, T, H, W, 3]
 
     @jax.jit
-    def step(x, lg, st, i, rest, p_init, centres, mask, changing, learn, level):
+    def step(x, lg, st, i, rest, p_init, centres, mask, changing, learn, subset, level):
         def loss_fn(x_, lg_):
             P = jnp.einsum("kij,kjl->kil", pose_delta(x_ * mask[:, None], centres, scale), p_init)
-            img, over = render(P, lg_, i, rest, changing)
-            return jnp.mean(jnp.abs(blur_with(img, kernels[level]) - targets[level, i])), over
+            img, over, escaped = render(P, lg_, i, rest, changing, subset)
+            return jnp.mean(jnp.abs(blur_with(img, kernels[level]) - targets[level, i])), (over, escaped)
 
-        (loss, over), (gx, gl) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(x, lg)
+        (loss, (over, escaped)), (gx, gl) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(x, lg)
         ux, sx = opt_x.update(gx, st[0], x)
         ul, sl = opt_l.update(gl, st[1], lg)
         x2 = optax.apply_updates(x, ux)
         lg2 = optax.apply_updates(lg, jnp.where(learn, ul, 0.0)) if learn_members else lg
         bad = over | ~jnp.isfinite(loss)
         keep = lambda a, b: jax.tree_util.tree_map(lambda u, v: jnp.where(bad, v, u), a, b)
-        return keep(x2, x), keep(lg2, lg), keep((sx, sl), st), loss, bad
+        return keep(x2, x), keep(lg2, lg), keep((sx, sl), st), loss, bad, escaped
 
     levels = [(jnp.asarray(lv, jnp.int32), int(n)) for lv, n in enumerate(steps)]
     mov = np.ones((num_objects, t_all - 1), bool) if moving is None else np.asarray(moving, bool)
     eye = np.eye(4, dtype=np.float32)
-    n_fit, n_bad = 0, 0
+    n_fit, n_bad, n_drawn, n_redone, frame_s = 0, 0, 0, 0, []
     for n in range(1, t_all):
         mk = mov[:, n - 1]
         poses[:, n] = poses[:, n - 1]
@@ -278,6 +356,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         starts = [np.einsum("kij,kjl->kil", vel, prev).astype(np.float32), prev]
         if init_poses is not None:  # the earlier fit's pose for the moving objects
             starts.append(np.where(mk[:, None, None], init_poses[:, n], prev).astype(np.float32))
+        t_frame = time.perf_counter()
         i = jnp.asarray(n, jnp.int32)
         changing, learn = changing_set(jnp.asarray(mk if only_moving else np.ones_like(mk)))
         # the objects not fitted keep their pose (the same in every start), so one `rest` serves all starts
@@ -286,22 +365,39 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         p_init = starts[int(np.argmin(np.where(np.isfinite(l0), l0, np.inf)))] if np.any(np.isfinite(l0)) else prev
         centres = np.stack([(m_ref[labels == k] @ p_init[k, :3, :3].T + p_init[k, :3, 3]).mean(0)
                             if np.any(labels == k) else p_init[k, :3, 3] for k in range(num_objects)])
-        x = jnp.zeros((num_objects, 6), jnp.float32)
         pj, cen, mask = jnp.asarray(p_init), jnp.asarray(centres, jnp.float32), jnp.asarray(mk, jnp.float32)
-        for level, count in levels:
-            st = (opt_x.init(x), opt_l.init(lg))
-            for _ in range(count):
-                x, lg, st, _, bad = step(x, lg, st, i, rest, pj, cen, mask, changing, learn, level)
-                n_bad += int(bad)
+        lg_frame = lg
+        # the subset first; if a part leaves its margin, the frame again from its start with every Gaussian
+        for subset in (frame_subset(pj, lg_frame, i, changing), every):
+            x, lg, escaped, bad_frame = jnp.zeros((num_objects, 6), jnp.float32), lg_frame, False, 0
+            for level, count in levels:
+                st = (opt_x.init(x), opt_l.init(lg))
+                for _ in range(count):
+                    x, lg, st, _, bad, esc = step(x, lg, st, i, rest, pj, cen, mask, changing, learn, subset, level)
+                    bad_frame += int(bad)
+                    if bool(esc):
+                        escaped = True
+                        break
+                if escaped:
+                    break
+            if not escaped:
+                break
+            n_redone += 1
+        n_bad += bad_frame
+        n_drawn += int(np.sum(subset[1]))
         new = np.asarray(jnp.einsum("kij,kjl->kil", pose_delta(x * mask[:, None], cen, scale), pj))
         poses[:, n] = np.where(np.all(np.isfinite(new), (1, 2))[:, None, None], new, p_init)
         n_fit += 1
+        frame_s.append(time.perf_counter() - t_frame)
         if progress_every > 0 and n_fit % progress_every == 0:
             log(f"photometric tracking: frame {n + 1}/{t_all}, {n_fit} fitted ({time.perf_counter() - t_start:.0f} s)")
     pi = (labels >= 0).astype(np.float64)
     pi[cand] = np.asarray(jax.nn.sigmoid(lg))
     log(f"photometric tracking: {n_fit} of {t_all - 1} frames fitted, {sum(n for _, n in levels)} steps each "
-        f"({n_bad} skipped), {time.perf_counter() - t_start:.1f} s")
+        f"({n_bad} skipped), {n_drawn / max(n_fit, 1):.0f} of {n_all} Gaussians drawn per step on average "
+        f"({n_redone} frame(s) fitted again with all of them: a part left its margin), "
+        f"{time.perf_counter() - t_start:.1f} s"
+        + (f" (median {np.median(frame_s[1:]):.2f} s a frame after the first)" if n_fit > 1 else ""))
     return poses, pi
 
 
@@ -325,6 +421,7 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
     vms = np.asarray(viewmats, np.float64)
     Kn = np.asarray(Ks, np.float64)
     for k, pts in enumerate(points):
+        t_obj = time.perf_counter()
         pts = np.asarray(pts, np.float64)
         if len(pts) < 3 or t_all < 2:
             kinds.append("kept")
@@ -347,5 +444,6 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
         out[k] = fits[kind][0]
         kinds.append(kind)
         log(f"photometric tracking: object {k + 1}: revolute {fits['revolute'][1]:.2f} px, prismatic "
-            f"{fits['prismatic'][1]:.2f} px -> {kind} (axis {np.round(fits[kind][3], 3).tolist()})")
+            f"{fits['prismatic'][1]:.2f} px -> {kind} (axis {np.round(fits[kind][3], 3).tolist()}; "
+            f"{time.perf_counter() - t_obj:.1f} s)")
     return out, kinds

@@ -627,6 +627,11 @@ def _tracked_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndar
     return poses
 
 
+def photo_level_steps(n: int) -> tuple[int, int, int]:
+    """The photometric tracker's Adam steps per blur level (4, 2, 0.7 pixels) for ``n`` steps a frame (2:2:1)."""
+    return max(1, round(0.4 * n)), max(1, round(0.4 * n)), max(1, n - 2 * round(0.4 * n))
+
+
 def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
                        cfg: Stage2Config, moving, log=print, init_poses=None) -> np.ndarray:
     """`_tracked_poses` by `fgjax.pipeline.phototrack` (``cfg.track_photo`` steps per frame) from the
@@ -634,8 +639,7 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
     start of each frame): poses [K, T, 4, 4]."""
     from fgjax.pipeline.phototrack import joint_poses, track_photometric
 
-    n = int(cfg.track_photo)
-    steps = (max(1, round(0.4 * n)), max(1, round(0.4 * n)), max(1, n - 2 * round(0.4 * n)))
+    steps = photo_level_steps(int(cfg.track_photo))
     vms, Ks = scene.viewmats[order], scene.Ks[order]
     poses, _ = track_photometric(ref, run.state.densify.alive, labels, num_objects, scene.images[order], vms, Ks,
                                  moving=moving, sh_degree=run.cfg.model.sh_degree,
@@ -1055,7 +1059,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     labels = np.full(len(canonical), -1, np.int64)
     labels[idx] = lab_d
     report = cluster.cluster_report(lab_d)
-    log(f"stage 2: {n_dyn} dynamic Gaussians (score threshold {disc.threshold:.3f}); {report}")
+    log(f"stage 2: {n_dyn} dynamic Gaussians (score threshold {disc.threshold:.3f}); {report} "
+        f"({time.perf_counter() - t_start:.1f} s)")
     if cfg.grow_fraction > 0 and report.n_clusters:
         eps = cfg.grow_eps
         cand = np.asarray(run.state.densify.alive) & (disc.scores.score >= cfg.grow_fraction * disc.threshold)
@@ -1092,7 +1097,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
             moving = cluster.moving_frames(labels, disc.scores.moving_t, disc.scores.total_t,
                                            active=cfg.track_active, dilate=1)
             log(f"stage 2: tracking each object over its moving pairs {[int(f.sum()) for f in moving]} of "
-                f"{moving.shape[1]}")
+                f"{moving.shape[1]} ({time.perf_counter() - t_start:.1f} s)")
         reference = _reference_scene(run, float(times[0]))  # the scene the poses move
         base = (reference.means, reference.quats, reference.log_scales)
         poses = _tracked_poses(run, scene, order, reference, labels, report.n_clusters, flows, cfg, moving, log)

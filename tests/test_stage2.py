@@ -335,7 +335,7 @@ def test_refit_relabelling_returns_mislabelled_gaussians_to_their_part(tiny):
 
 def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, monkeypatch):
     """`track_photo` replaces the flow-based tracking: the log shows the photometric fit, one articulation
-    per object and the re-fit, and the result is written; `track_only_moving` reaches the tracker; a
+    per object and the re-fit, and the result is written; `track_only_moving` and `track_subset_margin` reach the tracker; a
     negative step count and zero rounds are refused. (Rounds: `test_track_rounds_track_again_from_the_last_refit`.)"""
     import shutil
 
@@ -345,11 +345,13 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     shutil.copytree(tiny[0], dst)
     logs, seen = [], []
     real = phototrack.track_photometric
-    monkeypatch.setattr(phototrack, "track_photometric", lambda *a, **k: seen.append(k["only_moving"]) or real(*a, **k))
+    monkeypatch.setattr(phototrack, "track_photometric",
+                        lambda *a, **k: seen.append((k["only_moving"], k["subset_margin"])) or real(*a, **k))
     cfg = stage2.config_from_overrides(["auto_eps=true", "distill_steps=5", "photo_steps=2", "refit_steps=4",
-                                        "track_photo=5", "track_only_moving=false"])
+                                        "track_photo=5", "track_only_moving=false", "track_subset_margin=3"])
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
-    assert seen == [False] and stage2.Stage2Config().track_only_moving
+    assert seen == [(False, 3)] and stage2.Stage2Config().track_only_moving
+    assert stage2.Stage2Config().track_subset_margin == 2
     assert res.num_objects > 0, logs
     assert sum(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs) == 1, logs
     assert sum("-> revolute" in m or "-> prismatic" in m for m in logs) == res.num_objects, logs

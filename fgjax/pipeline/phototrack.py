@@ -183,7 +183,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
                       radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, only_moving: bool = True,
-                      subset_margin: int | None = 2, progress_every: int = 10, log=print):
+                      subset_margin: int | None = None, progress_every: int = 10, log=print):
     """Poses [K, T, 4, 4] of each object fitted to the images frame by frame (module docstring, 1-3).
 
     Args:

@@ -163,6 +163,11 @@ class Stage2Config:
     once per frame and their candidates' memberships learn only in their own frames (`track_photometric`'s
     ``only_moving``; docs/benchmarks.md, session 16: the demo's stage 2 498 s instead of 572 s). False: every
     object in every frame."""
+    track_subset_margin: int = 2
+    """The photometric tracker's steps draw only the changing Gaussians and the others whose tiles meet theirs,
+    widened by this many tiles (`track_photometric`'s ``subset_margin``; a frame whose part leaves the margin is
+    fitted again with every Gaussian; docs/benchmarks.md, session 17: 0.61x the time a frame with one object
+    fitted, the same poses up to round-off). -1: every Gaussian at every step."""
     track_rounds: int = 1
     """Rounds of photometric tracking and re-fitting (with ``track_photo > 0`` and ``refit_steps > 0``).
     From the second round on, the tracker renders the previous round's re-fitted scene with its labels
@@ -645,7 +650,9 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
                                  moving=moving, sh_degree=run.cfg.model.sh_degree,
                                  background=run.cfg.model.background, capacity=_render_capacity(run),
                                  tile_size=run.cfg.train.tile_size, steps=steps, radius=cfg.track_photo_radius,
-                                 init_poses=init_poses, only_moving=cfg.track_only_moving, log=log)
+                                 init_poses=init_poses, only_moving=cfg.track_only_moving,
+                                 subset_margin=None if cfg.track_subset_margin < 0 else int(cfg.track_subset_margin),
+                                 log=log)
     rng = np.random.default_rng(cfg.seed)
     m0 = np.asarray(ref.means)
     pts = []

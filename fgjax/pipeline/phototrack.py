@@ -366,24 +366,29 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         centres = np.stack([(m_ref[labels == k] @ p_init[k, :3, :3].T + p_init[k, :3, 3]).mean(0)
                             if np.any(labels == k) else p_init[k, :3, 3] for k in range(num_objects)])
         pj, cen, mask = jnp.asarray(p_init), jnp.asarray(centres, jnp.float32), jnp.asarray(mk, jnp.float32)
-        lg_frame = lg
-        # the subset first; if a part leaves its margin, the frame again from its start with every Gaussian
-        for subset in (frame_subset(pj, lg_frame, i, changing), every):
-            x, lg, escaped, bad_frame = jnp.zeros((num_objects, 6), jnp.float32), lg_frame, False, 0
+
+        def fit(subset, lg):
+            """(x [K, 6], lg [C], skipped steps, escaped): the frame's steps drawing `subset`, stopped at the
+            first step on which a changing Gaussian leaves its region."""
+            x, skipped = jnp.zeros((num_objects, 6), jnp.float32), 0
             for level, count in levels:
                 st = (opt_x.init(x), opt_l.init(lg))
                 for _ in range(count):
                     x, lg, st, _, bad, esc = step(x, lg, st, i, rest, pj, cen, mask, changing, learn, subset, level)
-                    bad_frame += int(bad)
+                    skipped += int(bad)
                     if bool(esc):
-                        escaped = True
-                        break
-                if escaped:
-                    break
-            if not escaped:
-                break
+                        return x, lg, skipped, True
+            return x, lg, skipped, False
+
+        # the subset first; if a part leaves its margin, the frame again from its start with every Gaussian
+        subset = frame_subset(pj, lg, i, changing)
+        x, lg_new, skipped, escaped = fit(subset, lg)
+        if escaped:
             n_redone += 1
-        n_bad += bad_frame
+            subset = every
+            x, lg_new, skipped, _ = fit(subset, lg)
+        lg = lg_new
+        n_bad += skipped
         n_drawn += int(np.sum(subset[1]))
         new = np.asarray(jnp.einsum("kij,kjl->kil", pose_delta(x * mask[:, None], cen, scale), pj))
         poses[:, n] = np.where(np.all(np.isfinite(new), (1, 2))[:, None, None], new, p_init)

@@ -4,6 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP_RUN := $(VENV)/.stamp-run
 STAMP_TEST := $(VENV)/.stamp-test
+# test processes (pytest-xdist): the suite is mostly XLA compiles, which use one core each
+TEST_WORKERS ?= 2
 
 .PHONY: demo test bench clean
 
@@ -25,7 +27,7 @@ demo: $(STAMP_RUN)
 	$(BIN)/fgjax demo --quick
 
 test: $(STAMP_TEST)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 
 bench: $(STAMP_RUN)
 	$(BIN)/fgjax bench raster

@@ -1,16 +1,41 @@
-"""A tiny trained stage-1 + stage-2 run shared by the pipeline tests (built once per session)."""
+"""A tiny trained stage-1 + stage-2 run shared by the pipeline tests (built once per session, and once for
+all the workers of ``pytest -n``: the folder is shared and its building is locked)."""
 
 from __future__ import annotations
 
+import fcntl
 import shutil
+from contextlib import contextmanager
 from pathlib import Path
+
+
+def shared_base(tmp_path_factory) -> Path:
+    """The session's temporary folder, or under ``pytest -n`` (pytest-xdist) the one its workers share."""
+    import os
+
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
+@contextmanager
+def _locked(path: Path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)  # released when the file closes
+        yield
 
 QUICK = ["train.steps=8", "train.warmup_steps=2", "densify.enabled=false", "train.video_frames=0",
          "train.log_every=4", "train.checkpoint_every=0", "static.detect=false"]
 
 
 def tiny_run(base: Path, *, stage2: bool = True) -> tuple[Path, Path]:
-    """(run_dir, data_dir) under `base` (48x36, 8 frames, 8 stage-1 steps); cached on disk."""
+    """(run_dir, data_dir) under `base` (48x36, 8 frames, 8 stage-1 steps); cached on disk, built under a
+    lock so that parallel test workers build it once."""
+    with _locked(base.parent / f"{base.name}.lock"):
+        return _tiny_run(base, stage2=stage2)
+
+
+def _tiny_run(base: Path, *, stage2: bool) -> tuple[Path, Path]:
     from fgjax.config import load_config
     from fgjax.data import synth
     from fgjax.pipeline import stage1

@@ -16,9 +16,9 @@ from fgjax.pipeline import stage1
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     sys.path.insert(0, str(Path(__file__).parent))
-    from _pipeline_run import tiny_run
+    from _pipeline_run import shared_base, tiny_run
 
-    return tiny_run(tmp_path_factory.getbasetemp() / "pipeline", stage2=False)
+    return tiny_run(shared_base(tmp_path_factory) / "pipeline", stage2=False)
 
 
 def test_motion_report_measures_a_known_translation(tiny, monkeypatch, tmp_path, capsys):

@@ -14,9 +14,9 @@ from fgjax.bench import track
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     sys.path.insert(0, str(Path(__file__).parent))
-    from _pipeline_run import tiny_run
+    from _pipeline_run import shared_base, tiny_run
 
-    return tiny_run(tmp_path_factory.getbasetemp() / "pipeline")
+    return tiny_run(shared_base(tmp_path_factory) / "pipeline")
 
 
 def test_bench_track_times_both_modes_and_their_poses_agree(tiny, capsys):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -16,9 +17,9 @@ from fgjax.pipeline.control import parse_vector
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     sys.path.insert(0, str(Path(__file__).parent))
-    from _pipeline_run import tiny_run
+    from _pipeline_run import shared_base, tiny_run
 
-    return tiny_run(tmp_path_factory.getbasetemp() / "pipeline")
+    return tiny_run(shared_base(tmp_path_factory) / "pipeline")
 
 
 def test_parse_vector():
@@ -53,8 +54,9 @@ def test_control_renders_and_sweeps(tiny, tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
-def test_eval_writes_metrics(tiny, capsys):
-    run_dir, _ = tiny
+def test_eval_writes_metrics(tiny, tmp_path, capsys):
+    run_dir = tmp_path / "run"  # a copy: the shared run is read by other test workers at the same time
+    shutil.copytree(tiny[0], run_dir)
     assert cli.main(["eval", "--run", str(run_dir)]) == 0
     m = json.loads((run_dir / "metrics.json").read_text())["control"]
     assert -1.0 <= m["ari"] <= 1.0 and -1.0 <= m["ari_controlled"] <= 1.0 and np.isfinite(m["state_psnr"])

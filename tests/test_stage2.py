@@ -15,9 +15,9 @@ def tiny(tmp_path_factory):
     import sys
 
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
-    from _pipeline_run import tiny_run
+    from _pipeline_run import shared_base, tiny_run
 
-    return tiny_run(tmp_path_factory.getbasetemp() / "pipeline")
+    return tiny_run(shared_base(tmp_path_factory) / "pipeline")
 
 
 def test_stage2_outputs(tiny):

@@ -13,7 +13,6 @@ difference of the two modes' pose entries (0 up to round-off while the parts sta
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import time
 from pathlib import Path
@@ -55,19 +54,17 @@ def track_bench(run_dir: Path, data_dir: Path, *, start: int = 20, frames: int =
     poses = {}
     for r in range(repeats):
         for mode, m in (("all", None), ("subset", margin)):
-            lines: list[str] = []
             t0 = time.perf_counter()
-            poses[mode], _ = track_photometric(ref, run.state.densify.alive, run.s2.labels, num_objects,
-                                               scene.images[sel], scene.viewmats[sel], scene.Ks[sel],
-                                               subset_margin=m, progress_every=0, log=lines.append, **kw)
+            poses[mode], _, st = track_photometric(ref, run.state.densify.alive, run.s2.labels, num_objects,
+                                                   scene.images[sel], scene.viewmats[sel], scene.Ks[sel],
+                                                   subset_margin=m, progress_every=0, return_stats=True,
+                                                   log=lambda _m: None, **kw)
             total = time.perf_counter() - t0
-            med = re.search(r"median ([\d.]+) s a frame", lines[-1])
-            drawn = re.search(r"(\d+) of (\d+) Gaussians drawn", lines[-1])
-            again = re.search(r"\((\d+) frame\(s\) fitted again", lines[-1])
-            out[mode].setdefault("fitted_again", []).append(int(again.group(1)) if again else 0)
-            out[mode]["frame_s"].append(float(med.group(1)) if med else float("nan"))
-            out[mode]["drawn"].append(int(drawn.group(1)) if drawn else -1)
-            out["gaussians"] = int(drawn.group(2)) if drawn else -1
+            out[mode].setdefault("fitted_again", []).append(st["fitted_again"])
+            out[mode]["frame_s"].append(float(np.median(st["frame_seconds"][1:])) if st["frames_fitted"] > 1
+                                        else float("nan"))
+            out[mode]["drawn"].append(int(round(st["drawn_per_step"])))
+            out["gaussians"] = st["gaussians"]
             log(f"run {r + 1}/{repeats} {mode:<6}: {out[mode]['frame_s'][-1]:.2f} s a frame after the first, "
                 f"{out[mode]['drawn'][-1]} of {out['gaussians']} Gaussians drawn per step, "
                 f"{out[mode]['fitted_again'][-1]} frame(s) fitted again with all, {total:.1f} s in all")

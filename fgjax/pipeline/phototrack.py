@@ -183,7 +183,8 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
                       radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, only_moving: bool = True,
-                      subset_margin: int | None = None, progress_every: int = 10, log=print):
+                      subset_margin: int | None = None, progress_every: int = 10, return_stats: bool = False,
+                      log=print):
     """Poses [K, T, 4, 4] of each object fitted to the images frame by frame (module docstring, 1-3).
 
     Args:
@@ -211,10 +212,14 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
             the frame is fitted again from its start with every Gaussian, so the poses are those of
             ``None`` (every Gaussian at every step) up to round-off.
         progress_every: a progress line every this many fitted frames (0: none).
+        return_stats: also return what the run did (the summary line's numbers, for benchmarks).
 
     Returns:
         (poses [K, T, 4, 4], pi [N]: each candidate's final membership of its nearest cluster; 1 for the
-        other members and 0 for the other Gaussians).
+        other members and 0 for the other Gaussians), and with ``return_stats`` a dict: "frames_fitted",
+        "steps_per_frame", "skipped_steps", "drawn_per_step" (Gaussians drawn per step, mean over the fitted
+        frames), "gaussians" (of the two-copy scene), "fitted_again" (frames fitted again with every Gaussian),
+        "frame_seconds" (list, each fitted frame's wall time; the first compiles) and "seconds".
     """
     from fgjax.pipeline.stage1 import render_params
 
@@ -223,7 +228,10 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     poses = np.tile(np.eye(4, dtype=np.float32), (num_objects, t_all, 1, 1))
     alive_np = np.asarray(alive, bool)
     if num_objects == 0 or t_all < 2:
-        return poses, (labels >= 0).astype(np.float64)
+        pi = (labels >= 0).astype(np.float64)
+        stats = dict(frames_fitted=0, steps_per_frame=int(sum(steps)), skipped_steps=0, drawn_per_step=0.0,
+                     gaussians=0, fitted_again=0, frame_seconds=[], seconds=0.0)
+        return (poses, pi, stats) if return_stats else (poses, pi)
     if len(steps) != len(sigmas):
         raise ValueError(f"track_photometric: {len(steps)} step counts for {len(sigmas)} blur levels")
     if init_poses is not None:
@@ -398,12 +406,14 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
             log(f"photometric tracking: frame {n + 1}/{t_all}, {n_fit} fitted ({time.perf_counter() - t_start:.0f} s)")
     pi = (labels >= 0).astype(np.float64)
     pi[cand] = np.asarray(jax.nn.sigmoid(lg))
-    log(f"photometric tracking: {n_fit} of {t_all - 1} frames fitted, {sum(n for _, n in levels)} steps each "
-        f"({n_bad} skipped), {n_drawn / max(n_fit, 1):.0f} of {n_all} Gaussians drawn per step on average "
-        f"({n_redone} frame(s) fitted again with all of them: a part left its margin), "
-        f"{time.perf_counter() - t_start:.1f} s"
+    stats = dict(frames_fitted=n_fit, steps_per_frame=sum(n for _, n in levels), skipped_steps=n_bad,
+                 drawn_per_step=n_drawn / max(n_fit, 1), gaussians=n_all, fitted_again=n_redone,
+                 frame_seconds=frame_s, seconds=time.perf_counter() - t_start)
+    log(f"photometric tracking: {n_fit} of {t_all - 1} frames fitted, {stats['steps_per_frame']} steps each "
+        f"({n_bad} skipped), {stats['drawn_per_step']:.0f} of {n_all} Gaussians drawn per step on average "
+        f"({n_redone} frame(s) fitted again with all of them: a part left its margin), {stats['seconds']:.1f} s"
         + (f" (median {np.median(frame_s[1:]):.2f} s a frame after the first)" if n_fit > 1 else ""))
-    return poses, pi
+    return (poses, pi, stats) if return_stats else (poses, pi)
 
 
 def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_margin: float = 0.95, log=print):

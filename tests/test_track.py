@@ -238,8 +238,8 @@ def test_fit_joint_recovers_a_hinge_and_a_slide_over_all_pairs():
 
     amounts = np.array([0.06, 0.17, 0.24, 0.26, 0.0, -0.2, -0.25])  # radians per pair (a door opening 42 deg)
     pts, tgt, w, vms, Ks, axis, _ = _hinged_patch_pairs("revolute", amounts)
-    inc, rms, frac, ax, piv = fit_joint(pts, tgt, w, vms, Ks, "revolute")
-    assert rms < 1e-3 and frac == 1.0
+    inc, rms, frac, ax, piv, cost = fit_joint(pts, tgt, w, vms, Ks, "revolute")
+    assert rms < 1e-3 and frac == 1.0 and 0.0 <= cost < 1e-6
     assert abs(abs(np.dot(ax, axis)) - 1.0) < 1e-6
     angles = np.arccos(np.clip((np.trace(inc[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1))
     np.testing.assert_allclose(angles, np.abs(amounts), atol=1e-4)
@@ -248,13 +248,13 @@ def test_fit_joint_recovers_a_hinge_and_a_slide_over_all_pairs():
         np.testing.assert_allclose(_project(vms[jj], moved), tgt[jj], atol=1e-3)
     # a slide: the prismatic fit is exact, the revolute one is not
     pts, tgt, w, vms, Ks, _, direction = _hinged_patch_pairs("prismatic", np.array([0.02, 0.05, 0.05, -0.04]))
-    inc_p, rms_p, _, d, _ = fit_joint(pts, tgt, w, vms, Ks, "prismatic")
+    inc_p, rms_p, _, d, _, _ = fit_joint(pts, tgt, w, vms, Ks, "prismatic")
     assert rms_p < 1e-3 and abs(abs(np.dot(d, direction)) - 1.0) < 1e-6
     np.testing.assert_allclose(inc_p[:, :3, :3], np.tile(np.eye(3), (4, 1, 1)), atol=1e-12)
     # padding rows and a pair without data: no effect, and that pair's increment is the identity
     w2 = w.copy()
     w2[2] = 0.0
-    inc_z, rms_z, _, _, _ = fit_joint(pts, tgt, w2, vms, Ks, "prismatic")
+    inc_z, rms_z, _, _, _, _ = fit_joint(pts, tgt, w2, vms, Ks, "prismatic")
     assert rms_z < 1e-3
     np.testing.assert_allclose(inc_z[2], np.eye(4), atol=1e-6)
     with pytest.raises(ValueError, match="kind"):

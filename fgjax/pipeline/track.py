@@ -195,7 +195,10 @@ def _fit_joint_jit(x0, pts, target, weights, viewmats, K, centre, *, kind: str, 
     inl = (weights > 0) & (r < 3.0 * huber_px)
     rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0.0)) / jnp.maximum(jnp.sum(inl), 1))
     frac = jnp.sum(inl) / jnp.maximum(jnp.sum(weights > 0), 1)
-    return x, rms, frac
+    # the robust cost the reweighting minimises: the mean Huber loss of every weighted residual
+    hub = jnp.where(r <= huber_px, 0.5 * r * r, huber_px * (r - 0.5 * huber_px))
+    cost = jnp.sum(weights * hub) / jnp.maximum(jnp.sum(weights), 1e-12)
+    return x, rms, frac, cost
 
 
 def fit_joint(pts, target, weights, viewmats, K, kind: str, *, axes=None, huber_px: float = 1.0, irls: int = 2):
@@ -214,11 +217,14 @@ def fit_joint(pts, target, weights, viewmats, K, kind: str, *, axes=None, huber_
         viewmats, K: [J, 4, 4], [J, 3, 3] the second frame's cameras.
         kind: "revolute" or "prismatic".
         axes: [A, 3] initial axes (directions) to try (default: the three coordinate axes); the fit
-            with the lowest inlier RMS wins. The pivot starts at the weighted centroid.
+            with the lowest robust cost wins. The pivot starts at the weighted centroid.
         huber_px, irls: robust loss width and reweighting rounds (as `rigid_increment`).
 
     Returns:
-        (increments [J, 4, 4] world transforms, inlier RMS in pixels, inlier fraction, axis [3], pivot [3]).
+        (increments [J, 4, 4] world transforms, inlier RMS in pixels (inliers: residual < 3 ``huber_px``),
+        inlier fraction, axis [3], pivot [3], robust cost: the weighted mean Huber loss (px^2) of every
+        residual, the loss the fit minimises). Compare fits by the cost: the inlier RMS leaves out exactly
+        the large residuals that tell a wrong joint from a right one when a part moves far in few pairs.
     """
     if kind not in JOINT_KINDS:
         raise ValueError(f"fit_joint: kind must be one of {JOINT_KINDS}, got {kind!r}")
@@ -241,10 +247,10 @@ def fit_joint(pts, target, weights, viewmats, K, kind: str, *, axes=None, huber_
     for a in axes:
         a = a / max(np.linalg.norm(a), 1e-12)
         x0 = jnp.concatenate([jnp.asarray(a, dt), centre, jnp.zeros(jp, dt)])
-        x, rms, frac = _fit_joint_jit(x0, pts, target, weights, viewmats, K, centre, kind=kind, irls=irls,
-                                      huber_px=huber_px)
-        if best is None or float(rms) / max(float(frac), 1e-3) < best[1] / max(best[2], 1e-3):
-            best = (x, float(rms), float(frac))
+        x, rms, frac, cost = _fit_joint_jit(x0, pts, target, weights, viewmats, K, centre, kind=kind, irls=irls,
+                                            huber_px=huber_px)
+        if best is None or float(cost) < best[3]:
+            best = (x, float(rms), float(frac), float(cost))
     x = np.asarray(best[0], np.float64)
     axis = x[:3] / max(np.linalg.norm(x[:3]), 1e-12)
     pivot, amt = x[3:6], x[6:6 + j]
@@ -255,7 +261,7 @@ def fit_joint(pts, target, weights, viewmats, K, kind: str, *, axes=None, huber_
         inc[:, :3, 3] = pivot - rot @ pivot
     else:
         inc[:, :3, 3] = amt[:, None] * axis
-    return inc, best[1], best[2], axis, pivot
+    return inc, best[1], best[2], axis, pivot, best[3]
 
 
 def _bucket(n: int) -> int:
@@ -376,11 +382,12 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
                                [viewmats[j + 1] for j in which], [Ks[j + 1] for j in which])
         free = float(np.median(rms_obj[k]))
         fits = {kind: fit_joint(*arrays, kind) for kind in JOINT_KINDS}
-        kind = min(fits, key=lambda c: fits[c][1])
+        kind = min(fits, key=lambda c: fits[c][5])  # the lower robust cost
         inc, rms_j = fits[kind][0], fits[kind][1]
         use = rms_j <= joint_tolerance * free + 0.25
         log(f"tracking: object {k + 1}: pair by pair median RMS {free:.2f} px; revolute "
-            f"{fits['revolute'][1]:.2f} px, prismatic {fits['prismatic'][1]:.2f} px -> "
+            f"{fits['revolute'][1]:.2f} px (cost {fits['revolute'][5]:.3f}), prismatic {fits['prismatic'][1]:.2f} px "
+            f"(cost {fits['prismatic'][5]:.3f}) -> "
             f"{kind if use else 'pair by pair'}")
         if use:
             step = dict(zip(which, inc, strict=True))
@@ -498,7 +505,7 @@ def chained_joint_poses(means, quats, scales, opacities, labels, poses, moving, 
         frames = [r[2] for r in rows]
         fits = {kind: fit_joint(pts, tgt, w, viewmats[frames], Ks[frames], kind, huber_px=huber_px)
                 for kind in JOINT_KINDS}
-        kind = min(fits, key=lambda c: fits[c][1] / max(fits[c][2], 1e-3))
+        kind = min(fits, key=lambda c: fits[c][5])  # the lower robust cost
         inc, rms, frac = fits[kind][:3]
         rms_out[k] = rms
         new = poses[k].copy()

@@ -432,7 +432,8 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
     is below ``revolute_margin`` times the prismatic one's (a turn about a far pivot mimics a slide), else
     the prismatic one. (An inlier RMS would not do: a part moves far in only a few frames, and a wrong
     joint's large residuals there count as outliers, which that RMS leaves out: the default scene's door,
-    turning 70 degrees in 4 of its 21 frames, had the same inlier RMS as a hinge and as a slide.)
+    turning 70 degrees but moving more than 2 px in only 4 of its 60 frames, had the same inlier RMS as a
+    hinge and as a slide; docs/benchmarks.md, session 18.)
     Returns (poses [K, T, 4, 4], kinds [K]).
     """
     poses = np.asarray(poses, np.float64)

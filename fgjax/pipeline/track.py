@@ -317,9 +317,9 @@ def track_objects(means, quats, scales, opacities, labels, num_objects: int, vie
         moving: [K, T-1] bool, the pairs in which each object moves (None: all). An object keeps its pose
             over the other pairs, so its pose does not drift while it rests.
         joints: "auto": with the per-frame geometry (pixels that do not depend on the poses), each object's
-            pairs are also fitted as one articulation (`fit_joint`, revolute and prismatic); the best one
-            replaces the pair-by-pair fits when its inlier RMS is within ``joint_tolerance`` x theirs
-            (+ 0.25 px); "off": pair by pair only.
+            pairs are also fitted as one articulation (`fit_joint`, revolute and prismatic); the one with
+            the lower robust cost replaces the pair-by-pair fits when its inlier RMS is within
+            ``joint_tolerance`` x theirs (+ 0.25 px); "off": pair by pair only.
         joint_pixels: at most this many pixels per pair (evenly strided) enter the articulation fits.
         min_pixels: objects painting fewer pixels in a frame keep their pose for that step.
         dominance: a pixel belongs to object k when k's share of the composited weight exceeds this.
@@ -445,7 +445,8 @@ def chained_joint_poses(means, quats, scales, opacities, labels, poses, moving, 
     pixels only) are back-projected at that render's depth to reference-space points, and followed through
     the flows `flows` [T-1, H, W, 2] to frames a+1..b+1 (lost where the flow is unknown). Every (point,
     frame) pair then constrains that frame's absolute pose; one revolute or prismatic joint with one
-    amount per frame, fitted to all of them, gives the poses (frames after a run keep its last pose).
+    amount per frame, fitted to all of them (the kind with the lower robust cost), gives the poses (frames
+    after a run keep its last pose).
     A run's points are seeded with the object's pose in frame a from `poses`; a second call re-seeds
     later runs with the poses the first one fitted.
 

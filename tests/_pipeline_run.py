@@ -4,6 +4,7 @@ all the workers of ``pytest -n``: the folder is shared and its building is locke
 from __future__ import annotations
 
 import fcntl
+import os
 import shutil
 from contextlib import contextmanager
 from pathlib import Path
@@ -11,8 +12,6 @@ from pathlib import Path
 
 def shared_base(tmp_path_factory) -> Path:
     """The session's temporary folder, or under ``pytest -n`` (pytest-xdist) the one its workers share."""
-    import os
-
     base = tmp_path_factory.getbasetemp()
     return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
 

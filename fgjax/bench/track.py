@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -50,24 +49,22 @@ def track_bench(run_dir: Path, data_dir: Path, *, start: int = 20, frames: int =
     ref = _reference_scene(run, float(scene.times[order[0]]))
     kw = dict(moving=moving, sh_degree=run.cfg.model.sh_degree, background=run.cfg.model.background,
               capacity=_render_capacity(run), tile_size=run.cfg.train.tile_size, steps=photo_level_steps(steps))
-    out: dict = {"all": {"frame_s": [], "drawn": []}, "subset": {"frame_s": [], "drawn": []}}
+    out: dict = {mode: {"frame_s": [], "drawn": [], "fitted_again": []} for mode in ("all", "subset")}
     poses = {}
     for r in range(repeats):
         for mode, m in (("all", None), ("subset", margin)):
-            t0 = time.perf_counter()
             poses[mode], _, st = track_photometric(ref, run.state.densify.alive, run.s2.labels, num_objects,
                                                    scene.images[sel], scene.viewmats[sel], scene.Ks[sel],
                                                    subset_margin=m, progress_every=0, return_stats=True,
                                                    log=lambda _m: None, **kw)
-            total = time.perf_counter() - t0
-            out[mode].setdefault("fitted_again", []).append(st["fitted_again"])
+            out[mode]["fitted_again"].append(st["fitted_again"])
             out[mode]["frame_s"].append(float(np.median(st["frame_seconds"][1:])) if st["frames_fitted"] > 1
                                         else float("nan"))
             out[mode]["drawn"].append(int(round(st["drawn_per_step"])))
             out["gaussians"] = st["gaussians"]
             log(f"run {r + 1}/{repeats} {mode:<6}: {out[mode]['frame_s'][-1]:.2f} s a frame after the first, "
                 f"{out[mode]['drawn'][-1]} of {out['gaussians']} Gaussians drawn per step, "
-                f"{out[mode]['fitted_again'][-1]} frame(s) fitted again with all, {total:.1f} s in all")
+                f"{out[mode]['fitted_again'][-1]} frame(s) fitted again with all, {st['seconds']:.1f} s in all")
     out["ratio"] = float(np.median(out["subset"]["frame_s"]) / np.median(out["all"]["frame_s"]))
     out["max_pose_difference"] = float(np.max(np.abs(poses["subset"] - poses["all"])))
     return out

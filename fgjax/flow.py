@@ -35,6 +35,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from fgjax import geometry
 
+_mm = geometry.matmul  # full float32 precision on every backend (geometry.HIGHEST)
+
 __all__ = [
     "pixel_centers",
     "camera_velocity",
@@ -126,8 +128,8 @@ def camera_velocity(
     dt = jnp.asarray(dt, dtype=c2w0.dtype)
     inv_dt = jnp.where(dt != 0, 1.0 / jnp.where(dt != 0, dt, 1.0), 0.0)
     r0t = c2w0[:3, :3].T
-    v = r0t @ (c2w1[:3, 3] - c2w0[:3, 3]) * inv_dt
-    omega = geometry.so3_log(r0t @ c2w1[:3, :3]) * inv_dt
+    v = _mm(r0t, c2w1[:3, 3] - c2w0[:3, 3]) * inv_dt
+    omega = geometry.so3_log(_mm(r0t, c2w1[:3, :3])) * inv_dt
     return v, omega
 
 
@@ -265,7 +267,7 @@ def reprojection_flow(
     fx, fy, cx, cy = _intrinsics(K)
     yn = (m[..., 1] - cy) / fy
     xn = (m[..., 0] - cx - K[0, 1] * yn) / fx
-    rel = geometry.se3_inverse(c2w1) @ c2w0  # camera 0 -> camera 1, [4, 4]
+    rel = _mm(geometry.se3_inverse(c2w1), c2w0)  # camera 0 -> camera 1, [4, 4]
     # P1 = R (Z xn, Z yn, Z) + t, written out per component: one fused elementwise kernel
     # (a [H*W, 3] x [3, 3] matmul would not fuse with the rest on CPU)
     r, t = rel[:3, :3], rel[:3, 3]
@@ -348,7 +350,7 @@ def gaussian_image_velocity_jvp(
 
     def proj(tt):
         view = geometry.se3_inverse(c2w_fn(tt))
-        p = means_fn(tt) @ view[:3, :3].T + view[None, :3, 3]
+        p = _mm(means_fn(tt), view[:3, :3].T) + view[None, :3, 3]
         return geometry.project_points(p, K)
 
     return jax.jvp(proj, (t,), (jnp.ones_like(t),))
@@ -396,7 +398,7 @@ def project_covariances(
 
     means, quats, scales = _float(means), _float(quats), _float(scales)
     viewmat, K = _float(viewmat), _float(K)
-    p = means @ viewmat[:3, :3].T + viewmat[None, :3, 3]  # [N, 3]
+    p = _mm(means, viewmat[:3, :3].T) + viewmat[None, :3, 3]  # [N, 3]
     proj = project_gaussians(
         means, quats, scales, jnp.ones(means.shape[:1], means.dtype), viewmat, K, width, height, near_plane=0.0
     )
@@ -465,9 +467,9 @@ def gaussian_flow_affine(
     means2d0, cov2d0 = _float(means2d0), _float(cov2d0)
     means2d1, cov2d1 = _float(means2d1), _float(cov2d1)
     b0_inv = _inv_2x2(sqrtm_2x2(cov2d0))
-    m = sqrtm_2x2(cov2d1) @ b0_inv  # [N, 2, 2]
+    m = _mm(sqrtm_2x2(cov2d1), b0_inv)  # [N, 2, 2]
     m_minus_i = m - jnp.broadcast_to(jnp.eye(2, dtype=m.dtype), m.shape)
-    offset = (means2d1 - means2d0) - (m_minus_i @ means2d0[..., None])[..., 0]
+    offset = (means2d1 - means2d0) - _mm(m_minus_i, means2d0[..., None])[..., 0]
     return m_minus_i, offset
 
 
@@ -581,8 +583,8 @@ def dynamic_gaussian_flow(
 def _iso_colors(means0, means1, viewmat, K):
     """Per-Gaussian channels [dmu (2), 1/Z_i (1)], both frames projected with camera t-1."""
     view_rot, view_t = viewmat[:3, :3], viewmat[:3, 3]
-    p0 = means0 @ view_rot.T + view_t[None]  # [N, 3]
-    p1 = means1 @ view_rot.T + view_t[None]  # [N, 3]
+    p0 = _mm(means0, view_rot.T) + view_t[None]  # [N, 3]
+    p1 = _mm(means1, view_rot.T) + view_t[None]  # [N, 3]
     dmu = geometry.project_points(p1, K) - geometry.project_points(p0, K)  # [N, 2]
     return jnp.concatenate([dmu, _safe_inv_depth(p0[:, 2])[:, None]], axis=-1)
 
@@ -603,7 +605,7 @@ def _aniso_flow(image):
     height, width = image.shape[:2]
     pix = pixel_centers(height, width, image.dtype)  # [H, W, 2]
     r_m = image[..., :4].reshape(height, width, 2, 2)
-    return (r_m @ pix[..., None])[..., 0] + image[..., 4:6]
+    return _mm(r_m, pix[..., None])[..., 0] + image[..., 4:6]
 
 
 def composited_inverse_depth(
@@ -647,7 +649,7 @@ def composited_inverse_depth(
 
 @jax.jit
 def _inv_depth_colors(means, viewmat):
-    z = means @ viewmat[2, :3] + viewmat[2, 3]  # [N]
+    z = _mm(means, viewmat[2, :3]) + viewmat[2, 3]  # [N]
     return _safe_inv_depth(z)[:, None]
 
 

@@ -22,6 +22,8 @@ values nor gradients are ever NaN, including at angle 0 and angle pi.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
@@ -38,6 +40,9 @@ __all__ = [
     "se3_exp",
     "se3_log",
     "se3_compose",
+    "matmul",
+    "full_precision",
+    "HIGHEST",
     "se3_inverse",
     "make_pose",
     "opengl_to_opencv_c2w",
@@ -47,10 +52,35 @@ __all__ = [
 
 _FLIP_YZ = (1.0, -1.0, -1.0, 1.0)
 
+HIGHEST = jax.lax.Precision.HIGHEST
+"""Precision of every matrix product in fgjax's geometry, rendering, flow and tracking. JAX's default lets
+recent NVIDIA GPUs multiply float32 matrices in TF32 (a 10-bit mantissa): on an H200 that put errors of 4e-2
+into rendered colours against the float64 reference, against 4e-7 at full precision, for the same run time
+(docs/benchmarks.md, "GPU"). CPUs compute in full float32 either way. The learned fields' MLPs keep the
+backend's default."""
+
 
 # ----------------------------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------------------------
+
+
+def matmul(a: ArrayLike, b: ArrayLike) -> Array:
+    """``a @ b`` (``jnp.matmul`` broadcasting) at full float32 precision on every backend (`HIGHEST`)."""
+    return jnp.matmul(a, b, precision=HIGHEST)
+
+
+def full_precision(fn):
+    """``fn`` traced with every matrix product at `HIGHEST` precision, those of the libraries it calls included
+    (optimistix's and lineax's normal equations, say). Wrap it inside ``jax.jit`` (``jax.jit(full_precision(f))``):
+    the precision is fixed when the function is traced."""
+
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        with jax.default_matmul_precision("highest"):
+            return fn(*args, **kwargs)
+
+    return wrapped
 
 
 def _float(x: ArrayLike) -> Array:
@@ -144,7 +174,7 @@ def so3_exp(omega: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     a, b, _ = _so3_coeffs(theta2)
     w = hat(omega)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=omega.dtype), w.shape)
-    return eye + a[..., None, None] * w + b[..., None, None] * (w @ w)
+    return eye + a[..., None, None] * w + b[..., None, None] * matmul(w, w)
 
 
 @jax.jit
@@ -162,7 +192,7 @@ def so3_left_jacobian(omega: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*bat
     _, b, c = _so3_coeffs(theta2)
     w = hat(omega)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=omega.dtype), w.shape)
-    return eye + b[..., None, None] * w + c[..., None, None] * (w @ w)
+    return eye + b[..., None, None] * w + c[..., None, None] * matmul(w, w)
 
 
 @jax.jit
@@ -191,7 +221,7 @@ def so3_left_jacobian_inv(omega: Float[ArrayLike, "*batch 3"]) -> Float[Array, "
     d = jnp.where(small, d_small, d_big)
     w = hat(omega)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=omega.dtype), w.shape)
-    return eye - 0.5 * w + d[..., None, None] * (w @ w)
+    return eye - 0.5 * w + d[..., None, None] * matmul(w, w)
 
 
 @jax.jit
@@ -351,7 +381,7 @@ def se3_exp(xi: Float[ArrayLike, "*batch 6"]) -> Float[Array, "*batch 4 4"]:
     xi = _float(xi)
     omega, v = xi[..., :3], xi[..., 3:]
     rot = so3_exp(omega)
-    trans = (so3_left_jacobian(omega) @ v[..., None])[..., 0]
+    trans = matmul(so3_left_jacobian(omega), v[..., None])[..., 0]
     return make_pose(rot, trans)
 
 
@@ -367,14 +397,14 @@ def se3_log(pose: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 6"]:
     """
     pose = _float(pose)
     omega = so3_log(pose[..., :3, :3])
-    v = (so3_left_jacobian_inv(omega) @ pose[..., :3, 3:4])[..., 0]
+    v = matmul(so3_left_jacobian_inv(omega), pose[..., :3, 3:4])[..., 0]
     return jnp.concatenate([omega, v], axis=-1)
 
 
 @jax.jit
 def se3_compose(a: Float[ArrayLike, "*batch 4 4"], b: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 4 4"]:
     """Composition a ∘ b = a @ b of rigid transforms (apply b first)."""
-    return _float(a) @ _float(b)
+    return matmul(_float(a), _float(b))
 
 
 @jax.jit
@@ -383,7 +413,7 @@ def se3_inverse(pose: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 4 
     pose = _float(pose)
     rt = jnp.swapaxes(pose[..., :3, :3], -1, -2)
     t = pose[..., :3, 3:4]
-    return make_pose(rt, -(rt @ t)[..., 0])
+    return make_pose(rt, -matmul(rt, t)[..., 0])
 
 
 # ----------------------------------------------------------------------------------------------

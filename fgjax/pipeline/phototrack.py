@@ -43,6 +43,7 @@ import optax
 
 from fgjax import geometry
 from fgjax.gaussians import Gaussians, activate
+from fgjax.geometry import HIGHEST
 from fgjax.metrics import filter_valid
 from fgjax.pipeline.track import JOINT_KINDS, _project_rows, fit_joint, transform_gaussians
 from fgjax.render.project import project_gaussians
@@ -86,7 +87,7 @@ def pose_delta(x, centres, scale):
     """World transforms [K, 4, 4] of updates x [K, 6]: rotation by exp(x[:3]) about `centres` [K, 3], then a
     shift of x[3:] * `scale` [K]."""
     rot = geometry.so3_exp(x[:, :3])  # [K, 3, 3]
-    t = centres - jnp.einsum("kij,kj->ki", rot, centres) + x[:, 3:] * scale[:, None]
+    t = centres - jnp.einsum("kij,kj->ki", rot, centres, precision=HIGHEST) + x[:, 3:] * scale[:, None]
     return geometry.make_pose(rot, t)
 
 
@@ -336,7 +337,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     @jax.jit
     def step(x, lg, st, i, rest, p_init, centres, mask, changing, learn, subset, level):
         def loss_fn(x_, lg_):
-            P = jnp.einsum("kij,kjl->kil", pose_delta(x_ * mask[:, None], centres, scale), p_init)
+            P = jnp.einsum("kij,kjl->kil", pose_delta(x_ * mask[:, None], centres, scale), p_init, precision=HIGHEST)
             img, over, escaped = render(P, lg_, i, rest, changing, subset)
             return jnp.mean(jnp.abs(blur_with(img, kernels[level]) - targets[level, i])), (over, escaped)
 
@@ -398,7 +399,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         lg = lg_new
         n_bad += skipped
         n_drawn += int(np.sum(subset[1]))
-        new = np.asarray(jnp.einsum("kij,kjl->kil", pose_delta(x * mask[:, None], cen, scale), pj))
+        new = np.asarray(jnp.einsum("kij,kjl->kil", pose_delta(x * mask[:, None], cen, scale), pj, precision=HIGHEST))
         poses[:, n] = np.where(np.all(np.isfinite(new), (1, 2))[:, None, None], new, p_init)
         n_fit += 1
         frame_s.append(time.perf_counter() - t_frame)

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fgjax.geometry import se3_exp
+from fgjax.geometry import matmul, se3_exp
 
 __all__ = ["FlowTracks", "flow_tracks", "bundle_adjust", "BundleResult"]
 
@@ -121,12 +121,12 @@ def flow_tracks(flows: np.ndarray, prev: np.ndarray, *, length: int = 4, stride:
 
 def _residual(xi_h, xi_j, rho, vm_h, vm_j, k_h, k_j, xy, obs):
     """Reprojection minus observation [2] (pixels) and whether the point is in front of camera j."""
-    t_h = se3_exp(xi_h) @ vm_h
-    t_j = se3_exp(xi_j) @ vm_j
-    rel_r = t_j[:3, :3] @ t_h[:3, :3].T  # T_j T_h^-1
-    rel_t = t_j[:3, 3] - rel_r @ t_h[:3, 3]
+    t_h = matmul(se3_exp(xi_h), vm_h)
+    t_j = matmul(se3_exp(xi_j), vm_j)
+    rel_r = matmul(t_j[:3, :3], t_h[:3, :3].T)  # T_j T_h^-1
+    rel_t = t_j[:3, 3] - matmul(rel_r, t_h[:3, 3])
     ray = jnp.stack([(xy[0] - k_h[0, 2]) / k_h[0, 0], (xy[1] - k_h[1, 2]) / k_h[1, 1], 1.0])
-    p = rel_r @ ray + rho * rel_t  # homogeneous: the point times rho, in camera j
+    p = matmul(rel_r, ray) + rho * rel_t  # homogeneous: the point times rho, in camera j
     front = p[2] > 1e-3 * jnp.linalg.norm(p)
     z = jnp.where(front, p[2], 1.0)
     uv = jnp.stack([k_j[0, 0] * p[0] / z + k_j[0, 2], k_j[1, 1] * p[1] / z + k_j[1, 2]])

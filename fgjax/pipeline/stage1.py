@@ -187,16 +187,17 @@ def render_params(
     offset proportional to depth); its gradient is the screen-space gradient densification needs.
     ``active`` [N] bool: composite only the tiles these Gaussians reach (`fgjax.rasterization`'s ``active``).
     """
+    from fgjax.geometry import matmul
     from fgjax.render.api import rasterization, spherical_harmonics
 
     means, q, s, o, log_scales = _deformed(params, alive, t, spec)
     geometry = {"means": means, "log_scales": log_scales}
     rot = viewmat[:3, :3]
     if delta2d is not None:
-        z = means @ rot[2] + viewmat[2, 3]  # [N]
+        z = matmul(means, rot[2]) + viewmat[2, 3]  # [N]
         off_cam = jnp.stack([delta2d[:, 0] * z / K[0, 0], delta2d[:, 1] * z / K[1, 1], jnp.zeros_like(z)], -1)
-        means = means + off_cam @ rot  # R^T off
-    campos = -rot.T @ viewmat[:3, 3]
+        means = means + matmul(off_cam, rot)  # R^T off
+    campos = -matmul(rot.T, viewmat[:3, 3])
     sh = params["gaussians"].sh
     if sh_mask is not None:  # SH-degree schedule without recompiling: zero the inactive coefficients
         sh = sh * sh_mask[:, None]
@@ -251,9 +252,9 @@ def _flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
 
     vm_prev = fl.viewmat_prev
     if ss.pose:
-        from fgjax.geometry import se3_exp
+        from fgjax.geometry import matmul, se3_exp
 
-        vm_prev = se3_exp(params["pose"][fl.idx_prev]) @ vm_prev
+        vm_prev = matmul(se3_exp(params["pose"][fl.idx_prev]), vm_prev)
     m0, q0, s0, o0, _ = _deformed(params, alive, fl.t_prev, ss.spec)
     m1 = _deformed(params, alive, t, ss.spec)[0]
     loss, overflow = gaussian_flow_loss(m0, q0, s0, o0, m1, vm_prev, viewmat, K, fl.flow, ss.width, ss.height,
@@ -271,9 +272,9 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
 
     def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx, fl, nbr):
         if ss.pose:
-            from fgjax.geometry import se3_exp
+            from fgjax.geometry import matmul, se3_exp
 
-            viewmat = se3_exp(params["pose"][idx]) @ viewmat
+            viewmat = matmul(se3_exp(params["pose"][idx]), viewmat)
         img, _, info, geo = render_params(
             params, alive, viewmat, K, t, spec=ss.spec, sh_degree=ss.sh_degree, width=ss.width,
             height=ss.height, background=bg, capacity=ss.capacity, tile_size=ss.tile_size, delta2d=delta2d,

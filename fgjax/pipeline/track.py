@@ -38,6 +38,7 @@ import numpy as np
 import optimistix as optx
 
 from fgjax import geometry
+from fgjax.geometry import HIGHEST, full_precision, matmul
 from fgjax.pipeline.init_points import pixel_rays
 
 __all__ = ["rigid_increment", "track_objects", "transform_gaussians", "quat_multiply", "camera_correction", "fit_joint",
@@ -64,7 +65,7 @@ def transform_gaussians(means, quats, labels, poses):
     moved = labels >= 0
     rot = jnp.asarray(poses)[k, :3, :3]  # [N, 3, 3]
     tr = jnp.asarray(poses)[k, :3, 3]
-    m = jnp.einsum("nij,nj->ni", rot, means) + tr
+    m = jnp.einsum("nij,nj->ni", rot, means, precision=HIGHEST) + tr
     q = quat_multiply(geometry.rotmat_to_quat(rot), quats)
     return jnp.where(moved[:, None], m, means), jnp.where(moved[:, None], q, quats)
 
@@ -97,7 +98,7 @@ def _interior(own: np.ndarray, erode: int) -> np.ndarray:
 def _project_rows(moved, viewmat, K):
     """Pixels [..., M, 2] of world points `moved` [..., M, 3] in cameras `viewmat` [..., 4, 4], `K` [..., 3, 3]
     (points at or behind z = 1e-3 give 0 and are flagged False)."""
-    pc = jnp.einsum("...mj,...ij->...mi", moved, viewmat[..., :3, :3]) + viewmat[..., None, :3, 3]
+    pc = jnp.einsum("...mj,...ij->...mi", moved, viewmat[..., :3, :3], precision=HIGHEST) + viewmat[..., None, :3, 3]
     z = pc[..., 2]
     ok = z > 1e-3
     zs = jnp.where(ok, z, 1.0)
@@ -109,13 +110,14 @@ def _project_rows(moved, viewmat, K):
 def _residuals(xi, args):
     pts, target, w, centre, viewmat, K = args
     rot = geometry.so3_exp(xi[:3])
-    moved = (pts - centre) @ rot.T + centre + xi[3:]  # [M, 3]
+    moved = matmul(pts - centre, rot.T) + centre + xi[3:]  # [M, 3]
     uv, ok = _project_rows(moved, viewmat, K)
     r = jnp.where(ok[:, None], uv - target, 0.0)
     return jnp.sqrt(w)[:, None] * r
 
 
 @functools.partial(jax.jit, static_argnames=("irls",))
+@full_precision  # the solver's normal equations too (no TF32 on GPUs)
 def rigid_increment(pts, target, weights, viewmat, K, *, irls: int = 2, huber_px: float = 1.0):
     """Rigid motion (about the weighted centroid) moving world points `pts` [M, 3] onto pixels `target`
     [M, 2] of camera (`viewmat`, `K`): returns (Delta [4, 4] world transform, RMS pixel error of the inliers).
@@ -144,7 +146,7 @@ def rigid_increment(pts, target, weights, viewmat, K, *, irls: int = 2, huber_px
                              throw=False)
     xi = jnp.where(jnp.all(jnp.isfinite(sol.value)) & (jnp.sum(inl) >= 6), sol.value, xi)
     rot = geometry.so3_exp(xi[:3])
-    delta = jnp.eye(4, dtype=dt).at[:3, :3].set(rot).at[:3, 3].set(centre - rot @ centre + xi[3:])
+    delta = jnp.eye(4, dtype=dt).at[:3, :3].set(rot).at[:3, 3].set(centre - matmul(rot, centre) + xi[3:])
     r = jnp.linalg.norm(_residuals(xi, (pts, target, jnp.ones_like(w0), centre, viewmat, K)), axis=-1)
     inl = (w0 > 0) & (r < 3.0 * huber_px)
     rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0.0)) / jnp.maximum(jnp.sum(inl), 1))
@@ -160,7 +162,7 @@ def _joint_moved(x, pts, kind: str):
     if kind == "revolute":
         rot = geometry.so3_exp(amt[:, None] * a)  # [J, 3, 3]
         piv = x[3:6]
-        return jnp.einsum("jmk,jik->jmi", pts - piv, rot) + piv
+        return jnp.einsum("jmk,jik->jmi", pts - piv, rot, precision=HIGHEST) + piv
     return pts + amt[:, None, None] * a
 
 
@@ -169,11 +171,12 @@ def _joint_residuals(x, args, kind: str):
     uv, ok = _project_rows(_joint_moved(x, pts, kind), viewmats, K)
     r = jnp.where(ok[..., None], uv - target, 0.0) * jnp.sqrt(w)[..., None]  # [J, M, 2]
     # gauge: a unit axis, and (revolute) the pivot's position along the axis pinned to the centroid's
-    gauge = jnp.stack([jnp.sum(x[:3] ** 2) - 1.0, jnp.dot(x[3:6] - centre, x[:3])])
+    gauge = jnp.stack([jnp.sum(x[:3] ** 2) - 1.0, jnp.sum((x[3:6] - centre) * x[:3])])
     return r.reshape(-1), gauge, damp * x[6:]  # damp: a pair without data keeps amount 0
 
 
 @functools.partial(jax.jit, static_argnames=("kind", "irls"))
+@full_precision  # the Cholesky of the normal equations too (no TF32 on GPUs)
 def _fit_joint_jit(x0, pts, target, weights, viewmats, K, centre, *, kind: str, irls: int, huber_px: float):
     # the damped normal equations (J^T J + lambda I, 6 + J unknowns) by Cholesky instead of the default QR of the
     # [J M 2 + ..., 6 + J] Jacobian: the same fits (inlier RMS equal to 1e-7 px on the default scene's objects)

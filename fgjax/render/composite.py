@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from fgjax.geometry import HIGHEST  # full float32 matmuls on every backend (no TF32)
 from fgjax.render.project import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 
@@ -134,7 +135,7 @@ def _segment_prefix(tile, vals, carry_tile, carry_val):
     bsz = tile.shape[0]
     earlier = jnp.tril(jnp.ones((bsz, bsz), bool), k=-1)
     mask = (earlier & (tile[:, None] == tile[None, :])).astype(vals.dtype)  # [B, B]
-    pre = mask @ vals + jnp.where(tile == carry_tile, 1.0, 0.0).astype(vals.dtype)[:, None] * carry_val
+    pre = jnp.matmul(mask, vals, precision=HIGHEST) + jnp.where(tile == carry_tile, 1.0, 0.0).astype(vals.dtype)[:, None] * carry_val
     return pre, (tile[-1], pre[-1] + vals[-1])
 
 
@@ -150,10 +151,10 @@ def _prefix_sum(x, inclusive: bool):
     k = 0 if inclusive else -1
     tri_in = jnp.tril(jnp.ones((g, g), x.dtype), k=k)
     xg = x.reshape(B, C // g, g, P)
-    within = jnp.einsum("ij,bgjp->bgip", tri_in, xg)
+    within = jnp.einsum("ij,bgjp->bgip", tri_in, xg, precision=HIGHEST)
     if C // g > 1:
         tri_out = jnp.tril(jnp.ones((C // g, C // g), x.dtype), k=-1)
-        before = jnp.einsum("gh,bhp->bgp", tri_out, xg.sum(2))  # sum of earlier groups
+        before = jnp.einsum("gh,bhp->bgp", tri_out, xg.sum(2), precision=HIGHEST)  # sum of earlier groups
         within = within + before[:, :, None, :]
     return within.reshape(B, C, P)
 
@@ -208,7 +209,7 @@ def _forward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks):
             L = pre[:, None, :] + _prefix_sum(lg, inclusive=False)
             keep = on & (L + lg > log_tmin)
             w = jnp.where(keep, alpha * jnp.exp(L), 0.0)  # [B, C, P]
-            out = jnp.einsum("bcp,bck->bpk", w, co[ids])  # [B, P, K]
+            out = jnp.einsum("bcp,bck->bpk", w, co[ids], precision=HIGHEST)  # [B, P, K]
             return new_carry, (out, pre)
 
         def skip(carry):
@@ -252,7 +253,7 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
             T = jnp.exp(L)
             w = jnp.where(keep, alpha * T, 0.0)  # [B, C, P]
             gt = g_acc[tile]  # [B, P, K]
-            gc = jnp.einsum("bck,bpk->bcp", col, gt)  # g . c_i per pixel
+            gc = jnp.einsum("bck,bpk->bcp", col, gt, precision=HIGHEST)  # g . c_i per pixel
             a = w * gc
             apre, new_carry = _segment_prefix(tile, a.sum(1), c_tile, c_val)  # [B, P]
             suffix = g_dot_acc[tile][:, None, :] - apre[:, None, :] - _prefix_sum(a, inclusive=True)
@@ -260,7 +261,7 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
             d_q = -0.5 * d_alpha * raw  # d alpha / d q = -alpha / 2 when unclamped
             # Moments of d_q over the pixel basis give every per-entry sum in one matmul:
             # sum_p d_q [x^2, xy, y^2, x, y, 1].
-            mom = jnp.einsum("bcp,pf->bcf", d_q, basis)
+            mom = jnp.einsum("bcp,pf->bcf", d_q, basis, precision=HIGHEST)
             Sxx, Sxy, Syy, Sx, Sy, S = (mom[..., i] for i in range(6))
             mx, my = ml[..., 0], ml[..., 1]
             ca, cb, cc = con[..., 0], con[..., 1], con[..., 2]
@@ -272,7 +273,7 @@ def _backward_impl(st: _Static, means2d, conics, opac, colors, ch: Chunks, pre, 
             g_mx = -2.0 * (ca * Dx + cb * Dy)
             g_my = -2.0 * (cb * Dx + cc * Dy)
             g_o = -2.0 * S / jnp.where(o > 0, o, 1.0)  # sum d_alpha exp(-q/2) = -2 sum d_q / o
-            g_col = jnp.einsum("bcp,bpk->bck", w, gt)  # [B, C, K]
+            g_col = jnp.einsum("bcp,bpk->bck", w, gt, precision=HIGHEST)  # [B, C, K]
             rows = jnp.concatenate([jnp.stack([g_mx, g_my, g_ca, g_cb, g_cc, g_o], -1), g_col], -1)
             return new_carry, rows
 

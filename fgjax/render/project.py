@@ -13,6 +13,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from fgjax.geometry import matmul as _mm  # full float32 precision on every backend
+
 # Rasterization constants shared by the tile rasterizer and documented in DESIGN.md.
 ALPHA_MIN = 1.0 / 255.0  # a Gaussian counts at a pixel exactly when alpha >= ALPHA_MIN
 ALPHA_MAX = 0.99  # alpha = min(ALPHA_MAX, o * exp(-q / 2))
@@ -51,7 +53,7 @@ def covariance3d(quats: Float[Array, "N 4"], scales: Float[Array, "N 3"]) -> Flo
     """World-space covariance Sigma = R S^2 R^T of each Gaussian."""
     rot = quat_to_rotmat(quats)  # [N, 3, 3]
     m = rot * scales[..., None, :]  # R S, [N, 3, 3]
-    return m @ jnp.swapaxes(m, -1, -2)
+    return _mm(m, jnp.swapaxes(m, -1, -2))
 
 
 def project_gaussians(
@@ -72,7 +74,7 @@ def project_gaussians(
     """
     dtype = means.dtype
     R, t = viewmat[:3, :3], viewmat[:3, 3]
-    p = means @ R.T + t  # [N, 3] camera coordinates
+    p = _mm(means, R.T) + t  # [N, 3] camera coordinates
     finite = (
         jnp.all(jnp.isfinite(means), -1)
         & jnp.all(jnp.isfinite(quats), -1)
@@ -103,8 +105,8 @@ def project_gaussians(
         axis=-2,
     )  # [N, 2, 3]
     cov_w = covariance3d(quats_s, scales_s)  # [N, 3, 3]
-    JW = J @ R  # [N, 2, 3]
-    cov = JW @ cov_w @ jnp.swapaxes(JW, -1, -2)  # [N, 2, 2]
+    JW = _mm(J, R)  # [N, 2, 3]
+    cov = _mm(_mm(JW, cov_w), jnp.swapaxes(JW, -1, -2))  # [N, 2, 2]
     a = cov[:, 0, 0] + LOWPASS
     b = 0.5 * (cov[:, 0, 1] + cov[:, 1, 0])
     c = cov[:, 1, 1] + LOWPASS

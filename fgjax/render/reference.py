@@ -11,6 +11,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+_HI = jax.lax.Precision.HIGHEST
+
 
 def _rotmat(q):
     # R = (w^2 - |v|^2) I + 2 v v^T + 2 w [v]_x, for the normalised quaternion (w, v).
@@ -28,7 +30,7 @@ def _rotmat(q):
 def project_reference(means, quats, scales, opacities, viewmat, K, width, height, near_plane=0.01):
     """means2d [N,2], conic [N,3], cov2d [N,3], depth [N], valid [N] by direct formulas."""
     Rw, tw = viewmat[:3, :3], viewmat[:3, 3]
-    pc = jnp.einsum("ij,nj->ni", Rw, means) + tw
+    pc = jnp.einsum("ij,nj->ni", Rw, means, precision=_HI) + tw
     z = pc[:, 2]
     valid = (z > near_plane) & (opacities >= 1.0 / 255.0)
     zs = jnp.where(valid, z, 1.0)
@@ -44,9 +46,9 @@ def project_reference(means, quats, scales, opacities, viewmat, K, width, height
     J = J.at[:, 1, 1].set(fy / zs).at[:, 1, 2].set(-fy * vc / zs)
     R = _rotmat(quats)
     S2 = jnp.where(valid[:, None], scales, 1.0) ** 2
-    Sig = jnp.einsum("nij,nj,nkj->nik", R, S2, R)
-    Sc = jnp.einsum("ij,njk,lk->nil", Rw, Sig, Rw)
-    cov = jnp.einsum("nij,njk,nlk->nil", J, Sc, J) + 0.3 * jnp.eye(2, dtype=means.dtype)
+    Sig = jnp.einsum("nij,nj,nkj->nik", R, S2, R, precision=_HI)
+    Sc = jnp.einsum("ij,njk,lk->nil", Rw, Sig, Rw, precision=_HI)
+    cov = jnp.einsum("nij,njk,nlk->nil", J, Sc, J, precision=_HI) + 0.3 * jnp.eye(2, dtype=means.dtype)
     a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
     det = a * c - b * b
     valid = valid & (det > 0)

@@ -6,6 +6,7 @@ clamps at 0 on top of this raw evaluation; ``spherical_harmonics`` returns the r
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -63,4 +64,4 @@ def spherical_harmonics(
     if coeffs.ndim != 3 or coeffs.shape[1] < k:
         raise ValueError(f"spherical_harmonics: coeffs must be [N, K>={k}, D], got {list(coeffs.shape)}")
     basis = sh_basis(degree, dirs)  # [N, k]
-    return jnp.einsum("nk,nkd->nd", basis, coeffs[:, :k])
+    return jnp.einsum("nk,nkd->nd", basis, coeffs[:, :k], precision=jax.lax.Precision.HIGHEST)

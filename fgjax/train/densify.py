@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from fgjax.gaussians import Gaussians
+from fgjax.geometry import HIGHEST as HI
 from fgjax.geometry import quat_to_rotmat
 
 __all__ = ["DensifyState", "densify_init", "densify_accumulate", "densify_apply", "opacity_reset", "reset_rows"]
@@ -110,8 +111,8 @@ def densify_apply(
     split = is_src & (max_s > clone_max_scale)  # per source slot
     rot = quat_to_rotmat(g.quats)  # [N, 3, 3]
     k1, k2 = jax.random.split(key)
-    off1 = jnp.einsum("nij,nj->ni", rot, scales * jax.random.normal(k1, scales.shape, scales.dtype))
-    off2 = jnp.einsum("nij,nj->ni", rot, scales * jax.random.normal(k2, scales.shape, scales.dtype))
+    off1 = jnp.einsum("nij,nj->ni", rot, scales * jax.random.normal(k1, scales.shape, scales.dtype), precision=HI)
+    off2 = jnp.einsum("nij,nj->ni", rot, scales * jax.random.normal(k2, scales.shape, scales.dtype), precision=HI)
     shrink = jnp.log(jnp.asarray(1.6, g.log_scales.dtype))
     # the new copy of each source (split: resampled position, smaller scale)
     new_means = jnp.where(split[:, None], g.means + off2, g.means)

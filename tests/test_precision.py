@@ -55,11 +55,13 @@ def _low_precision_dots(jaxpr) -> list[str]:
     return bad
 
 
-def _check(fn, *args):
+def _check(fn, *args, allow: str | None = None):
+    """Traces fn(*args) under the default precision; fails naming every product without HIGHEST (those made in a
+    file whose path contains `allow` excepted). Returns the number of products."""
     with jax.default_matmul_precision("default"):
         closed = jax.make_jaxpr(fn)(*args)
     dots = _count_dots(closed.jaxpr)
-    bad = _low_precision_dots(closed.jaxpr)
+    bad = [b for b in _low_precision_dots(closed.jaxpr) if allow is None or allow not in b]
     assert not bad, "matrix products without precision=HIGHEST:\n" + "\n".join(bad)
     return dots
 
@@ -156,3 +158,24 @@ def test_tracking_transforms_at_full_precision():
     means, quats = _scene()[:2]
     poses = geometry.se3_exp(x)
     _check(lambda m, q: track.transform_gaussians(m, q, jnp.zeros(len(m), jnp.int32), poses), means, quats)
+
+
+def test_stage1_step_at_full_precision_but_the_fields_mlps():
+    """The whole stage-1 step (deformation, pose refinement, rendering, losses, gradients, optimiser): every product
+    at HIGHEST except the learned deformation field's MLP (fgjax/models), which may use TF32."""
+    from test_stage1 import _cfg, _tiny_scene
+
+    from fgjax.pipeline import stage1
+    from fgjax.train.optim import OptimSpec, make_optimizer
+
+    scene = _tiny_scene(True, frames=3)
+    state, spec, _ = stage1.initial_state(_cfg(), scene)
+    params = dict(state.params, pose=jnp.zeros((3, 6), jnp.float32))
+    ospec = OptimSpec(steps=10)
+    ss = stage1.StepSpec(spec, 1, scene.width, scene.height, 16384, 8, 0.2, 0.0, 0.05, True)
+    step = stage1._make_step(ss, ospec, 4, (0.0, 0.0, 0.0))
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    i = np.array([1])
+    args = (params, make_optimizer(ospec, 4).init(params), state.densify, jnp.ones(4, jnp.float32),
+            f32(scene.images[i]), f32(scene.viewmats[i]), f32(scene.Ks[i]), f32(scene.times[i]), jnp.asarray(i, jnp.int32))
+    assert _check(step, *args, allow="/fgjax/models/") >= 10

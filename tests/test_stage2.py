@@ -407,3 +407,46 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     assert rinit2 is refit1 and rposes2 is poses2 and seed2 == 4
     np.testing.assert_allclose(np.asarray(res.refit.means), np.asarray(refit2.means))
     assert any("round 2 of 2" in m for m in logs), logs
+
+
+def _selection_case(seed=0):
+    """Discovery's output on a made-up scene: a large part A (600 dynamic Gaussians, moving in frames 0-9), a small
+    part B that moves in frames 20-24 (30 dynamic Gaussians, its 200 others missed by discovery but on moving pixels
+    in B's frames) and a false fragment C (30 dynamic Gaussians moving in B's frames, nothing around it)."""
+    from fgjax.pipeline.discover import Discovery, Scores
+
+    rng = np.random.default_rng(seed)
+    blob = lambda c, n: np.asarray(c) + rng.uniform(-0.04, 0.04, (n, 3))  # noqa: E731
+    pts = np.concatenate([blob([0, 0, 0], 600), blob([1, 0, 0], 30), blob([1, 0, 0], 200), blob([2, 0, 0], 30)])
+    n, t = len(pts), 30
+    moving_t = np.zeros((t, n), np.float32)
+    moving_t[:10, :600] = 1.0
+    moving_t[20:25, 600:] = 1.0  # B's members, B's missed Gaussians and C
+    total_t = np.ones((t, n), np.float32)
+    dynamic = np.zeros(n, bool)
+    dynamic[:630] = True
+    dynamic[830:] = True
+    score = moving_t.sum(0) / total_t.sum(0)
+    scores = Scores(score, moving_t.sum(0), total_t.sum(0), moving_t, total_t)
+    return pts, Discovery(dynamic, scores, np.zeros((t, 2, 2), bool), 0.3)
+
+
+def test_size_cut_after_the_second_pass_keeps_a_part_that_moves_in_few_frames():
+    """B's first cluster (30) is under 5% of D (660: 33), like the default scene's lid after a long stage 1; the
+    second pass in B's own frames grows it to 230, so the cut after that pass keeps it and drops C."""
+    pts, disc = _selection_case()
+    quiet = lambda *_: None  # noqa: E731
+    early = stage2.Stage2Config(cut_after_local=False)
+    labels, _, report = stage2.select_objects(pts, disc, early, np.ones(len(pts), bool), log=quiet)
+    assert report.n_clusters == 1 and np.all(labels[:600] == 0) and np.all(labels[600:] == -1)
+    late = stage2.Stage2Config()
+    assert late.cut_after_local
+    labels, disc2, report = stage2.select_objects(pts, disc, late, np.ones(len(pts), bool), log=quiet)
+    assert report.n_clusters == 2, list(report.sizes)
+    assert np.all(labels[:600] == 0) and np.all(labels[600:830] == 1) and np.all(labels[830:] == -1)
+    assert np.all(disc2.dynamic[600:830]) and np.array_equal(disc2.dynamic[830:], disc.dynamic[830:])
+    # without candidates B cannot grow and the late cut drops it as well
+    _, _, report = stage2.select_objects(pts, disc, late, np.zeros(len(pts), bool), log=quiet)
+    assert report.n_clusters == 1
+    with pytest.raises(ValueError, match="local_floor"):
+        stage2.run_stage2("nowhere", "nowhere", stage2.Stage2Config(local_floor=1.0))

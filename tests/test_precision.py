@@ -40,18 +40,23 @@ def _origin(eqn) -> str:
     return f"{frames[0].file_name}:{frames[0].line_num} ({frames[0].function_name})" if frames else "?"
 
 
-def _low_precision_dots(jaxpr) -> list[str]:
-    """Source lines of the dot_general equations in `jaxpr` (sub-programs of scan, cond, jit, custom_vjp
-    included) whose precision is not HIGHEST for both operands."""
-    bad = []
+def _dots(jaxpr):
+    """Every dot_general equation in `jaxpr`, those of its sub-programs (scan, cond, jit, custom_vjp) included."""
     for eqn in jaxpr.eqns:
         if eqn.primitive.name == "dot_general":
-            prec = eqn.params.get("precision")
-            if not (isinstance(prec, tuple) and all(p == jax.lax.Precision.HIGHEST for p in prec)):
-                bad.append(f"{_origin(eqn)} precision={prec}")
+            yield eqn
         for value in eqn.params.values():
             for sub in _subjaxprs(value):
-                bad += _low_precision_dots(sub)
+                yield from _dots(sub)
+
+
+def _low_precision_dots(jaxpr) -> list[str]:
+    """Source lines of the dot_general equations in `jaxpr` whose precision is not HIGHEST for both operands."""
+    bad = []
+    for eqn in _dots(jaxpr):
+        prec = eqn.params.get("precision")
+        if not (isinstance(prec, tuple) and all(p == jax.lax.Precision.HIGHEST for p in prec)):
+            bad.append(f"{_origin(eqn)} precision={prec}")
     return bad
 
 
@@ -60,19 +65,9 @@ def _check(fn, *args, allow: str | None = None):
     file whose path contains `allow` excepted). Returns the number of products."""
     with jax.default_matmul_precision("default"):
         closed = jax.make_jaxpr(fn)(*args)
-    dots = _count_dots(closed.jaxpr)
     bad = [b for b in _low_precision_dots(closed.jaxpr) if allow is None or allow not in b]
     assert not bad, "matrix products without precision=HIGHEST:\n" + "\n".join(bad)
-    return dots
-
-
-def _count_dots(jaxpr) -> int:
-    n = 0
-    for eqn in jaxpr.eqns:
-        n += eqn.primitive.name == "dot_general"
-        for value in eqn.params.values():
-            n += sum(_count_dots(sub) for sub in _subjaxprs(value))
-    return n
+    return sum(1 for _ in _dots(closed.jaxpr))
 
 
 def _scene(n=60, seed=0):

@@ -27,6 +27,7 @@ import optax
 
 from fgjax.config import Config, ConfigError, load_config, to_toml
 from fgjax.gaussians import Gaussians, activate, init_from_points, knn_graph
+from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
 from fgjax.models.deform import DeformSpec, deform_apply, deform_init
 from fgjax.train import checkpoint as ckpt
@@ -187,7 +188,6 @@ def render_params(
     offset proportional to depth); its gradient is the screen-space gradient densification needs.
     ``active`` [N] bool: composite only the tiles these Gaussians reach (`fgjax.rasterization`'s ``active``).
     """
-    from fgjax.geometry import matmul
     from fgjax.render.api import rasterization, spherical_harmonics
 
     means, q, s, o, log_scales = _deformed(params, alive, t, spec)
@@ -252,8 +252,6 @@ def _flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
 
     vm_prev = fl.viewmat_prev
     if ss.pose:
-        from fgjax.geometry import matmul, se3_exp
-
         vm_prev = matmul(se3_exp(params["pose"][fl.idx_prev]), vm_prev)
     m0, q0, s0, o0, _ = _deformed(params, alive, fl.t_prev, ss.spec)
     m1 = _deformed(params, alive, t, ss.spec)[0]
@@ -272,8 +270,6 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
 
     def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx, fl, nbr):
         if ss.pose:
-            from fgjax.geometry import matmul, se3_exp
-
             viewmat = matmul(se3_exp(params["pose"][idx]), viewmat)
         img, _, info, geo = render_params(
             params, alive, viewmat, K, t, spec=ss.spec, sh_degree=ss.sh_degree, width=ss.width,
@@ -764,7 +760,6 @@ def refined_viewmats(params, viewmats: np.ndarray) -> np.ndarray:
     world-to-camera) when the run refined poses (``pose.enabled``), else ``viewmats`` unchanged."""
     if "pose" not in params:
         return np.asarray(viewmats)
-    from fgjax.geometry import se3_exp
 
     deltas = np.asarray(params["pose"], np.float64)  # [T, 6]
     vm = np.asarray(viewmats, np.float64)

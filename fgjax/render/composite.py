@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from fgjax.geometry import HIGHEST  # full float32 matmuls on every backend (no TF32)
+from fgjax.geometry import HIGHEST, matmul  # full float32 products on every backend (no TF32)
 from fgjax.render.project import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 
@@ -135,7 +135,7 @@ def _segment_prefix(tile, vals, carry_tile, carry_val):
     bsz = tile.shape[0]
     earlier = jnp.tril(jnp.ones((bsz, bsz), bool), k=-1)
     mask = (earlier & (tile[:, None] == tile[None, :])).astype(vals.dtype)  # [B, B]
-    pre = jnp.matmul(mask, vals, precision=HIGHEST) + jnp.where(tile == carry_tile, 1.0, 0.0).astype(vals.dtype)[:, None] * carry_val
+    pre = matmul(mask, vals) + jnp.where(tile == carry_tile, 1.0, 0.0).astype(vals.dtype)[:, None] * carry_val
     return pre, (tile[-1], pre[-1] + vals[-1])
 
 

@@ -6,9 +6,10 @@ clamps at 0 on top of this raw evaluation; ``spherical_harmonics`` returns the r
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
+
+from fgjax.geometry import HIGHEST  # full float32 products on every backend (no TF32)
 
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
@@ -64,4 +65,4 @@ def spherical_harmonics(
     if coeffs.ndim != 3 or coeffs.shape[1] < k:
         raise ValueError(f"spherical_harmonics: coeffs must be [N, K>={k}, D], got {list(coeffs.shape)}")
     basis = sh_basis(degree, dirs)  # [N, k]
-    return jnp.einsum("nk,nkd->nd", basis, coeffs[:, :k], precision=jax.lax.Precision.HIGHEST)
+    return jnp.einsum("nk,nkd->nd", basis, coeffs[:, :k], precision=HIGHEST)

@@ -224,9 +224,11 @@ def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
     # demo: stage 2's defaults less 20% of the photometric tracking's steps, to stay under 15 minutes
     # (docs/benchmarks.md, session 9),
     # and session 9's re-fit (300 steps, the first 150 relabelling: 75 s in session 9; the default's 600 of 600
-    # took 93 s in session 10, not timed side by side)
+    # took 93 s in session 10, not timed side by side). The quick demo keeps the flow tracker's pair-by-pair poses
+    # (no joint fits): on its 24 frames the fits took 23 s of stage 2's 65 s and gave no better control (state
+    # PSNR 22.68 against 23.68 dB without; docs/benchmarks.md, session 20)
     s2cfg = stage2.Stage2Config(flow_cache=str(cache), auto_eps=quick, photo_steps=0,
-                                **({"distill_steps": 100, "refit_steps": 100, "track_photo": 0,
+                                **({"distill_steps": 100, "refit_steps": 100, "track_photo": 0, "track_joints": "off",
                                     "relabel_steps": 0, "local_threshold": 0.4} if quick else
                                    {"track_photo": 40, "distill_steps": 300, "refit_steps": 300,
                                     "relabel_steps": 150}))

@@ -358,7 +358,10 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert sum(m.startswith("stage 2: re-fitted the Gaussians") for m in logs) == 1, logs
     assert not any("round 2" in m for m in logs), logs
     assert np.all(np.isfinite(res.traj)) and res.refit is not None
-    assert stage2.load_stage2(dst).s2.meta["config"]["track_photo"] == 5
+    meta = stage2.load_stage2(dst).s2.meta
+    assert meta["config"]["track_photo"] == 5
+    assert len(meta["joint_kinds"]) == len(meta["joint_costs"]) == res.num_objects, meta
+    assert all(k in ("revolute", "prismatic") and c >= 0 for k, c in zip(meta["joint_kinds"], meta["joint_costs"]))
     for bad, field in (({"track_photo": -1}, "track_photo"), ({"track_rounds": 0}, "track_rounds")):
         with pytest.raises(ValueError, match=field):
             stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(**bad), log=logs.append)
@@ -385,7 +388,7 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
         poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
         poses[:, :, 0, 3] = 0.01 * (len(calls) + 1)  # each call's poses told apart by their shift
         calls.append(("track", ref, init_poses, poses))
-        return poses
+        return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [float(len(calls))] * k}
 
     def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
                    init=None, log=print):
@@ -407,6 +410,7 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     assert rinit2 is refit1 and rposes2 is poses2 and seed2 == 4
     np.testing.assert_allclose(np.asarray(res.refit.means), np.asarray(refit2.means))
     assert any("round 2 of 2" in m for m in logs), logs
+    assert res.meta["joint_costs"] == [3.0] * res.num_objects  # the last round's joints are the ones kept
 
 
 def _selection_case(seed=0):

@@ -417,7 +417,8 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     return (poses, pi, stats) if return_stats else (poses, pi)
 
 
-def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_margin: float = 0.95, log=print):
+def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_margin: float = 0.95,
+                warn_cost: float = 4.0, log=print):
     """Each object's poses replaced by the one articulation that best explains them.
 
     Args:
@@ -435,10 +436,15 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
     joint's large residuals there count as outliers, which that RMS leaves out: the default scene's door,
     turning 70 degrees but moving more than 2 px in only 4 of its 60 frames, had the same inlier RMS as a
     hinge and as a slide; docs/benchmarks.md, session 18.)
-    Returns (poses [K, T, 4, 4], kinds [K]).
+
+    The chosen joint's cost also tells whether the tracking worked: a joint explains well tracked poses to
+    about 1 px^2 (0.6-1.3 on the default scene's parts), and every lost part seen had a cost over 4
+    (docs/benchmarks.md, sessions 19-20: a door whose per-frame poses turn about a wrong axis, or stay open
+    after it closed). Over ``warn_cost`` (px^2) a warning is logged.
+    Returns (poses [K, T, 4, 4], kinds [K], costs [K]: the chosen joint's robust cost, nan where kept).
     """
     poses = np.asarray(poses, np.float64)
-    out, kinds = poses.copy(), []
+    out, kinds, costs = poses.copy(), [], np.full(len(points), np.nan)
     t_all = poses.shape[1]
     vms = np.asarray(viewmats, np.float64)
     Kn = np.asarray(Ks, np.float64)
@@ -465,7 +471,12 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
         kind = "revolute" if cost["revolute"] < revolute_margin * cost["prismatic"] else "prismatic"
         out[k] = fits[kind][0]
         kinds.append(kind)
+        costs[k] = cost[kind]
         log(f"photometric tracking: object {k + 1}: revolute cost {cost['revolute']:.3f} (inlier RMS "
             f"{fits['revolute'][1]:.2f} px), prismatic {cost['prismatic']:.3f} ({fits['prismatic'][1]:.2f} px) -> "
             f"{kind} (axis {np.round(fits[kind][3], 3).tolist()}; {time.perf_counter() - t_obj:.1f} s)")
-    return out, kinds
+        if not cost[kind] <= warn_cost:
+            log(f"photometric tracking: warning: object {k + 1}'s {kind} joint explains its tracked poses poorly "
+                f"(robust cost {cost[kind]:.2f} px^2 > {warn_cost:g}): its tracking has likely failed, and its "
+                f"trajectory and controlled renders will be wrong")
+    return out, kinds, costs

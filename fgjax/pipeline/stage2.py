@@ -610,8 +610,9 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
 
 def _tracked_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int, flows,
                    cfg: Stage2Config, moving=None, log=print) -> np.ndarray:
-    """Poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow (or the
-    images, ``cfg.track_photo``) against the reference scene `ref` (stage 1 at t0, raw parameters).
+    """(poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow (or the
+    images, ``cfg.track_photo``) against the reference scene `ref` (stage 1 at t0, raw parameters), the joint
+    fits' kinds and costs (`_photometric_poses`; {} for the flow tracking)).
     ``moving`` [K, T-1]: the pairs in which each object moves (`fgjax.cluster.moving_frames`; None: all)."""
     from fgjax.pipeline.track import track_objects
 
@@ -640,7 +641,7 @@ def _tracked_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndar
             poses, _ = chained_joint_poses(ref.means, qa, sa, oa, labels, poses, moving, scene.viewmats[order],
                                            scene.Ks[order], flows, scene.width, scene.height,
                                            tile_size=run.cfg.train.tile_size, log=log)
-    return poses
+    return poses, {}
 
 
 def photo_level_steps(n: int) -> tuple[int, int, int]:
@@ -652,7 +653,8 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
                        cfg: Stage2Config, moving, log=print, init_poses=None) -> np.ndarray:
     """`_tracked_poses` by `fgjax.pipeline.phototrack` (``cfg.track_photo`` steps per frame) from the
     reference scene `ref` (raw parameters; ``init_poses`` [K, T, 4, 4]: an earlier round's poses, a further
-    start of each frame): poses [K, T, 4, 4]."""
+    start of each frame): (poses [K, T, 4, 4], {"joint_kinds": [K], "joint_costs": [K] robust costs in px^2,
+    None where kept})."""
     from fgjax.pipeline.phototrack import joint_poses, track_photometric
 
     steps = photo_level_steps(int(cfg.track_photo))
@@ -673,8 +675,8 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
         # ~45 s (session 9; the same joint kinds, state PSNR 28.47 -> 29.32 dB, which is within the joint fit's
         # sensitivity to its inputs)
         pts.append(m0[rng.choice(idx, min(len(idx), 64), replace=False)] if len(idx) else np.zeros((0, 3)))
-    poses, _ = joint_poses(pts, poses, vms, Ks, log=log)
-    return poses
+    poses, kinds, costs = joint_poses(pts, poses, vms, Ks, log=log)
+    return poses, {"joint_kinds": list(kinds), "joint_costs": [None if not np.isfinite(c) else float(c) for c in costs]}
 
 
 def _posed_geometry(base, labels: np.ndarray, poses: np.ndarray):
@@ -1132,7 +1134,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                                           t_start=t_start)
     n_dyn = int(disc.dynamic.sum())
     # trajectories and the teacher geometry over all training times (time order)
-    refit = None
+    refit, joints = None, {}
     if cfg.trajectories == "flow" and report.n_clusters:
         moving = None
         if cfg.track_active > 0 and disc.scores.moving_t is not None:
@@ -1142,15 +1144,16 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                 f"{moving.shape[1]} ({time.perf_counter() - t_start:.1f} s)")
         reference = _reference_scene(run, float(times[0]))  # the scene the poses move
         base = (reference.means, reference.quats, reference.log_scales)
-        poses = _tracked_poses(run, scene, order, reference, labels, report.n_clusters, flows, cfg, moving, log)
+        poses, joints = _tracked_poses(run, scene, order, reference, labels, report.n_clusters, flows, cfg, moving,
+                                       log)
         if cfg.refit_steps > 0:
             rounds = int(cfg.track_rounds) if cfg.track_photo > 0 else 1
             refit = reference  # the first re-fit starts from the reference the poses move
             for r in range(rounds):
                 if r > 0:  # track again, rendering the last re-fit (module docstring of phototrack)
                     log(f"stage 2: tracking and re-fitting, round {r + 1} of {rounds}")
-                    poses = _photometric_poses(run, scene, order, refit, labels, report.n_clusters, cfg, moving,
-                                               log, init_poses=poses)
+                    poses, joints = _photometric_poses(run, scene, order, refit, labels, report.n_clusters, cfg,
+                                                       moving, log, init_poses=poses)
                 refit, labels = refit_gaussians(run, scene, order, labels, poses, cfg.refit_steps, seed=cfg.seed + r,
                                                 relabel_steps=cfg.relabel_steps, relabel_radius=cfg.relabel_radius,
                                                 init=refit, log=log)
@@ -1177,6 +1180,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
         "num_noise": report.n_noise,
         "moving_pixel_fraction": float(disc.masks.mean()),
         "flow_loss": bool(stats.get("photometric", {}).get("flow_weight", 0.0) > 0),
+        **joints,  # the photometric tracking's joint kinds and robust costs (px^2; over 4: tracking likely lost)
         "time_s": time.perf_counter() - t_start,
         **stats,
     }

@@ -413,15 +413,17 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     assert res.meta["joint_costs"] == [3.0] * res.num_objects  # the last round's joints are the ones kept
 
 
-def _selection_case(seed=0):
+def _selection_case(seed=0, c_missed=0):
     """Discovery's output on a made-up scene: a large part A (600 dynamic Gaussians, moving in frames 0-9), a small
     part B that moves in frames 20-24 (30 dynamic Gaussians, its 200 others missed by discovery but on moving pixels
-    in B's frames) and a false fragment C (30 dynamic Gaussians moving in B's frames, nothing around it)."""
+    in B's frames) and a false fragment C (30 dynamic Gaussians moving in B's frames, ``c_missed`` others around it
+    on moving pixels in those frames, like the static Gaussians a lid uncovers)."""
     from fgjax.pipeline.discover import Discovery, Scores
 
     rng = np.random.default_rng(seed)
     blob = lambda c, n: np.asarray(c) + rng.uniform(-0.04, 0.04, (n, 3))  # noqa: E731
-    pts = np.concatenate([blob([0, 0, 0], 600), blob([1, 0, 0], 30), blob([1, 0, 0], 200), blob([2, 0, 0], 30)])
+    pts = np.concatenate([blob([0, 0, 0], 600), blob([1, 0, 0], 30), blob([1, 0, 0], 200), blob([2, 0, 0], 30),
+                          blob([2, 0, 0], c_missed)])
     n, t = len(pts), 30
     moving_t = np.zeros((t, n), np.float32)
     moving_t[:10, :600] = 1.0
@@ -429,7 +431,7 @@ def _selection_case(seed=0):
     total_t = np.ones((t, n), np.float32)
     dynamic = np.zeros(n, bool)
     dynamic[:630] = True
-    dynamic[830:] = True
+    dynamic[830:860] = True
     score = moving_t.sum(0) / total_t.sum(0)
     scores = Scores(score, moving_t.sum(0), total_t.sum(0), moving_t, total_t)
     return pts, Discovery(dynamic, scores, np.zeros((t, 2, 2), bool), 0.3)
@@ -437,7 +439,9 @@ def _selection_case(seed=0):
 
 def test_size_cut_after_the_second_pass_keeps_a_part_that_moves_in_few_frames():
     """B's first cluster (30) is under 5% of D (660: 33), like the default scene's lid after a long stage 1; the
-    second pass in B's own frames grows it to 230, so the cut after that pass keeps it and drops C."""
+    second pass in B's own frames grows it to 230, so the cut after that pass keeps it and drops C. A false
+    fragment that the second pass grows to 6.7% of the clustered Gaussians (as the close pair's and the pose-noise
+    scene's did, session 20) passes a 5% cut and not the default 10%."""
     pts, disc = _selection_case()
     quiet = lambda *_: None  # noqa: E731
     early = stage2.Stage2Config(cut_after_local=False)
@@ -452,5 +456,13 @@ def test_size_cut_after_the_second_pass_keeps_a_part_that_moves_in_few_frames():
     # without candidates B cannot grow and the late cut drops it as well
     _, _, report = stage2.select_objects(pts, disc, late, np.zeros(len(pts), bool), log=quiet)
     assert report.n_clusters == 1
+    # C grown to 60 by the Gaussians around it (6.7% of the 890 clustered): over a 5% cut, under the default 10%
+    pts, disc = _selection_case(c_missed=30)
+    for frac, kept in ((0.05, 3), (late.local_min_fraction, 2)):
+        labels, _, report = stage2.select_objects(pts, disc, stage2.Stage2Config(local_min_fraction=frac),
+                                                  np.ones(len(pts), bool), log=quiet)
+        assert report.n_clusters == kept and np.sum(labels >= 0) == 830 + 60 * (kept == 3), (frac, list(report.sizes))
+    with pytest.raises(ValueError, match="local_min_fraction"):
+        stage2.run_stage2("nowhere", "nowhere", stage2.Stage2Config(local_min_fraction=-0.1))
     with pytest.raises(ValueError, match="local_floor"):
         stage2.run_stage2("nowhere", "nowhere", stage2.Stage2Config(local_floor=1.0))

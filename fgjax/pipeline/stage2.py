@@ -101,15 +101,19 @@ class Stage2Config:
     """DBSCAN radius in scene units."""
     min_samples: int = 5
     min_fraction: float = 0.05
-    """Clusters smaller than this fraction are dropped: of the Gaussians in every cluster after the second pass in
-    each cluster's moving frames (with ``cut_after_local``, the default), else of D."""
+    """Clusters smaller than this fraction of D are dropped (without ``cut_after_local``; with it,
+    ``local_min_fraction`` of the clustered Gaussians after the second pass)."""
     cut_after_local: bool = True
-    """Apply the ``min_fraction`` cut after `fgjax.cluster.localize_clusters` (which needs ``local_radius > 0`` and
-    ``merge_eps > 0``); before it, only clusters under ``local_floor`` of D drop. A part that moves in few frames
-    scores low in discovery, so its first cluster is small and close to a cut of D: in the default scene the lid
-    had 101-188 Gaussians against a 5% cut of 129-152, and a 4000-step stage 1 lost it on every seed
-    (docs/benchmarks.md, session 19). The second pass grows it 3-5x (to 506-592), the false fragments behind it
-    less (at most 146 against a cut of 153-181)."""
+    """Cut by size after `fgjax.cluster.localize_clusters` (which needs ``local_radius > 0`` and ``merge_eps > 0``):
+    clusters under ``local_min_fraction`` of the clustered Gaussians drop then; before it, only clusters under
+    ``local_floor`` of D. A part that moves in few frames scores low in discovery, so its first cluster is small and
+    close to a cut of D: in the default scene the lid had 101-188 Gaussians against a 5% cut of 129-152, and a
+    4000-step stage 1 lost it on every seed (docs/benchmarks.md, session 19). The second pass grows it 3-5x."""
+    local_min_fraction: float = 0.10
+    """With ``cut_after_local``: the size cut after the second pass, as a fraction of the clustered Gaussians. After
+    that pass the lids of seven runs held 14.2-17.2% of them and the false fragments (static Gaussians behind the
+    lid that it uncovers) 2.4-5.7% (docs/benchmarks.md, session 20); 5% let two of those fragments pass as objects.
+    A scene with more than about eight equal moving parts needs it lower."""
     local_floor: float = 0.01
     """With ``cut_after_local``: clusters under this fraction of D drop before the second pass."""
     auto_eps: bool = False
@@ -1066,11 +1070,11 @@ def select_objects(canonical: np.ndarray, disc, cfg: Stage2Config, candidates: n
             f"{list(loc.joined)} Gaussians joined (score >= {cfg.local_threshold} in those frames within "
             f"{cfg.local_radius} of the cluster); sizes {list(report.sizes)}")
         if cut_late:
-            cut = cluster.size_cut(cfg.min_fraction, int(np.sum(labels >= 0)))
+            cut = cluster.size_cut(cfg.local_min_fraction, int(np.sum(labels >= 0)))
             labels = cluster.relabel_by_size(labels, min_size=cut)
             disc = disc._replace(dynamic=dyn_before | (labels >= 0))  # the dropped clusters' joined ones leave D
             report = cluster.cluster_report(labels[disc.dynamic])
-            log(f"stage 2: the size cut ({cfg.min_fraction:g} of the clustered Gaussians: {cut}) keeps "
+            log(f"stage 2: the size cut ({cfg.local_min_fraction:g} of the clustered Gaussians: {cut}) keeps "
                 f"{report.n_clusters} cluster(s) of sizes {list(report.sizes)}")
     return labels, disc, report
 
@@ -1096,8 +1100,9 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
         raise ValueError(f"Stage2Config.track_joints must be 'auto' or 'off'; got {cfg.track_joints!r}")
     if cfg.track_masks not in ("frame", "reference"):
         raise ValueError(f"Stage2Config.track_masks must be 'frame' or 'reference'; got {cfg.track_masks!r}")
-    if not 0.0 <= cfg.local_floor < 1.0:
-        raise ValueError(f"Stage2Config.local_floor must be in [0, 1), got {cfg.local_floor!r}")
+    for name in ("local_floor", "local_min_fraction"):
+        if not 0.0 <= getattr(cfg, name) < 1.0:
+            raise ValueError(f"Stage2Config.{name} must be in [0, 1), got {getattr(cfg, name)!r}")
     if cfg.track_photo < 0 or cfg.track_photo_radius < 0:
         raise ValueError(f"Stage2Config.track_photo and track_photo_radius must be >= 0; got {cfg.track_photo!r}, "
                          f"{cfg.track_photo_radius!r}")

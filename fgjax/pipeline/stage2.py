@@ -111,8 +111,8 @@ class Stage2Config:
     4000-step stage 1 lost it on every seed (docs/benchmarks.md, session 19). The second pass grows it 3-5x."""
     local_min_fraction: float = 0.10
     """With ``cut_after_local``: the size cut after the second pass, as a fraction of the clustered Gaussians. After
-    that pass the lids of seven runs held 14.2-17.2% of them and the false fragments (static Gaussians behind the
-    lid that it uncovers) 2.4-5.7% (docs/benchmarks.md, session 20); 5% let two of those fragments pass as objects.
+    that pass the lids of seven runs held 14.2-17.2% of them and the small false fragments (static Gaussians behind the
+    lid that it uncovers) 2.1-5.7% (docs/benchmarks.md, session 20); 5% let two of those fragments pass as objects.
     A scene with more than about eight equal moving parts needs it lower."""
     local_floor: float = 0.01
     """With ``cut_after_local``: clusters under this fraction of D drop before the second pass."""

@@ -438,7 +438,7 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
     hinge and as a slide; docs/benchmarks.md, session 18.)
 
     The chosen joint's cost also tells whether the tracking worked: a joint explains well tracked poses to
-    about 1 px^2 (0.6-1.3 on the default scene's parts), and every lost part seen had a cost over 4
+    about 1 px^2 (0.6-1.6 on the default scene's parts), and every lost part seen had a cost over 4
     (docs/benchmarks.md, sessions 19-20: a door whose per-frame poses turn about a wrong axis, or stay open
     after it closed). Over ``warn_cost`` (px^2) a warning is logged.
     Returns (poses [K, T, 4, 4], kinds [K], costs [K]: the chosen joint's robust cost, nan where kept).

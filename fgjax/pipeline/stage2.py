@@ -613,7 +613,7 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
 
 
 def _tracked_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int, flows,
-                   cfg: Stage2Config, moving=None, log=print) -> np.ndarray:
+                   cfg: Stage2Config, moving=None, log=print) -> tuple[np.ndarray, dict]:
     """(poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow (or the
     images, ``cfg.track_photo``) against the reference scene `ref` (stage 1 at t0, raw parameters), the joint
     fits' kinds and costs (`_photometric_poses`; {} for the flow tracking)).
@@ -654,7 +654,7 @@ def photo_level_steps(n: int) -> tuple[int, int, int]:
 
 
 def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
-                       cfg: Stage2Config, moving, log=print, init_poses=None) -> np.ndarray:
+                       cfg: Stage2Config, moving, log=print, init_poses=None) -> tuple[np.ndarray, dict]:
     """`_tracked_poses` by `fgjax.pipeline.phototrack` (``cfg.track_photo`` steps per frame) from the
     reference scene `ref` (raw parameters; ``init_poses`` [K, T, 4, 4]: an earlier round's poses, a further
     start of each frame): (poses [K, T, 4, 4], {"joint_kinds": [K], "joint_costs": [K] robust costs in px^2,

@@ -69,9 +69,36 @@ def test_eval_writes_metrics(tiny, tmp_path, capsys):
     assert m["camera_rotation_error_used_deg"] == m["camera_rotation_error_written_deg"]
     if m["num_objects_found"]:
         assert np.isfinite(m["state_psnr_true_motion"]) and np.isfinite(m["state_psnr_true_motion_labels"])
+    # where the state frames' error lies: per gt id, shares that sum to each frame's MSE (its PSNR)
+    shares = np.array(list(m["state_mse_by_object"].values()))  # [ids, frames]
+    pixels = np.array(list(m["state_pixels_by_object"].values()))
+    assert shares.shape == pixels.shape == (len(m["state_mse_by_object"]), len(m["state_psnr_per_frame"]))
+    assert "0" in m["state_mse_by_object"] and np.all(shares >= 0) and np.all(pixels >= 0)
+    np.testing.assert_allclose(-10 * np.log10(shares.sum(0)), m["state_psnr_per_frame"], atol=1e-3)
     for row in m.get("motion_preference", {}).values():
         assert 1 <= row["frames"] <= 8 and 0.0 <= row["true_wins"] <= 1.0 and 0.0 <= row["true_wins_gt_labels"] <= 1.0
         assert all(0.0 < row[key] < 1.0 for key in ("l1_learned", "l1_true", "l1_true_gt_labels"))
+
+
+def test_error_by_object_splits_the_squared_error_by_gt_id():
+    """Shares of a hand-made error: id 2's four pixels off by 0.5 in one channel, id 0 by 0.1 everywhere,
+    id -1 (no gt) left out even when wrong."""
+    from fgjax.pipeline.evaluate import error_by_object
+
+    image = np.zeros((4, 5, 3))
+    ids = np.zeros((4, 5), int)
+    ids[:2, :2] = 2
+    ids[3, 4] = -1
+    img = image + np.array([0.1, 0.1, 0.1])
+    img[:2, :2] = [0.5, 0.0, 0.0]
+    img[3, 4] = 1.0
+    out = error_by_object(img, image, ids)
+    assert sorted(out) == ["0", "2"]
+    np.testing.assert_allclose(out["2"]["mse"], 4 * 0.25 / 3 / 20)
+    np.testing.assert_allclose(out["0"]["mse"], 15 * 0.01 / 20)
+    assert out["2"]["pixels"] == 4 / 20 and out["0"]["pixels"] == 15 / 20
+    with pytest.raises(ValueError, match="ids must have shape"):
+        error_by_object(img, image, ids[:3])
 
 
 def test_motion_preference_compares_the_three_renders_with_the_same_frames(tiny, monkeypatch):

@@ -25,6 +25,10 @@ kept):
 - ``state_psnr_centre``: the same with the displacement of the gt object's centre instead (session
   2-3's protocol). For a rotating part this differs from the centroid's displacement whenever the
   cluster covers the part unevenly, so it mixes an error of the protocol into the control error.
+- ``state_mse_by_object`` and ``state_pixels_by_object``: where ``state_psnr`` loses, per gt object id (0 =
+  static): {id: [per state frame]}: the id's pixels' squared error as a share of the frame's MSE (the shares
+  sum to it: `error_by_object`), and the fraction of the pixels they are. On session 21's demo run the lid,
+  2% of the pixels, carried 19-37% of the error (docs/benchmarks.md, session 21).
 - ``state_psnr_stage1`` is stage 1 rendered at the frame's time, for reference.
 - ``state_psnr_true_motion`` and ``state_psnr_true_motion_labels``: ceilings, no control network. The
   reference Gaussians with each matched cluster moved by the gt motion of its object (the discovered
@@ -57,8 +61,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main", "camera_errors", "evaluate_control", "gt_labels_of_gaussians", "gt_motion_scene", "gt_objects",
-           "gt_point_motion"]
+__all__ = ["main", "camera_errors", "error_by_object", "evaluate_control", "gt_labels_of_gaussians",
+           "gt_motion_scene", "gt_objects", "gt_point_motion"]
 
 
 def gt_motion_scene(obj, s_from: float, s_to: float, norm) -> np.ndarray:
@@ -202,7 +206,7 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         if errs:
             res["trajectory_error"] = float(np.mean(list(errs.values())))
             res["trajectory_error_per_object"] = errs
-    ps, ps_c, ps1 = [], [], []
+    ps, ps_c, ps1, by_obj = [], [], [], []
     for i, kd in enumerate(kinds):
         if kd != "state":
             continue
@@ -225,6 +229,8 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
             img = stage2.render_controlled(run, v[:k] if k else v, test.viewmats[i], test.Ks[i], test.width,
                                            test.height)
             out.append(float(metrics.psnr(img, test.images[i])))
+            if out is ps:
+                by_obj.append(error_by_object(img, test.images[i], ids_test[i]))
         from fgjax.pipeline.stage1 import render_frame
 
         img1 = render_frame(run.state, run.spec, run.cfg, test.viewmats[i], test.Ks[i], test.times[i], test.width,
@@ -235,6 +241,10 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         res["state_psnr_per_frame"] = ps
         res["state_psnr_centre"] = float(np.mean(ps_c))
         res["state_psnr_stage1"] = float(np.mean(ps1))
+        labels_seen = sorted({g for row in by_obj for g in row})
+        res["state_mse_by_object"] = {g: [row.get(g, {"mse": 0.0})["mse"] for row in by_obj] for g in labels_seen}
+        res["state_pixels_by_object"] = {g: [row.get(g, {"pixels": 0.0})["pixels"] for row in by_obj]
+                                         for g in labels_seen}
     if k and states_train is not None:
         # the controlled scene's reference labelled from the gt (radius 0.03): the ceilings' and motion_preference's
         lab_gt = gt_labels_of_gaussians(np.asarray(run.base()[0]), gt, objs, states_train[ref], norm, match, 0.03)
@@ -244,6 +254,20 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         if pref:
             res["motion_preference"] = pref
     return res
+
+
+def error_by_object(img, image, ids) -> dict[str, dict[str, float]]:
+    """The squared error of a render `img` [H, W, 3] against `image` split by the gt object id of each pixel
+    (`ids` [H, W], 0 static, < 0 left out): {str(id): {"mse": that id's share of the image's MSE (its pixels'
+    squared error summed, over all H W pixels and the channels), "pixels": the fraction of the pixels it
+    holds}}. Over the ids the shares sum to the MSE of the pixels with id >= 0 (the whole image's when no id is
+    negative), so they say where a PSNR is lost."""
+    se = np.mean((np.asarray(img, np.float64) - np.asarray(image, np.float64)) ** 2, axis=-1)  # [H, W]
+    ids = np.asarray(ids)
+    if ids.shape != se.shape:
+        raise ValueError(f"error_by_object: ids must have shape {list(se.shape)}, got {list(ids.shape)}")
+    return {str(int(g)): {"mse": float(se[ids == g].sum() / se.size), "pixels": float(np.mean(ids == g))}
+            for g in np.unique(ids) if g >= 0}
 
 
 def _render_posed(run, labels, poses, viewmat, K, width: int, height: int) -> np.ndarray:

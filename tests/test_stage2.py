@@ -335,8 +335,9 @@ def test_refit_relabelling_returns_mislabelled_gaussians_to_their_part(tiny):
 
 def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, monkeypatch):
     """`track_photo` replaces the flow-based tracking: the log shows the photometric fit, one articulation
-    per object and the re-fit, and the result is written; `track_only_moving` and `track_subset_margin` reach the tracker; a
-    negative step count and zero rounds are refused. (Rounds: `test_track_rounds_track_again_from_the_last_refit`.)"""
+    per object and the re-fit, and the result is written; `track_only_moving`, `track_subset_margin` and the steps
+    per blur level reach the tracker, and `track_photo_next` only a later round's; negative step counts and zero
+    rounds are refused. (Rounds: `test_track_rounds_track_again_from_the_last_refit`.)"""
     import shutil
 
     from fgjax.pipeline import phototrack
@@ -346,11 +347,12 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     logs, seen = [], []
     real = phototrack.track_photometric
     monkeypatch.setattr(phototrack, "track_photometric",
-                        lambda *a, **k: seen.append((k["only_moving"], k["subset_margin"])) or real(*a, **k))
+                        lambda *a, **k: seen.append((k["only_moving"], k["subset_margin"], k["steps"])) or real(*a, **k))
     cfg = stage2.config_from_overrides(["auto_eps=true", "distill_steps=5", "photo_steps=2", "refit_steps=4",
-                                        "track_photo=5", "track_only_moving=false", "track_subset_margin=3"])
+                                        "track_photo=5", "track_only_moving=false", "track_subset_margin=3",
+                                        "track_photo_next=3", "track_rounds=1"])
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
-    assert seen == [(False, 3)] and stage2.Stage2Config().track_only_moving
+    assert seen == [(False, 3, (2, 2, 1))] and stage2.Stage2Config().track_only_moving
     assert stage2.Stage2Config().track_subset_margin == 2
     assert res.num_objects > 0, logs
     assert sum(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs) == 1, logs
@@ -362,7 +364,8 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert meta["config"]["track_photo"] == 5
     assert len(meta["joint_kinds"]) == len(meta["joint_costs"]) == res.num_objects, meta
     assert all(k in ("revolute", "prismatic") and c >= 0 for k, c in zip(meta["joint_kinds"], meta["joint_costs"]))
-    for bad, field in (({"track_photo": -1}, "track_photo"), ({"track_rounds": 0}, "track_rounds")):
+    for bad, field in (({"track_photo": -1}, "track_photo"), ({"track_photo_next": -1}, "track_photo_next"),
+                       ({"track_rounds": 0}, "track_rounds")):
         with pytest.raises(ValueError, match=field):
             stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(**bad), log=logs.append)
     # rounds without photometric tracking: said, not silently ignored (stopped before any work by a bad option)
@@ -411,6 +414,34 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     np.testing.assert_allclose(np.asarray(res.refit.means), np.asarray(refit2.means))
     assert any("round 2 of 2" in m for m in logs), logs
     assert res.meta["joint_costs"] == [3.0] * res.num_objects  # the last round's joints are the ones kept
+
+
+def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
+    """`_photometric_poses` gives the tracker ``track_photo`` steps per frame (2:2:1 over its blur levels) in the
+    first round and ``track_photo_next`` in a round started from earlier poses; ``track_photo_next=0`` keeps
+    ``track_photo``. The tracker and the joint fit are recorders (the real ones: tests/test_phototrack.py)."""
+    from types import SimpleNamespace
+
+    from fgjax.pipeline import phototrack
+
+    seen = []
+    monkeypatch.setattr(phototrack, "track_photometric",
+                        lambda g, alive, labels, k, imgs, vms, Ks, **kw: seen.append(kw["steps"])
+                        or (np.tile(np.eye(4, dtype=np.float32), (k, len(vms), 1, 1)), None))
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print: (poses, ["revolute"], [1.0]))
+    run = SimpleNamespace(state=SimpleNamespace(densify=SimpleNamespace(alive=np.ones(4, bool))), meta={},
+                          cfg=SimpleNamespace(model=SimpleNamespace(sh_degree=0, background=(0.0, 0.0, 0.0)),
+                                              train=SimpleNamespace(tile_size=8)))
+    scene = SimpleNamespace(viewmats=np.tile(np.eye(4), (3, 1, 1)), Ks=np.tile(np.eye(3), (3, 1, 1)),
+                            images=np.zeros((3, 2, 2, 3)))
+    ref = SimpleNamespace(means=np.zeros((4, 3)))
+    labels, order = np.array([0, 0, -1, -1]), np.arange(3)
+    earlier = np.tile(np.eye(4, dtype=np.float32), (1, 3, 1, 1))
+    for cfg, init, want in ((stage2.Stage2Config(track_photo=40, track_photo_next=20), None, (16, 16, 8)),
+                            (stage2.Stage2Config(track_photo=40, track_photo_next=20), earlier, (8, 8, 4)),
+                            (stage2.Stage2Config(track_photo=40), earlier, (16, 16, 8))):
+        stage2._photometric_poses(run, scene, order, ref, labels, 1, cfg, None, log=lambda m: None, init_poses=init)
+        assert seen[-1] == want, (cfg.track_photo_next, init is None, seen)
 
 
 def _selection_case(seed=0, c_missed=0):

@@ -183,15 +183,20 @@ class Stage2Config:
     widened by this many tiles (`track_photometric`'s ``subset_margin``; a frame whose part leaves the margin is
     fitted again with every Gaussian; docs/benchmarks.md, session 17: 0.61x the time a frame with one object
     fitted, the same poses up to round-off). -1: every Gaussian at every step."""
-    track_rounds: int = 1
+    track_rounds: int = 2
     """Rounds of photometric tracking and re-fitting (with ``track_photo > 0`` and ``refit_steps > 0``).
     From the second round on, the tracker renders the previous round's re-fitted scene with its labels
-    (stage 1 never moved the parts, so its reference is a blur of their states), each frame may also start from the previous round's pose, and the re-fit (with its
-    relabelling) continues from the previous one. Each round costs one tracking and one re-fit. Measured
-    (docs/benchmarks.md, session 8; default scene, ``track_photo=50 relabel_steps=150``): two rounds take
-    the held-out state PSNR from 27.62 to 27.76 dB and the trajectory error from 0.0147 to 0.0125, for
-    ~5 more minutes; the lid stays under-turned (its labels, not the search, limit it). With
-    ``local_threshold=0.2`` a second round costs 1.25 dB instead (the lid turned about a wrong axis)."""
+    (stage 1 never moved the parts, so its reference is a blur of their states), each frame may also start
+    from the previous round's pose, and the re-fit (with its relabelling) continues from the previous one.
+    Each round costs one tracking, its joint fits and one re-fit. Measured (docs/benchmarks.md, sessions 21-22):
+    in six stage-2 runs on three stage-1 runs (default scene, close pair, pose noise) two rounds beat one, by
+    0.6-2.3 dB of held-out state PSNR and 0.025-0.085 of ``ari_controlled`` (at these defaults on the default
+    scene: 26.02 -> 26.82 dB, 0.732 -> 0.816); the second round's joints explain their poses far better
+    (robust costs 0.04-0.6 px^2, against 0.9-2.1 in the first). Session 8, before ``local_threshold=0.2`` and
+    the joint rule of session 18, had seen a second round cost 1.25 dB once."""
+    track_photo_next: int = 0
+    """Adam steps per frame of the photometric tracking in the rounds after the first (``track_rounds``); 0: as
+    ``track_photo``. A later round starts each frame from the earlier round's pose as well, so it may need fewer."""
     track_active: float = 0.2
     """Tracking moves an object only in its moving frames (`fgjax.cluster.moving_frames` with this
     ``active`` fraction, widened by one frame); 0: in every frame. Parts rest most of the time; an
@@ -655,13 +660,14 @@ def photo_level_steps(n: int) -> tuple[int, int, int]:
 
 def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
                        cfg: Stage2Config, moving, log=print, init_poses=None) -> tuple[np.ndarray, dict]:
-    """`_tracked_poses` by `fgjax.pipeline.phototrack` (``cfg.track_photo`` steps per frame) from the
-    reference scene `ref` (raw parameters; ``init_poses`` [K, T, 4, 4]: an earlier round's poses, a further
-    start of each frame): (poses [K, T, 4, 4], {"joint_kinds": [K], "joint_costs": [K] robust costs in px^2,
-    None where kept})."""
+    """`_tracked_poses` by `fgjax.pipeline.phototrack` (``cfg.track_photo`` steps per frame; with
+    ``init_poses``, ``cfg.track_photo_next`` where set) from the reference scene `ref` (raw parameters;
+    ``init_poses`` [K, T, 4, 4]: an earlier round's poses, a further start of each frame): (poses [K, T, 4, 4],
+    {"joint_kinds": [K], "joint_costs": [K] robust costs in px^2, None where kept})."""
     from fgjax.pipeline.phototrack import joint_poses, track_photometric
 
-    steps = photo_level_steps(int(cfg.track_photo))
+    n = cfg.track_photo_next if init_poses is not None and cfg.track_photo_next > 0 else cfg.track_photo
+    steps = photo_level_steps(int(n))
     vms, Ks = scene.viewmats[order], scene.Ks[order]
     poses, _ = track_photometric(ref, run.state.densify.alive, labels, num_objects, scene.images[order], vms, Ks,
                                  moving=moving, sh_degree=run.cfg.model.sh_degree,
@@ -1103,9 +1109,9 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     for name in ("local_floor", "local_min_fraction"):
         if not 0.0 <= getattr(cfg, name) < 1.0:
             raise ValueError(f"Stage2Config.{name} must be in [0, 1), got {getattr(cfg, name)!r}")
-    if cfg.track_photo < 0 or cfg.track_photo_radius < 0:
-        raise ValueError(f"Stage2Config.track_photo and track_photo_radius must be >= 0; got {cfg.track_photo!r}, "
-                         f"{cfg.track_photo_radius!r}")
+    if cfg.track_photo < 0 or cfg.track_photo_radius < 0 or cfg.track_photo_next < 0:
+        raise ValueError(f"Stage2Config.track_photo, track_photo_radius and track_photo_next must be >= 0; got "
+                         f"{cfg.track_photo!r}, {cfg.track_photo_radius!r}, {cfg.track_photo_next!r}")
     if cfg.track_rounds < 1:
         raise ValueError(f"Stage2Config.track_rounds must be >= 1; got {cfg.track_rounds!r}")
     if cfg.track_rounds > 1 and (cfg.track_photo == 0 or cfg.refit_steps == 0 or cfg.trajectories != "flow"):

@@ -189,10 +189,12 @@ class Stage2Config:
     (stage 1 never moved the parts, so its reference is a blur of their states), each frame may also start
     from the previous round's pose, and the re-fit (with its relabelling) continues from the previous one.
     Each round costs one tracking, its joint fits and one re-fit. Measured (docs/benchmarks.md, sessions 21-22):
-    in six stage-2 runs on three stage-1 runs (default scene, close pair, pose noise) two rounds beat one, by
+    in five stage-2 runs on three stage-1 runs (default scene, close pair, pose noise) two rounds beat one, by
     0.6-2.3 dB of held-out state PSNR and 0.025-0.085 of ``ari_controlled`` (at these defaults on the default
-    scene: 26.02 -> 26.82 dB, 0.732 -> 0.816); the second round's joints explain their poses far better
-    (robust costs 0.04-0.6 px^2, against 0.9-2.1 in the first). Session 8, before ``local_threshold=0.2`` and
+    scene: 26.02 -> 26.82 dB, 0.732 -> 0.816), and in two more with ``track_photo_next=20`` (a third, under pose
+    noise, tied); the second round's joints explain their poses far better (robust costs 0.04-0.6 px^2, against
+    0.9-2.1 in the first). A third round gained 0.6-1.0 dB on three runs of four but lowered ``ari_controlled``
+    on three (session 22), so the default stays two. Session 8, before ``local_threshold=0.2`` and
     the joint rule of session 18, had seen a second round cost 1.25 dB once."""
     track_photo_next: int = 0
     """Adam steps per frame of the photometric tracking in the rounds after the first (``track_rounds``); 0: as

@@ -67,6 +67,11 @@ def test_eval_writes_metrics(tiny, tmp_path, capsys):
     # the tiny scene's poses are written exactly and not refined: both camera errors ~0
     assert m["camera_rotation_error_written_deg"] < 1e-3 and m["camera_centre_error_written"] < 1e-5
     assert m["camera_rotation_error_used_deg"] == m["camera_rotation_error_written_deg"]
+    # ... so the test cameras' alignment into the run's frame is the identity and changes no metric
+    al = m["camera_alignment"]
+    assert abs(al["scale"] - 1.0) < 1e-6 and al["rotation_deg"] < 1e-3 and np.abs(al["translation"]).max() < 1e-6
+    assert abs(m["state_psnr_unaligned"] - m["state_psnr"]) < 1e-3
+    assert abs(m["view_psnr_stage1_unaligned"] - m["view_psnr_stage1"]) < 1e-3 and np.isfinite(m["view_psnr_stage1"])
     if m["num_objects_found"]:
         assert np.isfinite(m["state_psnr_true_motion"]) and np.isfinite(m["state_psnr_true_motion_labels"])
     # where the state frames' error lies: per gt id, shares that sum to each frame's MSE (its PSNR)
@@ -267,3 +272,56 @@ def test_camera_errors_against_a_known_perturbation():
     turned[1, :3, 3] = true[1, :3, 3] - np.array([0.3, 0.4, 0.0])  # centre -t moves by (0.3, 0.4, 0)
     rot, centre = camera_errors(turned, true)
     assert rot == pytest.approx(1.5, abs=1e-9) and centre == pytest.approx(0.25, abs=1e-12)
+
+
+def _cameras_around(n: int, rng) -> np.ndarray:
+    """n world-to-camera matrices [n, 4, 4] on a noisy arc around the origin, each looking at it (OpenCV)."""
+    out = np.tile(np.eye(4), (n, 1, 1))
+    for i, a in enumerate(np.linspace(-0.8, 0.8, n)):
+        c = np.array([2.0 * np.sin(a), -0.5 + 0.1 * rng.normal(), -2.0 * np.cos(a)])
+        z = -c / np.linalg.norm(c)
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        r = np.stack([x, np.cross(z, x), z])  # rows: camera axes in the world
+        out[i, :3, :3], out[i, :3, 3] = r, -r @ c
+    return out
+
+
+def test_align_cameras_recovers_a_similarity_and_keeps_every_image():
+    """Cameras carried by a known similarity x = s R x_true + t: `align_cameras` finds (s, R, t) again; the carried
+    cameras project every moved point where the original ones project the point; with per-camera noise the fit
+    is still close; one camera gives scale 1; wrong shapes are refused."""
+    from fgjax import geometry
+    from fgjax.pipeline.evaluate import align_cameras, apply_alignment, camera_errors
+
+    rng = np.random.default_rng(0)
+    true = _cameras_around(12, rng)
+    rot = np.asarray(geometry.so3_exp(np.array([0.2, -0.3, 0.25])), np.float64)  # 25 degrees
+    s, t = 1.3, np.array([0.5, -0.2, 0.1])
+    run = apply_alignment(true, s, rot, t)
+    s2, rot2, t2 = align_cameras(run, true)
+    assert s2 == pytest.approx(s, abs=1e-9)
+    np.testing.assert_allclose(rot2, rot, atol=1e-9)
+    np.testing.assert_allclose(t2, t, atol=1e-9)
+    assert camera_errors(run, apply_alignment(true, s2, rot2, t2))[1] < 1e-9
+    # the same image: a point seen by a true camera and the moved point seen by the carried one
+    x = rng.normal(size=(5, 3)) * 0.3
+    cam = np.einsum("tij,mj->tmi", true[:, :3, :3], x) + true[:, None, :3, 3]
+    cam2 = np.einsum("tij,mj->tmi", run[:, :3, :3], s * x @ rot.T + t) + run[:, None, :3, 3]
+    np.testing.assert_allclose(cam2[..., :2] / cam2[..., 2:], cam[..., :2] / cam[..., 2:], atol=1e-12)
+    np.testing.assert_allclose(run[:, :3, :3] @ np.transpose(run[:, :3, :3], (0, 2, 1)), np.tile(np.eye(3), (12, 1, 1)),
+                               atol=1e-12)  # still rotations
+    # per-camera noise (0.2 degree, 0.005): the shift and scale are still found to about the noise
+    noisy = run.copy()
+    for i in range(len(noisy)):
+        d = np.asarray(geometry.so3_exp(rng.normal(size=3) * np.radians(0.2)), np.float64)
+        noisy[i, :3, :3] = d @ noisy[i, :3, :3]
+        noisy[i, :3, 3] = d @ noisy[i, :3, 3] + rng.normal(size=3) * 0.005
+    s3, rot3, t3 = align_cameras(noisy, true)
+    assert abs(s3 - s) < 0.01 and np.abs(t3 - t).max() < 0.02
+    assert np.degrees(np.arccos(np.clip((np.trace(rot3 @ rot.T) - 1) / 2, -1, 1))) < 0.2
+    assert camera_errors(noisy, apply_alignment(true, s3, rot3, t3))[1] < camera_errors(noisy, true)[1] / 10
+    one = align_cameras(run[:1], true[:1])
+    assert one[0] == 1.0 and np.all(np.isfinite(one[1])) and np.all(np.isfinite(one[2]))
+    with pytest.raises(ValueError, match="align_cameras"):
+        align_cameras(run[:3], true[:4])

@@ -15,6 +15,7 @@ from fgjax.pipeline.phototrack import (
     blur,
     blur_kernel,
     blur_with,
+    converged_joints,
     joint_poses,
     mixed_copies,
     pose_delta,
@@ -268,6 +269,54 @@ def test_track_photometric_fitting_only_the_moving_objects_gives_the_same_poses(
     # followed: the part's turn (0.24) and the patch's rise (0.12; ten steps a frame reach about half of it)
     turn = float(np.linalg.norm(np.asarray(geometry.so3_log(jnp.asarray(e[0, 2, :3, :3])))))
     assert abs(turn - 0.24) < 0.05 and e[1, 4, 2, 3] > 0.04, (turn, e[1, 4, :3, 3])
+
+
+def test_track_photometric_keeps_the_fixed_objects_poses_and_tracks_the_others():
+    """The two objects of the test above, the patch ``fixed`` at given poses (its true ones, shifted by 0.01 so
+    that they cannot be mistaken for a fit): its poses are those, exactly, in every frame; the part is still
+    followed. With both fixed nothing is fitted. ``fixed`` without ``init_poses``, or of a wrong shape, is refused."""
+    t = 5
+    g, labels, vms, hinge = _coloured_hinge(t, 0.12)
+    m = np.asarray(g.means)
+    labels = labels.copy()
+    labels[(labels < 0) & (m[:, 0] > 0.45) & (np.abs(m[:, 2]) < 0.5)] = 1
+    true = np.tile(np.eye(4), (2, t, 1, 1))
+    true[0, :3] = hinge[:3]
+    true[0, 3:] = hinge[2]
+    true[1, 3, 2, 3], true[1, 4, 2, 3] = 0.06, 0.12
+    imgs = _images(g, labels, vms, true)
+    given = true.astype(np.float32).copy()
+    given[1, :, 0, 3] += 0.01
+    kw = dict(moving=np.array([[True, True, False, False], [False, False, True, True]]), sh_degree=0,
+              background=np.zeros(3), steps=(6, 4), sigmas=(2.0, 0.7), radius=0.0, log=lambda s: None)
+    a = np.ones(len(labels), bool)
+    e, _ = track_photometric(g, a, labels, 2, imgs, vms, np.stack([K] * t), init_poses=given, fixed=[False, True], **kw)
+    np.testing.assert_array_equal(e[1], given[1])
+    turn = float(np.linalg.norm(np.asarray(geometry.so3_log(jnp.asarray(e[0, 2, :3, :3])))))
+    assert abs(turn - 0.24) < 0.05, turn
+    e2, _, st = track_photometric(g, a, labels, 2, imgs, vms, np.stack([K] * t), init_poses=given, fixed=[True, True],
+                                  return_stats=True, **kw)
+    np.testing.assert_array_equal(e2, given)
+    assert st["frames_fitted"] == 0
+    with pytest.raises(ValueError, match="init_poses"):
+        track_photometric(g, a, labels, 2, imgs, vms, np.stack([K] * t), fixed=[False, True], **kw)
+    with pytest.raises(ValueError, match="fixed must be"):
+        track_photometric(g, a, labels, 2, imgs, vms, np.stack([K] * t), init_poses=given, fixed=[True], **kw)
+
+
+def test_converged_joints():
+    """Converged: the same kind and an axis within the limit, either sign; a changed kind, a larger turn of the
+    axis, a kept object (nan axis) or a limit of 0 are not. Mismatched lengths are refused."""
+    c = np.cos(np.radians(10.0)), np.sin(np.radians(10.0))
+    a = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 0, 0], [0, 0, 1.0], [1.0, 0, 0]])
+    b = np.array([[c[0], c[1], 0], [0, -2.0, 0], [0, c[1], c[0]], [c[0], c[1], 0], [np.nan] * 3, [0, 1.0, 0]])
+    ka = ["revolute", "prismatic", "revolute", "revolute", "revolute", "prismatic"]
+    kb = ["revolute", "prismatic", "revolute", "prismatic", "kept", "prismatic"]
+    np.testing.assert_array_equal(converged_joints(ka, a, kb, b, 20.0), [True, True, True, False, False, False])
+    np.testing.assert_array_equal(converged_joints(ka, a, kb, b, 5.0), [False, True, False, False, False, False])
+    assert not converged_joints(ka, a, kb, b, 0.0).any()
+    with pytest.raises(ValueError, match="converged_joints"):
+        converged_joints(ka[:2], a, kb, b, 20.0)
 
 
 def test_tile_region_and_rects_meeting_match_a_brute_force_loop():

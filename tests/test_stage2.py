@@ -387,7 +387,9 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     shutil.copytree(tiny[0], dst)
     calls = []
 
-    def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None):
+    def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
+                   prev_joints=None):
+        assert fixed is None  # two rounds: no convergence test (`test_later_rounds_track_only_...`)
         poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
         poses[:, :, 0, 3] = 0.01 * (len(calls) + 1)  # each call's poses told apart by their shift
         calls.append(("track", ref, init_poses, poses))
@@ -416,6 +418,56 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     assert res.meta["joint_costs"] == [3.0] * res.num_objects  # the last round's joints are the ones kept
 
 
+def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny, tmp_path, monkeypatch):
+    """``track_rounds=4``: rounds 1 and 2 track every object; object 1's axis then turns by 40 degrees and the
+    others' by 5, so round 3 tracks object 1 only (the others fixed, at round 2's poses); after round 3 no axis
+    moved, so there is no round 4. With ``track_converged_deg=0`` every round tracks every object. Recorders
+    replace the tracking and the re-fit (the real ones: tests/test_phototrack.py)."""
+    import shutil
+
+    import jax
+
+    def turned(deg):
+        r = np.radians(deg)
+        return [float(np.cos(r)), float(np.sin(r)), 0.0]
+
+    for limit, want in ((20.0, 3), (0.0, 4)):
+        dst = tmp_path / f"run{limit}"
+        shutil.copytree(tiny[0], dst)
+        calls = []
+
+        def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
+                       prev_joints=None):
+            n = sum(c[0] == "track" for c in calls)
+            poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
+            axes = [turned(0.0)] * k if n == 0 else [turned(40.0)] + [turned(5.0)] * (k - 1)
+            calls.append(("track", None if fixed is None else np.asarray(fixed).copy(), init_poses))
+            return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": axes}
+
+        def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
+                       init=None, log=print):
+            calls.append(("refit",))
+            return jax.tree_util.tree_map(lambda a: a + 0, init), labels
+
+        monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
+        monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
+        logs = []
+        cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
+                                  track_rounds=4, track_converged_deg=limit)
+        res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
+        tracks = [c for c in calls if c[0] == "track"]
+        assert [c[0] for c in calls] == ["track", "refit"] * want, [c[0] for c in calls]
+        if res.num_objects == 0:
+            pytest.skip("no clusters in the tiny run")
+        assert tracks[0][1] is None and tracks[1][1] is None  # rounds 1 and 2: every object
+        if limit > 0:
+            np.testing.assert_array_equal(tracks[2][1], [False] + [True] * (res.num_objects - 1))
+            assert any("objects [1] only" in m for m in logs) or res.num_objects == 1, logs
+            assert any("every joint converged" in m and "no round 4" in m for m in logs), logs
+        else:
+            assert all(c[1] is None or not np.any(c[1]) for c in tracks)
+
+
 def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
     """`_photometric_poses` gives the tracker ``track_photo`` steps per frame (2:2:1 over its blur levels) in the
     first round and ``track_photo_next`` in a round started from earlier poses; ``track_photo_next=0`` keeps
@@ -428,7 +480,8 @@ def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
     monkeypatch.setattr(phototrack, "track_photometric",
                         lambda g, alive, labels, k, imgs, vms, Ks, **kw: seen.append(kw["steps"])
                         or (np.tile(np.eye(4, dtype=np.float32), (k, len(vms), 1, 1)), None))
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print: (poses, ["revolute"], [1.0]))
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False:
+                        (poses, ["revolute"], [1.0]) + ((np.array([[1.0, 0.0, 0.0]]),) if return_axes else ()))
     run = SimpleNamespace(state=SimpleNamespace(densify=SimpleNamespace(alive=np.ones(4, bool))), meta={},
                           cfg=SimpleNamespace(model=SimpleNamespace(sh_degree=0, background=(0.0, 0.0, 0.0)),
                                               train=SimpleNamespace(tile_size=8)))
@@ -442,6 +495,15 @@ def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
                             (stage2.Stage2Config(track_photo=40), earlier, (16, 16, 8))):
         stage2._photometric_poses(run, scene, order, ref, labels, 1, cfg, None, log=lambda m: None, init_poses=init)
         assert seen[-1] == want, (cfg.track_photo_next, init is None, seen)
+    # a fixed object: no joint fit (no points reach it) and the earlier round's joint is kept
+    pts_seen = []
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False:
+                        pts_seen.append(pts) or (poses, ["kept"], [np.nan], np.full((1, 3), np.nan)))
+    prev = {"joint_kinds": ["prismatic"], "joint_costs": [0.5], "joint_axes": [[0.0, 1.0, 0.0]]}
+    _, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(track_photo=40), None,
+                                          log=lambda m: None, init_poses=earlier, fixed=np.array([True]),
+                                          prev_joints=prev)
+    assert joints == prev and len(pts_seen[-1][0]) == 0
 
 
 def _selection_case(seed=0, c_missed=0):

@@ -50,7 +50,7 @@ from fgjax.render.project import project_gaussians
 from fgjax.render.tiles import tile_ranges
 
 __all__ = ["blur", "blur_kernel", "blur_with", "pose_delta", "relabel_candidates", "mixed_opacity_logits", "mixed_copies", "soft_members",
-           "tile_region", "rects_meeting", "subset_bucket", "track_photometric", "joint_poses"]
+           "tile_region", "rects_meeting", "subset_bucket", "track_photometric", "joint_poses", "converged_joints"]
 
 
 def blur_kernel(sigma: float, radius: int | None = None) -> np.ndarray:
@@ -184,7 +184,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
                       radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, only_moving: bool = True,
-                      subset_margin: int | None = None, progress_every: int = 10, return_stats: bool = False,
+                      subset_margin: int | None = None, fixed=None, progress_every: int = 10, return_stats: bool = False,
                       log=print):
     """Poses [K, T, 4, 4] of each object fitted to the images frame by frame (module docstring, 1-3).
 
@@ -212,6 +212,9 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
             stay within the margin; when one leaves it (Adam's first steps can throw a part tens of pixels),
             the frame is fitted again from its start with every Gaussian, so the poses are those of
             ``None`` (every Gaussian at every step) up to round-off.
+        fixed: [K] bool, objects not fitted: their poses are ``init_poses`` (required then) in every frame,
+            and the fitted objects are tracked with them drawn there (e.g. the objects whose joint has
+            converged over earlier rounds; None: none).
         progress_every: a progress line every this many fitted frames (0: none).
         return_stats: also return what the run did (the summary line's numbers, for benchmarks).
 
@@ -240,6 +243,13 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         if init_poses.shape != poses.shape:
             raise ValueError(f"track_photometric: init_poses must be [K, T, 4, 4] = {list(poses.shape)}, got "
                              f"{list(init_poses.shape)}")
+    fixed = np.zeros(num_objects, bool) if fixed is None else np.asarray(fixed, bool)
+    if fixed.shape != (num_objects,):
+        raise ValueError(f"track_photometric: fixed must be [K] = [{num_objects}], got {list(fixed.shape)}")
+    if fixed.any():
+        if init_poses is None:
+            raise ValueError("track_photometric: fixed objects take their poses from init_poses, which is None")
+        poses[fixed] = init_poses[fixed]
     t_start = time.perf_counter()
     g = jax.tree_util.tree_map(jnp.asarray, gaussians)
     m_ref = np.asarray(g.means, np.float64)
@@ -355,11 +365,12 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     eye = np.eye(4, dtype=np.float32)
     n_fit, n_bad, n_drawn, n_redone, frame_s = 0, 0, 0, 0, []
     for n in range(1, t_all):
-        mk = mov[:, n - 1]
-        poses[:, n] = poses[:, n - 1]
+        mk = mov[:, n - 1] & ~fixed
+        prev = poses[:, n - 1].copy()  # the start of frame n: as frame n - 1, the fixed objects at their frame-n pose
+        prev[fixed] = poses[fixed, n]
+        poses[:, n] = prev
         if not mk.any():
             continue
-        prev = poses[:, n - 1]
         vel = np.einsum("kij,kjl->kil", prev, np.linalg.inv(poses[:, n - 2])) if n >= 2 else np.tile(eye, (num_objects, 1, 1))
         vel[~mk] = eye
         starts = [np.einsum("kij,kjl->kil", vel, prev).astype(np.float32), prev]
@@ -418,7 +429,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
 
 
 def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_margin: float = 0.95,
-                warn_cost: float = 4.0, log=print):
+                warn_cost: float = 4.0, return_axes: bool = False, log=print):
     """Each object's poses replaced by the one articulation that best explains them.
 
     Args:
@@ -441,10 +452,12 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
     about 1 px^2 (0.6-1.6 on the default scene's parts), and every lost part seen had a cost over 4
     (docs/benchmarks.md, sessions 19-20: a door whose per-frame poses turn about a wrong axis, or stay open
     after it closed). Over ``warn_cost`` (px^2) a warning is logged.
-    Returns (poses [K, T, 4, 4], kinds [K], costs [K]: the chosen joint's robust cost, nan where kept).
+    Returns (poses [K, T, 4, 4], kinds [K], costs [K]: the chosen joint's robust cost, nan where kept), and with
+    ``return_axes`` also axes [K, 3]: the chosen joint's unit axis (revolute) or direction (prismatic), nan where kept.
     """
     poses = np.asarray(poses, np.float64)
     out, kinds, costs = poses.copy(), [], np.full(len(points), np.nan)
+    axes_out = np.full((len(points), 3), np.nan)
     t_all = poses.shape[1]
     vms = np.asarray(viewmats, np.float64)
     Kn = np.asarray(Ks, np.float64)
@@ -472,6 +485,7 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
         out[k] = fits[kind][0]
         kinds.append(kind)
         costs[k] = cost[kind]
+        axes_out[k] = fits[kind][3]
         log(f"photometric tracking: object {k + 1}: revolute cost {cost['revolute']:.3f} (inlier RMS "
             f"{fits['revolute'][1]:.2f} px), prismatic {cost['prismatic']:.3f} ({fits['prismatic'][1]:.2f} px) -> "
             f"{kind} (axis {np.round(fits[kind][3], 3).tolist()}; {time.perf_counter() - t_obj:.1f} s)")
@@ -479,4 +493,20 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
             log(f"photometric tracking: warning: object {k + 1}'s {kind} joint explains its tracked poses poorly "
                 f"(robust cost {cost[kind]:.2f} px^2 > {warn_cost:g}): its tracking has likely failed, and its "
                 f"trajectory and controlled renders will be wrong")
-    return out, kinds, costs
+    return (out, kinds, costs, axes_out) if return_axes else (out, kinds, costs)
+
+
+def converged_joints(kinds_a, axes_a, kinds_b, axes_b, max_deg: float) -> np.ndarray:
+    """[K] bool: the objects whose joint did not change between two rounds' fits (a, then b; `joint_poses`' kinds
+    [K] and axes [K, 3]): the same kind, and axes within ``max_deg`` degrees of each other, either sign (a hinge's
+    turn and a slide's amount change sign with their axis). An object kept by either fit ("kept", a nan axis) has
+    not converged; ``max_deg <= 0``: none has."""
+    a, b = np.asarray(axes_a, np.float64).reshape(-1, 3), np.asarray(axes_b, np.float64).reshape(-1, 3)
+    if not len(kinds_a) == len(kinds_b) == len(a) == len(b):
+        raise ValueError(f"converged_joints: {len(kinds_a)} and {len(kinds_b)} kinds for {len(a)} and {len(b)} axes")
+    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+    ok = np.isfinite(na) & np.isfinite(nb) & (na > 0) & (nb > 0)
+    cos = np.abs(np.sum(a * b, 1)) / np.where(ok, na * nb, 1.0)
+    ang = np.degrees(np.arccos(np.clip(np.where(ok, cos, -1.0), -1.0, 1.0)))
+    same = np.array([ka == kb and ka in JOINT_KINDS for ka, kb in zip(kinds_a, kinds_b)], bool)
+    return ok & same & (ang < max_deg) if max_deg > 0 else np.zeros(len(a), bool)

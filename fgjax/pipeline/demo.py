@@ -229,12 +229,14 @@ def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
     # PSNR 22.68 against 23.68 dB without; docs/benchmarks.md, session 20). The full demo's second round of tracking
     # and re-fitting (stage 2's default) tracks with 20 steps a frame, from the first round's poses: 27.73 dB
     # against 27.55 with 40 and 26.56 with one round, on one stage-1 run (session 22); halving the re-fits
-    # (150 steps each) lost the gain (26.59 dB), and so did 20 steps in the first round (25.36)
+    # (150 steps each) lost the gain (26.59 dB), and so did 20 steps in the first round (25.36). A third round
+    # tracks only the objects whose joint has not converged (`Stage2Config.track_converged_deg`; on the default
+    # scene the lid alone, about 70 s; docs/benchmarks.md, session 23)
     s2cfg = stage2.Stage2Config(flow_cache=str(cache), auto_eps=quick, photo_steps=0,
                                 **({"distill_steps": 100, "refit_steps": 100, "track_photo": 0, "track_joints": "off",
                                     "relabel_steps": 0, "local_threshold": 0.4, "track_rounds": 1} if quick else
                                    {"track_photo": 40, "track_photo_next": 20, "distill_steps": 300,
-                                    "refit_steps": 300, "relabel_steps": 150}))
+                                    "refit_steps": 300, "relabel_steps": 150, "track_rounds": 3}))
     s2 = stage2.run_stage2(run_dir, scene_dir, s2cfg, log=say)
     run = stage2.load_stage2(run_dir)
     vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height

@@ -194,8 +194,11 @@ class Stage2Config:
     scene: 26.02 -> 26.82 dB, 0.732 -> 0.816), and in two more with ``track_photo_next=20`` (a third, under pose
     noise, tied); the second round's joints explain their poses far better (robust costs 0.04-0.6 px^2, against
     0.9-2.1 in the first). A third round gained 0.6-1.0 dB on three runs of four but lowered ``ari_controlled``
-    on three (session 22), so the default stays two. Session 8, before ``local_threshold=0.2`` and
-    the joint rule of session 18, had seen a second round cost 1.25 dB once."""
+    on three (session 22), so the default stays two. A third round of only the objects whose joint has not
+    converged (``track_converged_deg``) is cheaper and kept ``ari_controlled`` (session 23: +0.8 dB on the default
+    scene, +0.45 under pose noise, +0.02 on the close pair, at the demo's settings): `fgjax demo` runs three.
+    Session 8, before ``local_threshold=0.2`` and the joint rule of session 18, had seen a second round cost
+    1.25 dB once."""
     track_converged_deg: float = 20.0
     """From the third round on (``track_rounds`` >= 3), an object whose joint kept its kind and moved its axis by
     less than this (degrees, `fgjax.pipeline.phototrack.converged_joints`) from one round to the next is

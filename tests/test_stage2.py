@@ -362,10 +362,12 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert np.all(np.isfinite(res.traj)) and res.refit is not None
     meta = stage2.load_stage2(dst).s2.meta
     assert meta["config"]["track_photo"] == 5
-    assert len(meta["joint_kinds"]) == len(meta["joint_costs"]) == res.num_objects, meta
+    assert len(meta["joint_kinds"]) == len(meta["joint_costs"]) == len(meta["joint_axes"]) == res.num_objects, meta
+    assert all(a is None or abs(np.linalg.norm(a) - 1.0) < 1e-6 for a in meta["joint_axes"]), meta["joint_axes"]
     assert all(k in ("revolute", "prismatic") and c >= 0 for k, c in zip(meta["joint_kinds"], meta["joint_costs"]))
     for bad, field in (({"track_photo": -1}, "track_photo"), ({"track_photo_next": -1}, "track_photo_next"),
-                       ({"track_rounds": 0}, "track_rounds")):
+                       ({"track_rounds": 0}, "track_rounds"), ({"track_converged_deg": -1.0}, "track_converged_deg"),
+                       ({"track_converged_deg": float("nan")}, "track_converged_deg")):
         with pytest.raises(ValueError, match=field):
             stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(**bad), log=logs.append)
     # rounds without photometric tracking: said, not silently ignored (stopped before any work by a bad option)

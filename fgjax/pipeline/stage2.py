@@ -1136,6 +1136,9 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                          f"{cfg.track_photo!r}, {cfg.track_photo_radius!r}, {cfg.track_photo_next!r}")
     if cfg.track_rounds < 1:
         raise ValueError(f"Stage2Config.track_rounds must be >= 1; got {cfg.track_rounds!r}")
+    if not cfg.track_converged_deg >= 0:
+        raise ValueError(f"Stage2Config.track_converged_deg must be >= 0 (0: every round tracks every object); got "
+                         f"{cfg.track_converged_deg!r}")
     if cfg.track_rounds > 1 and (cfg.track_photo == 0 or cfg.refit_steps == 0 or cfg.trajectories != "flow"):
         log(f"stage 2: track_rounds={cfg.track_rounds} has no effect without track_photo > 0, refit_steps > 0 and "
             f"trajectories='flow'; one round")

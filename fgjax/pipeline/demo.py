@@ -229,9 +229,9 @@ def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
     # PSNR 22.68 against 23.68 dB without; docs/benchmarks.md, session 20). The full demo's second round of tracking
     # and re-fitting (stage 2's default) tracks with 20 steps a frame, from the first round's poses: 27.73 dB
     # against 27.55 with 40 and 26.56 with one round, on one stage-1 run (session 22); halving the re-fits
-    # (150 steps each) lost the gain (26.59 dB), and so did 20 steps in the first round (25.36). A third round
-    # tracks only the objects whose joint has not converged (`Stage2Config.track_converged_deg`; on the default
-    # scene the lid alone, about 70 s; docs/benchmarks.md, session 23)
+    # (150 steps each) lost the gain (26.59 dB), and so did 20 steps in the first round (25.36). The third round
+    # (stage 2's default) tracks only the objects whose joint has not converged (`Stage2Config.track_converged_deg`;
+    # on the default scene the lid alone, about 60 s: 28.51 dB; docs/benchmarks.md, session 23)
     s2cfg = stage2.Stage2Config(flow_cache=str(cache), auto_eps=quick, photo_steps=0,
                                 **({"distill_steps": 100, "refit_steps": 100, "track_photo": 0, "track_joints": "off",
                                     "relabel_steps": 0, "local_threshold": 0.4, "track_rounds": 1} if quick else

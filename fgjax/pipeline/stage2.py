@@ -183,7 +183,7 @@ class Stage2Config:
     widened by this many tiles (`track_photometric`'s ``subset_margin``; a frame whose part leaves the margin is
     fitted again with every Gaussian; docs/benchmarks.md, session 17: 0.61x the time a frame with one object
     fitted, the same poses up to round-off). -1: every Gaussian at every step."""
-    track_rounds: int = 2
+    track_rounds: int = 3
     """Rounds of photometric tracking and re-fitting (with ``track_photo > 0`` and ``refit_steps > 0``).
     From the second round on, the tracker renders the previous round's re-fitted scene with its labels
     (stage 1 never moved the parts, so its reference is a blur of their states), each frame may also start
@@ -194,18 +194,21 @@ class Stage2Config:
     scene: 26.02 -> 26.82 dB, 0.732 -> 0.816), and in two more with ``track_photo_next=20`` (a third, under pose
     noise, tied); the second round's joints explain their poses far better (robust costs 0.04-0.6 px^2, against
     0.9-2.1 in the first). A third round gained 0.6-1.0 dB on three runs of four but lowered ``ari_controlled``
-    on three (session 22), so the default stays two. A third round of only the objects whose joint has not
-    converged (``track_converged_deg``) is cheaper and kept ``ari_controlled`` (session 23: +0.8 dB on the default
-    scene, +0.45 under pose noise, +0.02 on the close pair, at the demo's settings): `fgjax demo` runs three.
-    Session 8, before ``local_threshold=0.2`` and the joint rule of session 18, had seen a second round cost
-    1.25 dB once."""
-    track_converged_deg: float = 20.0
+    on three (session 22). A third round of only the objects whose joint has not converged
+    (``track_converged_deg``; stopped when all have) is cheaper and kept ``ari_controlled``; it did not lose on any
+    of four runs (session 23: at the demo's settings +0.78 dB on the default scene, +0.45 under pose noise, +0.02
+    on the close pair; at these defaults on the default scene +0.05 dB and +0.020 ``ari_controlled``), so the
+    default is three. Session 8, before ``local_threshold=0.2`` and the joint rule of session 18, had seen a
+    second round cost 1.25 dB once."""
+    track_converged_deg: float = 15.0
     """From the third round on (``track_rounds`` >= 3), an object whose joint kept its kind and moved its axis by
     less than this (degrees, `fgjax.pipeline.phototrack.converged_joints`) from one round to the next is
     converged: later rounds neither track it nor fit its joint again, and they stop when every object has
-    converged. 0: every round tracks every object. On the default scene (session 23) the second round moved the
-    drawer's and the door's axes by 9 and 6 degrees and the lid's by 33; a third round of the lid alone took the
-    held-out states to 29.1 dB where one of all three gave 28.8 (re-tracking converged parts only adds noise)."""
+    converged. 0: every round tracks every object. Measured (docs/benchmarks.md, session 23): from round 1 to
+    round 2 the drawers' and doors' axes moved by 1-9 degrees on four runs (default scene, close pair, pose noise,
+    and the default scene at these defaults), the lids' by 18-44; after a third round the lids' moved by 3-8. A
+    third round of the lid alone took the default scene's held-out states to 28.5 dB at the demo's settings (27.7
+    with two rounds; 28.8 with all three objects tracked again, which cost ``ari_controlled``)."""
     track_photo_next: int = 0
     """Adam steps per frame of the photometric tracking in the rounds after the first (``track_rounds``); 0: as
     ``track_photo``. A later round starts each frame from the earlier round's pose as well, so it may need fewer."""

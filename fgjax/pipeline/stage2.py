@@ -195,10 +195,10 @@ class Stage2Config:
     noise, tied); the second round's joints explain their poses far better (robust costs 0.04-0.6 px^2, against
     0.9-2.1 in the first). A third round gained 0.6-1.0 dB on three runs of four but lowered ``ari_controlled``
     on three (session 22). A third round of only the objects whose joint has not converged
-    (``track_converged_deg``; stopped when all have) is cheaper and kept ``ari_controlled``; it did not lose on any
-    of four runs (session 23: at the demo's settings +0.78 dB on the default scene, +0.45 under pose noise, +0.02
-    on the close pair; at these defaults on the default scene +0.05 dB and +0.020 ``ari_controlled``), so the
-    default is three. Session 8, before ``local_threshold=0.2`` and the joint rule of session 18, had seen a
+    (``track_converged_deg``; stopped when all have) is cheaper and kept ``ari_controlled`` (session 23: at the
+    demo's settings +0.78 dB on the default scene, +0.45 under pose noise, +0.02 on the close pair; at these
+    defaults +0.05 dB and +0.020 ``ari_controlled`` on the default scene, and -0.43 dB and -0.008 on the close
+    pair, where no joint had converged after round 2, so every object was tracked again), so the default is three. Session 8, before ``local_threshold=0.2`` and the joint rule of session 18, had seen a
     second round cost 1.25 dB once."""
     track_converged_deg: float = 15.0
     """From the third round on (``track_rounds`` >= 3), an object whose joint kept its kind and moved its axis by

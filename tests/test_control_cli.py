@@ -275,16 +275,11 @@ def test_camera_errors_against_a_known_perturbation():
 
 
 def _cameras_around(n: int, rng) -> np.ndarray:
-    """n world-to-camera matrices [n, 4, 4] on a noisy arc around the origin, each looking at it (OpenCV)."""
-    out = np.tile(np.eye(4), (n, 1, 1))
-    for i, a in enumerate(np.linspace(-0.8, 0.8, n)):
-        c = np.array([2.0 * np.sin(a), -0.5 + 0.1 * rng.normal(), -2.0 * np.cos(a)])
-        z = -c / np.linalg.norm(c)
-        x = np.cross([0.0, 1.0, 0.0], z)
-        x /= np.linalg.norm(x)
-        r = np.stack([x, np.cross(z, x), z])  # rows: camera axes in the world
-        out[i, :3, :3], out[i, :3, 3] = r, -r @ c
-    return out
+    """n world-to-camera matrices [n, 4, 4] on a noisy arc around the origin, each looking at it (`conftest.look_at`)."""
+    from conftest import look_at
+
+    return np.stack([look_at([2.0 * np.sin(a), -2.0 * np.cos(a), 0.5 + 0.1 * rng.normal()])
+                     for a in np.linspace(-0.8, 0.8, n)])
 
 
 def test_align_cameras_recovers_a_similarity_and_keeps_every_image():

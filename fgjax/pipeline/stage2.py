@@ -198,8 +198,9 @@ class Stage2Config:
     (``track_converged_deg``; stopped when all have) is cheaper and kept ``ari_controlled`` (session 23: at the
     demo's settings +0.78 dB on the default scene, +0.45 under pose noise, +0.02 on the close pair; at these
     defaults +0.05 dB and +0.020 ``ari_controlled`` on the default scene, and -0.43 dB and -0.008 on the close
-    pair, where no joint had converged after round 2, so every object was tracked again), so the default is three. Session 8, before ``local_threshold=0.2`` and the joint rule of session 18, had seen a
-    second round cost 1.25 dB once."""
+    pair, where no joint had converged after round 2, so every object was tracked again), so the default is
+    three. Session 8, before ``local_threshold=0.2`` and the joint rule of session 18, had seen a second round
+    cost 1.25 dB once."""
     track_converged_deg: float = 15.0
     """From the third round on (``track_rounds`` >= 3), an object whose joint kept its kind and moved its axis by
     less than this (degrees, `fgjax.pipeline.phototrack.converged_joints`) from one round to the next is
@@ -704,7 +705,9 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
         # ~45 s (session 9; the same joint kinds, state PSNR 28.47 -> 29.32 dB, which is within the joint fit's
         # sensitivity to its inputs)
         sel = m0[rng.choice(idx, min(len(idx), 64), replace=False)] if len(idx) else np.zeros((0, 3))
-        pts.append(np.zeros((0, 3)) if fixed[k] else sel)  # a fixed object: no fit (its poses are kept)
+        # a fixed object: no fit (its poses are kept); its points are still drawn, so that the others' draws
+        # (and joints) are those of a round that fits every object
+        pts.append(np.zeros((0, 3)) if fixed[k] else sel)
     poses, kinds, costs, axes = joint_poses(pts, poses, vms, Ks, return_axes=True, log=log)
     out = {"joint_kinds": list(kinds), "joint_costs": [None if not np.isfinite(c) else float(c) for c in costs],
            "joint_axes": [None if not np.all(np.isfinite(a)) else [float(x) for x in a] for a in axes]}

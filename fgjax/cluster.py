@@ -19,6 +19,7 @@ from jaxtyping import Bool, Float, Int
 
 __all__ = [
     "grow_clusters",
+    "fill_hulls",
     "localize_clusters",
     "split_by_motion",
     "merge_fragments",
@@ -313,6 +314,44 @@ def grow_clusters(
         if not np.any(hit):
             break
         lab[todo[hit]] = lab[have[j[hit]]]
+    return lab
+
+
+def fill_hulls(
+    points: Float[np.ndarray, "M 3"], labels: Int[np.ndarray, " M"], core: Bool[np.ndarray, " M"],
+    candidates: Bool[np.ndarray, " M"],
+) -> Int[np.ndarray, " M"]:
+    """Unlabelled `candidates` inside the convex hull of a cluster's `core` members join that cluster.
+
+    A rigid part is solid: a Gaussian inside the hull of the part's opaque members (stage 2 passes
+    ``core`` = members with opacity >= ``Stage2Config.hull_opacity``) moves with it, whether or not its
+    own flow or photometric evidence said so (it may be hidden in every training frame, e.g. behind a
+    drawer's front, and show in a novel view). Only labels -1 change; a candidate inside several hulls
+    joins the cluster of its nearest core member. A cluster whose core has fewer than 4 points, or lies
+    in a plane (no 3-D hull), fills nothing. Returns the new labels [M]."""
+    from scipy.spatial import Delaunay, QhullError, cKDTree
+
+    pts = _points(points, "points")
+    lab = np.asarray(labels, np.int64).copy()
+    core, cand = np.asarray(core, bool), np.asarray(candidates, bool)
+    if pts.shape[1] != 3 or lab.shape != (len(pts),) or core.shape != lab.shape or cand.shape != lab.shape:
+        raise ValueError(f"fill_hulls: points must be [M, 3] and labels, core, candidates [M]; got "
+                         f"{pts.shape}, {lab.shape}, {core.shape}, {cand.shape}")
+    todo = np.flatnonzero(cand & (lab < 0))
+    best = np.full(len(todo), np.inf)
+    new = np.full(len(todo), -1, np.int64)
+    for k in range(int(lab.max(initial=-1)) + 1):
+        mem = pts[(lab == k) & core]
+        if len(mem) < 4 or len(todo) == 0:
+            continue
+        try:
+            inside = Delaunay(mem).find_simplex(pts[todo]) >= 0
+        except QhullError:  # coplanar or otherwise degenerate core: no volume to fill
+            continue
+        d = np.where(inside, cKDTree(mem).query(pts[todo], k=1)[0], np.inf)
+        take = d < best
+        best[take], new[take] = d[take], k
+    lab[todo] = np.where(new >= 0, new, lab[todo])
     return lab
 
 

@@ -52,6 +52,7 @@ def _tiny_run(base: Path, *, stage2: bool) -> tuple[Path, Path]:
         stage1.train_stage1(cfg, load_scene(data, "train"), run, progress=False, log=lambda m: None)
     if stage2 and not (run / s2.STAGE2_NAME).exists():
         cfg2 = s2.Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2, refit_steps=4, track_photo=0,
-                               relabel_steps=0, local_threshold=0.4)  # the flow tracking: seconds, not minutes
+                               relabel_steps=0, local_threshold=0.4,  # the flow tracking: seconds, not minutes
+                               hull_refit_steps=4)
         s2.run_stage2(run, data, cfg2, log=lambda m: None)
     return run, data

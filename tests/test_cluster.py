@@ -247,6 +247,51 @@ def test_grow_clusters_hysteresis():
         grow_clusters(pts, labels, cand, eps=0.0)
 
 
+def test_fill_hulls_brings_in_the_static_points_inside_a_clusters_core_hull():
+    from fgjax.cluster import fill_hulls
+
+    corners = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])  # a unit cube
+    box_b = corners * 0.5 + np.array([3.0, 0.0, 0.0])  # a second cluster's cube, [3, 3.5] x [0, 0.5]^2
+    inside = np.array([[0.5, 0.5, 0.5], [0.1, 0.9, 0.2], [0.99, 0.01, 0.5]])
+    outside = np.array([[1.01, 0.5, 0.5], [0.5, -0.02, 0.5], [2.0, 2.0, 2.0], [3.25, 0.25, 0.51], [-0.1, 0.5, 0.5]])
+    faint_out = np.array([[-0.5, 0.5, 0.5]])  # a member that is not core: it does not widen the hull
+    in_b = np.array([[3.2, 0.3, 0.1]])
+    pts = np.concatenate([corners, box_b, inside, outside, faint_out, in_b, [[0.5, 0.5, 0.4]]])
+    n_c, n_b, n_in, n_out = len(corners), len(box_b), len(inside), len(outside)
+    labels = np.full(len(pts), -1)
+    labels[:n_c] = 0
+    labels[n_c:n_c + n_b] = 1
+    i_faint = n_c + n_b + n_in + n_out
+    labels[i_faint] = 0
+    labels[-1] = 1  # a member of another cluster inside cube 0 keeps its label
+    core = labels >= 0
+    core[i_faint] = False
+    cand = np.ones(len(pts), bool)
+    cand[n_c + n_b + 2] = False  # a non-candidate inside stays static
+    out = fill_hulls(pts, labels, core, cand)
+    s = n_c + n_b
+    np.testing.assert_array_equal(out[s:s + n_in], [0, 0, -1])
+    np.testing.assert_array_equal(out[s + n_in:s + n_in + n_out], -1)  # just outside, far, above cube 1, or only
+    # inside the hull that the faint member would widen
+    assert out[i_faint] == 0 and out[i_faint + 1] == 1 and out[-1] == 1
+    np.testing.assert_array_equal(out[labels >= 0], labels[labels >= 0])  # members never change
+    # a point inside two overlapping hulls joins the cluster of the nearer core member
+    two = np.concatenate([corners, corners + np.array([0.8, 0.0, 0.0]), [[0.85, 0.5, 0.5], [0.95, 0.02, 0.02]]])
+    lab2 = np.r_[np.zeros(8, int), np.ones(8, int), -1, -1]
+    out2 = fill_hulls(two, lab2, lab2 >= 0, np.ones(len(two), bool))
+    assert out2[-2] == 1 and out2[-1] == 0  # nearest core points: (0.8, 0, 0) of cube 1; (1, 0, 0) of cube 0
+    # degenerate cores fill nothing: 3 points, and 4 coplanar ones
+    flat = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.5, 0.5, 0.0]])
+    for m in (3, 4):
+        lab3 = np.r_[np.zeros(m, int), np.full(len(flat) - m, -1)]
+        np.testing.assert_array_equal(fill_hulls(flat, lab3, lab3 >= 0, np.ones(len(flat), bool)), lab3)
+    np.testing.assert_array_equal(fill_hulls(pts, np.full(len(pts), -1), core, cand), -1)  # no clusters
+    with pytest.raises(ValueError, match="fill_hulls"):
+        fill_hulls(pts[:, :2], labels, core, cand)
+    with pytest.raises(ValueError, match="fill_hulls"):
+        fill_hulls(pts, labels[:-1], core, cand)
+
+
 def _activity(t, n, spans):
     """Per-frame painted weights [T, N]: total 10 everywhere; point i moving (weight 8) in frames spans[i]."""
     total = np.full((t, n), 10.0)

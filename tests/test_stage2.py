@@ -357,7 +357,9 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert res.num_objects > 0, logs
     assert sum(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs) == 1, logs
     assert sum("-> revolute" in m or "-> prismatic" in m for m in logs) == res.num_objects, logs
-    assert sum(m.startswith("stage 2: re-fitted the Gaussians") for m in logs) == 1, logs
+    # one round's re-fit, then the hull fill's (`hull_fill`, on by default) with its own step count
+    assert sum(m.startswith("stage 2: re-fitted the Gaussians") for m in logs) == 2, logs
+    assert any("inside the hulls" in m for m in logs) and any("re-fitted" in m and "100 steps" in m for m in logs), logs
     assert not any("round 2" in m for m in logs), logs
     assert np.all(np.isfinite(res.traj)) and res.refit is not None
     meta = stage2.load_stage2(dst).s2.meta
@@ -367,7 +369,8 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert all(k in ("revolute", "prismatic") and c >= 0 for k, c in zip(meta["joint_kinds"], meta["joint_costs"]))
     for bad, field in (({"track_photo": -1}, "track_photo"), ({"track_photo_next": -1}, "track_photo_next"),
                        ({"track_rounds": 0}, "track_rounds"), ({"track_converged_deg": -1.0}, "track_converged_deg"),
-                       ({"track_converged_deg": float("nan")}, "track_converged_deg")):
+                       ({"track_converged_deg": float("nan")}, "track_converged_deg"),
+                       ({"hull_opacity": 1.5}, "hull_opacity"), ({"hull_refit_steps": -1}, "hull_refit_steps")):
         with pytest.raises(ValueError, match=field):
             stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(**bad), log=logs.append)
     # rounds without photometric tracking: said, not silently ignored (stopped before any work by a bad option)
@@ -407,7 +410,7 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
     logs = []
     cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
-                              track_rounds=2, seed=3)
+                              track_rounds=2, seed=3, hull_fill=False)  # (its re-fit: test_hull_fill_...)
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
     assert [c[0] for c in calls] == ["track", "refit", "track", "refit"], [c[0] for c in calls]
     (_, ref1, init1, poses1), (_, rinit1, rposes1, seed1, refit1) = calls[0], calls[1]
@@ -455,7 +458,7 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
         monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
         logs = []
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
-                                  track_rounds=4, track_converged_deg=limit)
+                                  track_rounds=4, track_converged_deg=limit, hull_fill=False)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
         tracks = [c for c in calls if c[0] == "track"]
         assert [c[0] for c in calls] == ["track", "refit"] * want, [c[0] for c in calls]
@@ -468,6 +471,63 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
             assert any("every joint converged" in m and "no round 4" in m for m in logs), logs
         else:
             assert all(c[1] is None or not np.any(c[1]) for c in tracks)
+
+
+def test_hull_fill_runs_after_the_last_round_and_is_refitted(tiny, tmp_path, monkeypatch):
+    """``hull_fill``: after the last round's re-fit the hulls are filled once, and ``hull_refit_steps`` steps of
+    re-fit without relabelling follow under the filled labels; their scene and those labels are the ones kept.
+    ``hull_refit_steps=0``: the fill alone; ``hull_fill=False``: neither. The tracking, re-fit and fill are
+    recorders (the real fill: tests/test_cluster.py; the real re-fit: the tests above)."""
+    import shutil
+
+    import jax
+
+    for fill, steps, want in ((True, 7, ["track", "refit", "track", "refit", "fill", "refit"]),
+                              (True, 0, ["track", "refit", "track", "refit", "fill"]),
+                              (False, 7, ["track", "refit", "track", "refit"])):
+        dst = tmp_path / f"{fill}{steps}"
+        shutil.copytree(tiny[0], dst)
+        calls = []
+
+        def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
+                       prev_joints=None):
+            calls.append(("track", np.asarray(labels).copy()))
+            poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
+            return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": [[1.0, 0, 0]] * k}
+
+        def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
+                       init=None, log=print):
+            calls.append(("refit", np.asarray(labels).copy(), steps, relabel_steps))
+            return jax.tree_util.tree_map(lambda a: a + 1, init), labels  # each re-fit shifts every leaf by 1
+
+        def fake_fill(labels, gs, alive, min_opacity, log=print):
+            assert min_opacity == 0.6
+            calls.append(("fill", np.asarray(labels).copy()))
+            new = np.asarray(labels).copy()
+            new[np.flatnonzero(new < 0)[:1]] = 0  # one static Gaussian joins cluster 0
+            return new
+
+        monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
+        monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
+        monkeypatch.setattr(stage2, "_fill_hulls", fake_fill)
+        cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, relabel_steps=3,
+                                  track_photo=5, track_rounds=2, track_converged_deg=0.0, hull_fill=fill,
+                                  hull_opacity=0.6, hull_refit_steps=steps)
+        res = stage2.run_stage2(dst, tiny[1], cfg, log=lambda m: None)
+        if res.num_objects == 0:
+            pytest.skip("no clusters in the tiny run")
+        assert [c[0] for c in calls] == want, (fill, steps, [c[0] for c in calls])
+        before = calls[3][1]  # the labels the last round's re-fit was given
+        assert int(np.sum(res.labels >= 0)) == int(np.sum(before >= 0)) + int(fill)
+        refits = [c for c in calls if c[0] == "refit"]
+        assert [c[2:] for c in refits[:2]] == [(4, 3), (4, 3)]
+        ref0 = stage2._reference_scene(stage2.load_stage2(dst, require_stage2=False), 0.0)
+        if len(refits) == 3:  # the hull's re-fit: its steps, no relabelling, the filled labels
+            assert refits[2][2:] == (7, 0)
+            np.testing.assert_array_equal(refits[2][1], res.labels)
+        # the scene kept is the last re-fit's (one shift per re-fit)
+        shift = float(np.asarray(res.refit.opacity_logits)[0] - np.asarray(ref0.opacity_logits)[0])
+        assert shift == pytest.approx(len(refits), abs=1e-4), (shift, len(refits))
 
 
 def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):

@@ -319,7 +319,7 @@ def grow_clusters(
 
 def fill_hulls(
     points: Float[np.ndarray, "M 3"], labels: Int[np.ndarray, " M"], core: Bool[np.ndarray, " M"],
-    candidates: Bool[np.ndarray, " M"],
+    candidates: Bool[np.ndarray, " M"], *, max_growth: float = np.inf,
 ) -> Int[np.ndarray, " M"]:
     """Unlabelled `candidates` inside the convex hull of a cluster's `core` members join that cluster.
 
@@ -328,7 +328,9 @@ def fill_hulls(
     own flow or photometric evidence said so (it may be hidden in every training frame, e.g. behind a
     drawer's front, and show in a novel view). Only labels -1 change; a candidate inside several hulls
     joins the cluster of its nearest core member. A cluster whose core has fewer than 4 points, or lies
-    in a plane (no 3-D hull), fills nothing. Returns the new labels [M]."""
+    in a plane (no 3-D hull), fills nothing, and so does one whose hull holds more than ``max_growth`` times
+    its own member count of unlabelled candidates: such a core spans static surfaces (a cluster spread over
+    the scene, or two parts merged), not one solid part. Returns the new labels [M]."""
     from scipy.spatial import Delaunay, QhullError, cKDTree
 
     pts = _points(points, "points")
@@ -347,6 +349,8 @@ def fill_hulls(
         try:
             inside = Delaunay(mem).find_simplex(pts[todo]) >= 0
         except QhullError:  # coplanar or otherwise degenerate core: no volume to fill
+            continue
+        if np.sum(inside) > max_growth * np.sum(lab == k):
             continue
         d = np.where(inside, cKDTree(mem).query(pts[todo], k=1)[0], np.inf)
         take = d < best

@@ -280,12 +280,20 @@ def test_fill_hulls_brings_in_the_static_points_inside_a_clusters_core_hull():
     lab2 = np.r_[np.zeros(8, int), np.ones(8, int), -1, -1]
     out2 = fill_hulls(two, lab2, lab2 >= 0, np.ones(len(two), bool))
     assert out2[-2] == 1 and out2[-1] == 0  # nearest core points: (0.8, 0, 0) of cube 1; (1, 0, 0) of cube 0
+    # a hull holding more candidates than max_growth x its cluster's size fills nothing (cube 0: 8 members + the
+    # faint one, 2 candidates inside; cube 1: 8 + 1 members, 1 inside)
+    capped = fill_hulls(pts, labels, core, cand, max_growth=0.2)
+    np.testing.assert_array_equal(capped[s:s + n_in], [-1, -1, -1])
+    assert capped[i_faint + 1] == 1
+    np.testing.assert_array_equal(fill_hulls(pts, labels, core, cand, max_growth=0.25), out)  # 2 <= 0.25 x 9
     # degenerate cores fill nothing: 3 points, and 4 coplanar ones
     flat = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.5, 0.5, 0.0]])
     for m in (3, 4):
         lab3 = np.r_[np.zeros(m, int), np.full(len(flat) - m, -1)]
         np.testing.assert_array_equal(fill_hulls(flat, lab3, lab3 >= 0, np.ones(len(flat), bool)), lab3)
     np.testing.assert_array_equal(fill_hulls(pts, np.full(len(pts), -1), core, cand), -1)  # no clusters
+    with pytest.raises(ValueError, match="non-finite"):  # refused, as by the other functions of this module
+        fill_hulls(np.where(np.arange(len(pts))[:, None] == 3, np.nan, pts), labels, core, cand)
     with pytest.raises(ValueError, match="fill_hulls"):
         fill_hulls(pts[:, :2], labels, core, cand)
     with pytest.raises(ValueError, match="fill_hulls"):

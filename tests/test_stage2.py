@@ -370,7 +370,8 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     for bad, field in (({"track_photo": -1}, "track_photo"), ({"track_photo_next": -1}, "track_photo_next"),
                        ({"track_rounds": 0}, "track_rounds"), ({"track_converged_deg": -1.0}, "track_converged_deg"),
                        ({"track_converged_deg": float("nan")}, "track_converged_deg"),
-                       ({"hull_opacity": 1.5}, "hull_opacity"), ({"hull_refit_steps": -1}, "hull_refit_steps")):
+                       ({"hull_opacity": 1.5}, "hull_opacity"), ({"hull_refit_steps": -1}, "hull_refit_steps"),
+                       ({"hull_max_growth": float("nan")}, "hull_max_growth")):
         with pytest.raises(ValueError, match=field):
             stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(**bad), log=logs.append)
     # rounds without photometric tracking: said, not silently ignored (stopped before any work by a bad option)
@@ -500,8 +501,8 @@ def test_hull_fill_runs_after_the_last_round_and_is_refitted(tiny, tmp_path, mon
             calls.append(("refit", np.asarray(labels).copy(), steps, relabel_steps))
             return jax.tree_util.tree_map(lambda a: a + 1, init), labels  # each re-fit shifts every leaf by 1
 
-        def fake_fill(labels, gs, alive, min_opacity, log=print):
-            assert min_opacity == 0.6
+        def fake_fill(labels, gs, alive, min_opacity, max_growth, log=print):
+            assert min_opacity == 0.6 and max_growth == 0.25
             calls.append(("fill", np.asarray(labels).copy()))
             new = np.asarray(labels).copy()
             new[np.flatnonzero(new < 0)[:1]] = 0  # one static Gaussian joins cluster 0
@@ -512,7 +513,7 @@ def test_hull_fill_runs_after_the_last_round_and_is_refitted(tiny, tmp_path, mon
         monkeypatch.setattr(stage2, "_fill_hulls", fake_fill)
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, relabel_steps=3,
                                   track_photo=5, track_rounds=2, track_converged_deg=0.0, hull_fill=fill,
-                                  hull_opacity=0.6, hull_refit_steps=steps)
+                                  hull_opacity=0.6, hull_max_growth=0.25, hull_refit_steps=steps)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=lambda m: None)
         if res.num_objects == 0:
             pytest.skip("no clusters in the tiny run")

@@ -249,6 +249,11 @@ class Stage2Config:
     0.799 under pose noise; held-out states +0.04, +0.30 and -0.27 dB. False: off."""
     hull_opacity: float = 0.7
     """The members that span `hull_fill`'s hulls: opacity >= this (the faint ones reach out from the part)."""
+    hull_max_growth: float = 0.6
+    """A cluster whose hull holds more static Gaussians than this times its own size is not filled: its opaque
+    members span more than one solid part. Measured (session 24): the fills of the full scenes added 14-40% of a
+    cluster; the quick demo's first cluster (a poor stage 1, flow tracking) would have doubled (420 of 424), which
+    took its ``ari`` from 0.63 to 0.48."""
     hull_refit_steps: int = 100
     """Steps of `refit_gaussians` (no relabelling) after `hull_fill`: the Gaussians that joined were re-fitted as
     static; 0: none."""
@@ -753,14 +758,18 @@ def _render_capacity(run: LoadedRun) -> int | None:
     return None if cap is None else int(cap * 1.5)
 
 
-def _fill_hulls(labels: np.ndarray, gs: Gaussians, alive, min_opacity: float, log=print) -> np.ndarray:
+def _fill_hulls(labels: np.ndarray, gs: Gaussians, alive, min_opacity: float, max_growth: float = np.inf,
+                log=print) -> np.ndarray:
     """`Stage2Config.hull_fill`: `fgjax.cluster.fill_hulls` on the reference scene ``gs`` (its centres, and
     its members with opacity >= ``min_opacity`` as each hull's core); labels [N] -> labels [N]. Logs how many
     joined each cluster."""
     opacity = 1.0 / (1.0 + np.exp(-np.asarray(gs.opacity_logits, np.float64)))
-    new = cluster.fill_hulls(np.asarray(gs.means, np.float64), labels, opacity >= min_opacity, np.asarray(alive, bool))
+    alive = np.asarray(alive, bool)
+    new = cluster.fill_hulls(np.asarray(gs.means, np.float64), labels, alive & (opacity >= min_opacity), alive,
+                             max_growth=max_growth)
     joined = [int(np.sum((new == k) & (labels != k))) for k in range(int(labels.max(initial=-1)) + 1)]
-    log(f"stage 2: {joined} static Gaussians inside the hulls of the clusters' opaque members joined them")
+    log(f"stage 2: {joined} static Gaussians inside the hulls of the clusters' opaque members joined them (a hull "
+        f"holding more than {max_growth:g}x its cluster's size is not filled)")
     return new
 
 
@@ -1175,6 +1184,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
             f"trajectories='flow'; one round")
     if not 0.0 <= cfg.hull_opacity <= 1.0:
         raise ValueError(f"Stage2Config.hull_opacity must be in [0, 1], got {cfg.hull_opacity!r}")
+    if not cfg.hull_max_growth >= 0:
+        raise ValueError(f"Stage2Config.hull_max_growth must be >= 0, got {cfg.hull_max_growth!r}")
     if cfg.hull_refit_steps < 0:
         raise ValueError(f"Stage2Config.hull_refit_steps must be >= 0, got {cfg.hull_refit_steps!r}")
     if cfg.camera_correction not in ("auto", "on", "off"):
@@ -1247,7 +1258,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                                                 relabel_steps=cfg.relabel_steps, relabel_radius=cfg.relabel_radius,
                                                 init=refit, log=log)
             if cfg.hull_fill:
-                labels = _fill_hulls(labels, refit, run.state.densify.alive, cfg.hull_opacity, log)
+                labels = _fill_hulls(labels, refit, run.state.densify.alive, cfg.hull_opacity, cfg.hull_max_growth,
+                                     log)
                 if cfg.hull_refit_steps > 0:
                     refit, _ = refit_gaussians(run, scene, order, labels, poses, cfg.hull_refit_steps,
                                                seed=cfg.seed + rounds, init=refit, log=log)

@@ -239,19 +239,20 @@ class Stage2Config:
     relabel_radius: float = 0.1
     """Candidates of the relabelling: Gaussians within this radius (scene units, at t0) of a cluster."""
     hull_fill: bool = True
-    """With ``refit_steps > 0``: after the last round's re-fit, the static Gaussians inside the convex hull of a cluster's opaque members
-    (opacity >= ``hull_opacity``, at t0) join it (`fgjax.cluster.fill_hulls`), and ``hull_refit_steps`` more steps
-    re-fit the scene under those labels. Neither the flow nor the photometric relabelling sees a Gaussian that every
-    training frame hides (a drawer's front face when it is out, behind the part), and discovery and the
-    relabelling drop a fifth to a third of each part (docs/benchmarks.md, session 24). It assumes convex parts (doors,
-    drawers, lids): a concave part's hull takes in the static Gaussians in its hollow. Measured at the demo's settings
-    (session 24): ``ari_controlled`` 0.818 -> 0.854 on the default scene, 0.747 -> 0.796 on the close pair, 0.767 ->
-    0.799 under pose noise; held-out states +0.04, +0.30 and -0.27 dB. False: off."""
+    """With ``refit_steps > 0``: after the last round's re-fit, the static Gaussians inside the convex hull of a
+    cluster's opaque members (opacity >= ``hull_opacity``, at t0) join it (`fgjax.cluster.fill_hulls`), and
+    ``hull_refit_steps`` more steps re-fit the scene under those labels. Neither the flow nor the photometric
+    relabelling sees a Gaussian that every training frame hides (a drawer's front face when it is out, behind the
+    part), and discovery and the relabelling drop a fifth to a third of each part (docs/benchmarks.md, session 24).
+    It assumes convex parts (doors, drawers, lids): a concave part's hull takes in the static Gaussians in its
+    hollow. Measured at the demo's settings (session 24): ``ari_controlled`` 0.818 -> 0.854 on the default scene,
+    0.747 -> 0.796 on the close pair, 0.767 -> 0.799 under pose noise; held-out states +0.04, +0.30 and -0.27 dB.
+    False: off."""
     hull_opacity: float = 0.7
     """The members that span `hull_fill`'s hulls: opacity >= this (the faint ones reach out from the part)."""
     hull_max_growth: float = 0.6
     """A cluster whose hull holds more static Gaussians than this times its own size is not filled: its opaque
-    members span more than one solid part. Measured (session 24): the fills of the full scenes added 14-40% of a
+    members span more than one solid part. Measured (session 24): the fills of the full scenes added 13-40% of a
     cluster; the quick demo's first cluster (a poor stage 1, flow tracking) would have doubled (420 of 424), which
     took its ``ari`` from 0.63 to 0.48."""
     hull_refit_steps: int = 100

@@ -531,6 +531,28 @@ def test_hull_fill_runs_after_the_last_round_and_is_refitted(tiny, tmp_path, mon
         assert shift == pytest.approx(len(refits), abs=1e-4), (shift, len(refits))
 
 
+def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quiet():
+    """`stage2._fill_hulls`: the hull's core is the cluster's alive members with opacity >= the cut; a faint member
+    (logit -800, which overflowed exp() in a hand-written sigmoid) and a dead one do not widen it, without warnings."""
+    import warnings
+
+    from fgjax.gaussians import Gaussians
+
+    cube = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+    means = np.concatenate([cube, [[-1.0, 0.5, 0.5], [2.0, 0.5, 0.5], [0.5, 0.5, 0.5], [-0.5, 0.5, 0.5],
+                                   [1.5, 0.5, 0.5]]])
+    n = len(means)
+    logits = np.r_[np.full(8, 5.0), -800.0, 5.0, -800.0, 5.0, 5.0]  # faint member, dead member, 3 static
+    g = Gaussians(means, np.zeros((n, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), logits, np.zeros((n, 1, 3)))
+    labels = np.r_[np.zeros(10, int), -1, -1, -1]
+    alive = np.ones(n, bool)
+    alive[9] = False  # the member at x = 2 is dead
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = stage2._fill_hulls(labels, g, alive, 0.7, log=lambda m: None)
+    np.testing.assert_array_equal(out, np.r_[np.zeros(10, int), 0, -1, -1])  # only the point inside the cube joins
+
+
 def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
     """`_photometric_poses` gives the tracker ``track_photo`` steps per frame (2:2:1 over its blur levels) in the
     first round and ``track_photo_next`` in a round started from earlier poses; ``track_photo_next=0`` keeps

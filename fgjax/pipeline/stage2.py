@@ -764,7 +764,9 @@ def _fill_hulls(labels: np.ndarray, gs: Gaussians, alive, min_opacity: float, ma
     """`Stage2Config.hull_fill`: `fgjax.cluster.fill_hulls` on the reference scene ``gs`` (its centres, and
     its members with opacity >= ``min_opacity`` as each hull's core); labels [N] -> labels [N]. Logs how many
     joined each cluster."""
-    opacity = 1.0 / (1.0 + np.exp(-np.asarray(gs.opacity_logits, np.float64)))
+    from scipy.special import expit
+
+    opacity = expit(np.asarray(gs.opacity_logits, np.float64))  # sigmoid, without exp's overflow at pruned logits
     alive = np.asarray(alive, bool)
     new = cluster.fill_hulls(np.asarray(gs.means, np.float64), labels, alive & (opacity >= min_opacity), alive,
                              max_growth=max_growth)

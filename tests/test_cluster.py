@@ -420,3 +420,123 @@ def test_split_by_motion_separates_parts_that_move_at_different_times():
     np.testing.assert_array_equal(C.split_by_motion(pts, labels, moving, total, min_size=25), labels)
     with pytest.raises(ValueError, match="split_by_motion"):
         C.split_by_motion(pts, labels[:5], moving, total)
+
+
+def _turn(axis, pivot, deg, slide=0.0):
+    """x -> R (x - p) + p + slide * a, R the turn by `deg` about unit `axis` (scipy's rotation vector, not the
+    module under test): [4, 4]."""
+    from scipy.spatial.transform import Rotation
+
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    R = Rotation.from_rotvec(np.radians(deg) * a).as_matrix()
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = np.asarray(pivot) - R @ np.asarray(pivot) + slide * a
+    return out
+
+
+def _line_distance(point, a, p):
+    d = np.asarray(point) - np.asarray(p)
+    return float(np.linalg.norm(d - (d @ a) * a))
+
+
+def test_hinge_axes_recover_the_axis_and_a_point_of_it_from_rigid_poses():
+    from fgjax.cluster import hinge_axes
+
+    rng = np.random.default_rng(0)
+    a0 = rng.normal(size=3)
+    a0 /= np.linalg.norm(a0)
+    p0 = np.array([0.4, -1.2, 2.0])
+    t = np.linspace(0.0, 1.0, 12)
+    poses = np.stack([
+        [_turn(a0, p0, 80.0 * s) for s in t],  # a hinge turning to 80 degrees
+        [_turn([0, 0, 1], [0, 0, 0], 0.0, slide=0.5 * s) for s in t],  # a slide: no hinge
+        [_turn([1, 0, 0], [0, 1, 0], 15.0 * s) for s in t],  # turns less than min_deg: no hinge
+        [_turn([0, 1, 0], [2.0, 0, 0], 60.0 * s, slide=0.3 * s) for s in t],  # a screw: the same line
+        [_turn([0, 0, 1], [1.0, 1.0, 0], 180.0 * s) for s in t],  # up to a half turn
+    ])
+    axes, pivots, angles = hinge_axes(poses, min_deg=20.0)
+    np.testing.assert_allclose(angles, [80.0, 0.0, 15.0, 60.0, 180.0], atol=1e-6)
+    for k in (1, 2):
+        assert np.all(np.isnan(axes[k])) and np.all(np.isnan(pivots[k]))
+    for k, a, p in ((0, a0, p0), (3, np.array([0, 1.0, 0]), [2.0, 0, 0]), (4, np.array([0, 0, 1.0]), [1.0, 1.0, 0])):
+        assert abs(abs(axes[k] @ a) - 1.0) < 1e-9, (k, axes[k], a)
+        assert _line_distance(pivots[k], a, p) < 1e-9, (k, pivots[k])
+        assert abs(pivots[k] @ axes[k]) < 1e-9  # the line's point nearest the origin
+    # noisy poses (tracked ones are): the axis within a degree, the line within a hundredth
+    noisy = poses[:1].copy()
+    for j in range(len(t)):
+        noisy[0, j] = noisy[0, j] @ _turn(rng.normal(size=3), rng.normal(size=3) * 0.1, 0.3)
+    axes_n, pivots_n, _ = hinge_axes(noisy)
+    assert np.degrees(np.arccos(min(1.0, abs(axes_n[0] @ a0)))) < 1.0
+    assert _line_distance(pivots_n[0], a0, p0) < 0.01
+    empty = hinge_axes(np.zeros((0, 5, 4, 4)))
+    assert [e.shape for e in empty] == [(0, 3), (0, 3), (0,)]
+    with pytest.raises(ValueError, match="non-finite"):
+        hinge_axes(np.where(np.arange(4)[None, None, :, None] == 0, np.nan, poses))
+    with pytest.raises(ValueError, match="hinge_axes"):
+        hinge_axes(poses[..., :3, :])
+    with pytest.raises(ValueError, match="min_deg"):
+        hinge_axes(poses, min_deg=0.0)
+
+
+def test_fill_hinges_brings_in_the_static_points_along_a_turning_clusters_axis():
+    from fgjax.cluster import fill_hinges
+
+    # a door 1 wide and 2 tall in the plane y = 0, hinged on the z axis; its strip near the hinge is unlabelled
+    door = np.array([[x, y, z] for x in (0.05, 0.3, 0.6, 1.0) for y in (0.0, 0.02) for z in (0.0, 1.0, 2.0)])
+    strip = np.array([[0.1, 0.0, 1.0], [0.15, 0.01, 0.5], [0.0, -0.05, 1.9]])  # within 0.2 of the axis: join
+    away = np.array([[0.25, 0.0, 1.0],  # beyond 0.2 x r_max (r_max = 1.0002)
+                     [0.1, 0.0, 2.3], [0.1, 0.0, -0.2]])  # past the door's ends along the axis
+    pts = np.concatenate([door, strip, away, [[0.1, 0.0, 0.4]]])
+    labels = np.r_[np.zeros(len(door), int), np.full(len(strip) + len(away) + 1, -1)]
+    core = labels >= 0
+    cand = np.ones(len(pts), bool)
+    cand[-1] = False  # not a candidate: stays static
+    z_axis, origin = np.array([[0.0, 0.0, 1.0]]), np.zeros((1, 3))
+    out = fill_hinges(pts, labels, core, cand, z_axis, origin, radius=0.2, reach=0.15)
+    s = len(door)
+    np.testing.assert_array_equal(out[s:s + len(strip)], 0)
+    np.testing.assert_array_equal(out[s + len(strip):], -1)
+    np.testing.assert_array_equal(out[:s], 0)  # members never change
+    # the axis's length and sign do not matter
+    np.testing.assert_array_equal(fill_hinges(pts, labels, core, cand, -3.0 * z_axis, origin, radius=0.2), out)
+    # an axis that does not run along the part (nearest core member 1.05 from it, farthest 2.0): nothing joins
+    far = np.array([[-1.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(fill_hinges(pts, labels, core, cand, z_axis, far), labels)
+    # ... unless reach allows it (1.05 <= 0.6 x 2.0); then the cylinder is 0.2 x 2.0 = 0.4 wide about x = -1
+    wide = fill_hinges(pts, labels, core, cand, z_axis, far, reach=0.6)
+    np.testing.assert_array_equal(wide, labels)  # no candidate lies within 0.4 of x = -1
+    # no hinge (NaN: a slide), or a zero axis: nothing joins
+    nan3 = np.full((1, 3), np.nan)
+    np.testing.assert_array_equal(fill_hinges(pts, labels, core, cand, nan3, nan3), labels)
+    np.testing.assert_array_equal(fill_hinges(pts, labels, core, cand, np.zeros((1, 3)), origin), labels)
+    # the core only: a faint member on the axis far below does not stretch the cylinder's ends
+    low = np.concatenate([pts, [[0.02, 0.0, -1.0]]])
+    lab_low, core_low = np.r_[labels, 0], np.r_[core, False]
+    out_low = fill_hinges(low, lab_low, core_low, np.r_[cand, True], z_axis, origin)
+    assert out_low[s + len(strip) + 2] == -1  # (0.1, 0, -0.2) stays out
+    # two hinges (cylinders 0.2 wide): a candidate in both joins the nearer axis
+    other = np.array([[x, 0.0, z] for x in (0.28, -0.2, -0.7) for z in (0.0, 2.0)])  # hinged at x = 0.3
+    pts2 = np.concatenate([door, other, [[0.1, 0.0, 1.0], [0.17, 0.0, 1.0], [0.22, 0.0, 1.0]]])
+    lab2 = np.r_[np.zeros(len(door), int), np.ones(len(other), int), -1, -1, -1]
+    axes2, piv2 = np.array([[0.0, 0, 1], [0, 0, 1]]), np.array([[0.0, 0, 0], [0.3, 0, 0]])
+    out2 = fill_hinges(pts2, lab2, lab2 >= 0, np.ones(len(pts2), bool), axes2, piv2, radius=0.2)
+    np.testing.assert_array_equal(out2[-3:], [0, 1, 1])
+    # a cylinder holding more than max_growth x the cluster's size fills nothing (24 members, 3 inside)
+    np.testing.assert_array_equal(fill_hinges(pts, labels, core, cand, z_axis, origin, radius=0.2, max_growth=0.1),
+                                  labels)
+    np.testing.assert_array_equal(fill_hinges(pts, labels, core, cand, z_axis, origin, radius=0.2, max_growth=0.125),
+                                  out)
+    # the default cylinder, 0.15 x r_max: (0.15, 0.01, 0.5) lies just outside it
+    np.testing.assert_array_equal(fill_hinges(pts, labels, core, cand, z_axis, origin)[s:s + len(strip)], [0, -1, 0])
+    np.testing.assert_array_equal(fill_hinges(pts, np.full(len(pts), -1), core, cand, np.zeros((0, 3)),
+                                              np.zeros((0, 3))), -1)  # no clusters
+    with pytest.raises(ValueError, match="non-finite"):
+        fill_hinges(np.where(np.arange(len(pts))[:, None] == 3, np.inf, pts), labels, core, cand, z_axis, origin)
+    with pytest.raises(ValueError, match="fill_hinges"):
+        fill_hinges(pts, labels, core, cand, np.zeros((2, 3)), np.zeros((2, 3)))  # one cluster, two axes
+    with pytest.raises(ValueError, match="fill_hinges"):
+        fill_hinges(pts, labels[:-1], core, cand, z_axis, origin)
+    with pytest.raises(ValueError, match="radius"):
+        fill_hinges(pts, labels, core, cand, z_axis, origin, radius=-0.1)

@@ -360,6 +360,7 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     # one round's re-fit, then the hull fill's (`hull_fill`, on by default) with its own step count
     assert sum(m.startswith("stage 2: re-fitted the Gaussians") for m in logs) == 2, logs
     assert any("inside the hulls" in m for m in logs) and any("re-fitted" in m and "100 steps" in m for m in logs), logs
+    assert sum("along the hinges" in m for m in logs) == 1, logs  # `hinge_fill`, on by default, shares that re-fit
     assert not any("round 2" in m for m in logs), logs
     assert np.all(np.isfinite(res.traj)) and res.refit is not None
     meta = stage2.load_stage2(dst).s2.meta
@@ -367,11 +368,15 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert len(meta["joint_kinds"]) == len(meta["joint_costs"]) == len(meta["joint_axes"]) == res.num_objects, meta
     assert all(a is None or abs(np.linalg.norm(a) - 1.0) < 1e-6 for a in meta["joint_axes"]), meta["joint_axes"]
     assert all(k in ("revolute", "prismatic") and c >= 0 for k, c in zip(meta["joint_kinds"], meta["joint_costs"]))
+    assert len(meta["hull_joined"]) == len(meta["hinge_joined"]) == len(meta["hinges"]) == res.num_objects, meta
+    assert all(h is None or (h["angle_deg"] >= 20 and abs(np.linalg.norm(h["axis"]) - 1) < 1e-6) for h in meta["hinges"])
     for bad, field in (({"track_photo": -1}, "track_photo"), ({"track_photo_next": -1}, "track_photo_next"),
                        ({"track_rounds": 0}, "track_rounds"), ({"track_converged_deg": -1.0}, "track_converged_deg"),
                        ({"track_converged_deg": float("nan")}, "track_converged_deg"),
                        ({"hull_opacity": 1.5}, "hull_opacity"), ({"hull_refit_steps": -1}, "hull_refit_steps"),
-                       ({"hull_max_growth": float("nan")}, "hull_max_growth")):
+                       ({"hull_max_growth": float("nan")}, "hull_max_growth"),
+                       ({"hinge_radius": -0.1}, "hinge_radius"), ({"hinge_reach": float("inf")}, "hinge_reach"),
+                       ({"hinge_min_deg": 0.0}, "hinge_min_deg"), ({"hinge_min_deg": 200.0}, "hinge_min_deg")):
         with pytest.raises(ValueError, match=field):
             stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(**bad), log=logs.append)
     # rounds without photometric tracking: said, not silently ignored (stopped before any work by a bad option)
@@ -411,7 +416,8 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
     logs = []
     cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
-                              track_rounds=2, seed=3, hull_fill=False)  # (its re-fit: test_hull_fill_...)
+                              track_rounds=2, seed=3, hull_fill=False,
+                              hinge_fill=False)  # (their re-fit: test_hull_fill_...)
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
     assert [c[0] for c in calls] == ["track", "refit", "track", "refit"], [c[0] for c in calls]
     (_, ref1, init1, poses1), (_, rinit1, rposes1, seed1, refit1) = calls[0], calls[1]
@@ -459,7 +465,8 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
         monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
         logs = []
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
-                                  track_rounds=4, track_converged_deg=limit, hull_fill=False)
+                                  track_rounds=4, track_converged_deg=limit, hull_fill=False,
+                                  hinge_fill=False)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
         tracks = [c for c in calls if c[0] == "track"]
         assert [c[0] for c in calls] == ["track", "refit"] * want, [c[0] for c in calls]
@@ -474,19 +481,23 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
             assert all(c[1] is None or not np.any(c[1]) for c in tracks)
 
 
-def test_hull_fill_runs_after_the_last_round_and_is_refitted(tiny, tmp_path, monkeypatch):
-    """``hull_fill``: after the last round's re-fit the hulls are filled once, and ``hull_refit_steps`` steps of
-    re-fit without relabelling follow under the filled labels; their scene and those labels are the ones kept.
-    ``hull_refit_steps=0``: the fill alone; ``hull_fill=False``: neither. The tracking, re-fit and fill are
-    recorders (the real fill: tests/test_cluster.py; the real re-fit: the tests above)."""
+def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tmp_path, monkeypatch):
+    """``hull_fill`` then ``hinge_fill``: after the last round's re-fit the hulls are filled once, then the hinges
+    (given the hull's labels and the last round's poses), and ``hull_refit_steps`` steps of re-fit without
+    relabelling follow under the filled labels; their scene and those labels are the ones kept, and stage2.json
+    records what joined. ``hull_refit_steps=0``: the fills alone; either fill alone; both off: neither fill nor
+    the extra re-fit. The tracking, re-fit and fills are recorders (the real fills: tests/test_cluster.py; the
+    real re-fit: the tests above)."""
     import shutil
 
     import jax
 
-    for fill, steps, want in ((True, 7, ["track", "refit", "track", "refit", "fill", "refit"]),
-                              (True, 0, ["track", "refit", "track", "refit", "fill"]),
-                              (False, 7, ["track", "refit", "track", "refit"])):
-        dst = tmp_path / f"{fill}{steps}"
+    for hull, hinge, steps, want in ((True, True, 7, ["track", "refit", "track", "refit", "fill", "hinge", "refit"]),
+                                     (True, True, 0, ["track", "refit", "track", "refit", "fill", "hinge"]),
+                                     (True, False, 7, ["track", "refit", "track", "refit", "fill", "refit"]),
+                                     (False, True, 7, ["track", "refit", "track", "refit", "hinge", "refit"]),
+                                     (False, False, 7, ["track", "refit", "track", "refit"])):
+        dst = tmp_path / f"{hull}{hinge}{steps}"
         shutil.copytree(tiny[0], dst)
         calls = []
 
@@ -494,6 +505,7 @@ def test_hull_fill_runs_after_the_last_round_and_is_refitted(tiny, tmp_path, mon
                        prev_joints=None):
             calls.append(("track", np.asarray(labels).copy()))
             poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
+            poses[..., 0, 3] = 0.01 * len(calls)  # a small shift, told apart per call
             return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": [[1.0, 0, 0]] * k}
 
         def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
@@ -508,27 +520,46 @@ def test_hull_fill_runs_after_the_last_round_and_is_refitted(tiny, tmp_path, mon
             new[np.flatnonzero(new < 0)[:1]] = 0  # one static Gaussian joins cluster 0
             return new
 
+        def fake_hinge(labels, gs, alive, poses, cfg, log=print):
+            assert (cfg.hinge_radius, cfg.hinge_reach, cfg.hinge_min_deg) == (0.3, 0.1, 25.0)
+            calls.append(("hinge", np.asarray(labels).copy(), np.asarray(poses).copy()))
+            new = np.asarray(labels).copy()
+            new[np.flatnonzero(new < 0)[:2]] = 0  # two static Gaussians join cluster 0
+            return new, [None] * (int(new.max()) + 1)
+
         monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
         monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
         monkeypatch.setattr(stage2, "_fill_hulls", fake_fill)
+        monkeypatch.setattr(stage2, "_fill_hinges", fake_hinge)
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, relabel_steps=3,
-                                  track_photo=5, track_rounds=2, track_converged_deg=0.0, hull_fill=fill,
-                                  hull_opacity=0.6, hull_max_growth=0.25, hull_refit_steps=steps)
+                                  track_photo=5, track_rounds=2, track_converged_deg=0.0, hull_fill=hull,
+                                  hull_opacity=0.6, hull_max_growth=0.25, hull_refit_steps=steps, hinge_fill=hinge,
+                                  hinge_radius=0.3, hinge_reach=0.1, hinge_min_deg=25.0)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=lambda m: None)
         if res.num_objects == 0:
             pytest.skip("no clusters in the tiny run")
-        assert [c[0] for c in calls] == want, (fill, steps, [c[0] for c in calls])
+        assert [c[0] for c in calls] == want, (hull, hinge, steps, [c[0] for c in calls])
         before = calls[3][1]  # the labels the last round's re-fit was given
-        assert int(np.sum(res.labels >= 0)) == int(np.sum(before >= 0)) + int(fill)
+        assert int(np.sum(res.labels >= 0)) == int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge)
+        if hinge:  # the hinges see the hull's labels and the last round's poses
+            (fill_in,) = [c for c in calls if c[0] == "hinge"]
+            assert int(np.sum(fill_in[1] >= 0)) == int(np.sum(before >= 0)) + int(hull)
+            np.testing.assert_allclose(fill_in[2][..., 0, 3], 0.03)  # the second track call's poses
         refits = [c for c in calls if c[0] == "refit"]
         assert [c[2:] for c in refits[:2]] == [(4, 3), (4, 3)]
         ref0 = stage2._reference_scene(stage2.load_stage2(dst, require_stage2=False), 0.0)
-        if len(refits) == 3:  # the hull's re-fit: its steps, no relabelling, the filled labels
+        if len(refits) == 3:  # the fills' re-fit: its steps, no relabelling, the filled labels
             assert refits[2][2:] == (7, 0)
             np.testing.assert_array_equal(refits[2][1], res.labels)
         # the scene kept is the last re-fit's (one shift per re-fit)
         shift = float(np.asarray(res.refit.opacity_logits)[0] - np.asarray(ref0.opacity_logits)[0])
         assert shift == pytest.approx(len(refits), abs=1e-4), (shift, len(refits))
+        meta = stage2.load_stage2(dst).s2.meta
+        assert ("hull_joined" in meta) == hull and ("hinge_joined" in meta) == hinge and ("hinges" in meta) == hinge
+        if hull:
+            assert meta["hull_joined"][0] == 1
+        if hinge:
+            assert meta["hinge_joined"][0] == 2 and meta["hinges"] == [None] * res.num_objects
 
 
 def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quiet():
@@ -551,6 +582,47 @@ def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quie
         warnings.simplefilter("error")
         out = stage2._fill_hulls(labels, g, alive, 0.7, log=lambda m: None)
     np.testing.assert_array_equal(out, np.r_[np.zeros(10, int), 0, -1, -1])  # only the point inside the cube joins
+
+
+def test_fill_hinges_takes_the_hinge_from_the_poses_and_the_core_from_the_alive_opaque_members():
+    """`stage2._fill_hinges`: the hinge is the poses' axis (a door turning about the z axis through (0, 0, 0));
+    its cylinder is sized and bounded by the cluster's alive members with opacity >= ``hull_opacity``: a faint
+    member (logit -800) and a dead one far out along the axis do not stretch it. An object that turns by less
+    than ``hinge_min_deg`` has no hinge. What joined and the hinges are logged and returned."""
+    import warnings
+
+    from scipy.spatial.transform import Rotation
+
+    from fgjax.gaussians import Gaussians
+
+    def about_z(deg):  # a turn about the z axis through the origin
+        out = np.eye(4)
+        out[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(deg)]).as_matrix()
+        return out
+
+    door = np.array([[x, 0.0, z] for x in (0.02, 0.5, 1.0) for z in (0.0, 1.0)])
+    means = np.concatenate([door, [[0.0, 0.0, 3.0], [0.0, 0.0, -2.0], [0.1, 0.0, 0.5], [0.1, 0.0, 2.5],
+                                   [0.1, 0.0, -1.5]]])
+    n = len(means)
+    logits = np.r_[np.full(6, 5.0), -800.0, 5.0, 5.0, 5.0, 5.0]  # faint member, dead member, 3 static
+    g = Gaussians(means, np.zeros((n, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), logits, np.zeros((n, 1, 3)))
+    labels = np.r_[np.zeros(8, int), -1, -1, -1]
+    alive = np.ones(n, bool)
+    alive[7] = False  # the member at z = -2 is dead
+    poses = np.stack([[about_z(d) for d in (0.0, 30.0, 70.0)]])
+    cfg = stage2.Stage2Config()
+    logs = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out, hinges = stage2._fill_hinges(labels, g, alive, poses, cfg, log=logs.append)
+    np.testing.assert_array_equal(out, np.r_[np.zeros(8, int), 0, -1, -1])  # only the point beside the door joins
+    assert abs(abs(hinges[0]["axis"][2]) - 1.0) < 1e-9 and np.allclose(hinges[0]["pivot"], 0.0, atol=1e-9)
+    assert hinges[0]["angle_deg"] == pytest.approx(70.0)
+    assert logs == ["stage 2: [1] static Gaussians along the hinges of the turning objects [1] joined them"], logs
+    small = np.stack([[about_z(d) for d in (0.0, 10.0, 19.0)]])
+    out_small, hinges_small = stage2._fill_hinges(labels, g, alive, small, cfg, log=lambda m: None)
+    np.testing.assert_array_equal(out_small, labels)
+    assert hinges_small == [None]
 
 
 def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):

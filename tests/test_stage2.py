@@ -618,7 +618,8 @@ def test_fill_hinges_takes_the_hinge_from_the_poses_and_the_core_from_the_alive_
     np.testing.assert_array_equal(out, np.r_[np.zeros(8, int), 0, -1, -1])  # only the point beside the door joins
     assert abs(abs(hinges[0]["axis"][2]) - 1.0) < 1e-9 and np.allclose(hinges[0]["pivot"], 0.0, atol=1e-9)
     assert hinges[0]["angle_deg"] == pytest.approx(70.0)
-    assert logs == ["stage 2: [1] static Gaussians along the hinges of the turning objects [1] joined them"], logs
+    assert logs == ["stage 2: [1] static Gaussians (objects 1, 2, ...) along the hinges of the objects that turn by "
+                    ">= 20 degrees [1] joined them"], logs
     small = np.stack([[about_z(d) for d in (0.0, 10.0, 19.0)]])
     out_small, hinges_small = stage2._fill_hinges(labels, g, alive, small, cfg, log=lambda m: None)
     np.testing.assert_array_equal(out_small, labels)

@@ -791,8 +791,8 @@ def _fill_hulls(labels: np.ndarray, gs: Gaussians, alive, min_opacity: float, ma
     alive = np.asarray(alive, bool)
     new = cluster.fill_hulls(np.asarray(gs.means, np.float64), labels, alive & (opacity >= min_opacity), alive,
                              max_growth=max_growth)
-    log(f"stage 2: {_joined(labels, new)} static Gaussians inside the hulls of the clusters' opaque members joined them (a hull "
-        f"holding more than {max_growth:g}x its cluster's size is not filled)")
+    log(f"stage 2: {_joined(labels, new)} static Gaussians (objects 1, 2, ...) inside the hulls of the clusters' opaque "
+        f"members joined them (a hull holding more than {max_growth:g}x its cluster's size is not filled)")
     return new
 
 
@@ -819,8 +819,8 @@ def _fill_hinges(labels: np.ndarray, gs: Gaussians, alive, poses: np.ndarray, cf
               {"axis": [float(v) for v in a], "pivot": [float(v) for v in p], "angle_deg": float(g)}
               for a, p, g in zip(axes, pivots, angles)]
     turning = [k + 1 for k, h in enumerate(hinges) if h is not None]
-    log(f"stage 2: {_joined(labels, new)} static Gaussians along the hinges of the turning objects {turning} "
-        f"joined them")
+    log(f"stage 2: {_joined(labels, new)} static Gaussians (objects 1, 2, ...) along the hinges of the objects that "
+        f"turn by >= {cfg.hinge_min_deg:g} degrees {turning} joined them")
     return new, hinges
 
 

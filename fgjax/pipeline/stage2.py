@@ -1056,7 +1056,8 @@ def _train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.nd
             first = float(loss)
     stats["distill"] = {"steps": cfg.distill_steps, "loss_first": first, "loss_last": float(loss),
                         "time_s": time.perf_counter() - t0}
-    log(f"stage 2: distillation {cfg.distill_steps} steps, loss {first} -> {float(loss):.3g} "
+    log(f"stage 2: distillation {cfg.distill_steps} steps, loss "
+        f"{'-' if first is None else format(first, '.3g')} -> {float(loss):.3g} "
         f"({time.perf_counter() - t0:.1f} s)")
     if cfg.photo_steps <= 0:
         return control, stats

@@ -20,6 +20,7 @@ from fgjax.pipeline.phototrack import (
     mixed_copies,
     pose_delta,
     rects_meeting,
+    rest_spans,
     subset_bucket,
     tile_region,
     track_photometric,
@@ -384,3 +385,55 @@ def test_track_photometric_drawing_only_the_gaussians_near_the_moving_parts_give
     np.testing.assert_allclose(p_sub, p_all, atol=1e-5)
     np.testing.assert_allclose(pi_sub, pi_all, atol=1e-5)
     assert np.abs(p_all[0, -1] - np.eye(4)).max() > 0.05  # the part was followed, not left at rest
+
+
+def test_rest_spans_are_the_still_runs_after_a_fitted_frame_with_the_pose_off_rest():
+    """(k, a, b): object k not fitted in frames a..b-1, fitted in frame a-1 (frame n is fitted when pair
+    (n-1, n) moves), and its pose there off the identity; the runs before any fitted frame, the fixed objects
+    and the poses at rest are left out; a non-finite pose counts as off; a wrong shape is refused."""
+    t = 8
+    poses = np.tile(np.eye(4), (3, t, 1, 1))
+    poses[0, 3:, 0, 3] = 0.1  # object 1 off rest from frame 3 on
+    poses[1, :, :3, :3] = np.asarray(geometry.so3_exp(jnp.asarray([0.0, 0.0, 0.01])))  # 0.57 degrees
+    poses[2, 5:] = np.nan
+    moving = np.zeros((3, t - 1), bool)
+    moving[0, [1, 2, 5]] = True  # frames 2, 3 and 6 fitted: still runs 4-5 and 7
+    moving[1, 0] = True  # frame 1 fitted: still run 2-7
+    moving[2, 3] = True  # frame 4 fitted: still run 5-7, nan there
+    assert rest_spans(moving, poses) == [(0, 4, 6), (0, 7, 8), (1, 2, 8), (2, 5, 8)]
+    assert rest_spans(moving, poses, fixed=[False, True, True]) == [(0, 4, 6), (0, 7, 8)]
+    assert rest_spans(moving, poses, tol_deg=1.0) == [(0, 4, 6), (0, 7, 8), (2, 5, 8)]
+    assert rest_spans(np.zeros((3, t - 1), bool), poses) == []  # nothing fitted: nothing to undo
+    with pytest.raises(ValueError, match="moving must be"):
+        rest_spans(moving[:, 1:], poses)
+
+
+def test_track_photometric_puts_a_part_back_at_rest_where_its_images_show_it_there():
+    """A part turns 0.12 rad a frame in frames 1-2 (the moving pairs) and the images show it back at rest in
+    frames 3-5, which are not fitted: without ``rest_check`` it keeps frame 2's turn there; with it, the span
+    is rendered at rest as well and takes the identity, which is the truth. Where the images show the part
+    still open, the fitted pose stays."""
+    t = 6
+    g, labels, vms, hinge = _coloured_hinge(t, 0.12)
+    back = hinge.copy()
+    back[3:] = np.eye(4)
+    kept = hinge.copy()
+    kept[3:] = hinge[2]
+    Ks = np.stack([K] * t)
+    moving = np.array([[True, True, False, False, False]])
+    kw = dict(moving=moving, sh_degree=0, background=np.zeros(3), steps=(15, 15, 10), radius=0.0)
+    a = np.ones(len(labels), bool)
+    ang = lambda r: float(np.degrees(np.linalg.norm(np.asarray(geometry.so3_log(jnp.asarray(r))))))
+    imgs = _images(g, labels, vms, back[None])
+    off, _ = track_photometric(g, a, labels, 1, imgs, vms, Ks, log=lambda s: None, **kw)
+    assert all(ang(off[0, n, :3, :3]) > 10.0 for n in range(3, t))  # frame 2's turn (13.8 degrees) kept
+    logs = []
+    on, _, st = track_photometric(g, a, labels, 1, imgs, vms, Ks, rest_check=True, return_stats=True,
+                                  log=logs.append, **kw)
+    np.testing.assert_array_equal(on[0, 3:], np.tile(np.eye(4), (3, 1, 1)))
+    np.testing.assert_array_equal(on[0, :3], off[0, :3])  # the fitted frames are untouched
+    assert st["spans_at_rest"] == 1 and any("object 1 back at rest in frames 4-6" in m for m in logs), logs
+    imgs_open = _images(g, labels, vms, kept[None])
+    op, _, st_open = track_photometric(g, a, labels, 1, imgs_open, vms, Ks, rest_check=True, return_stats=True,
+                                       log=lambda s: None, **kw)
+    assert st_open["spans_at_rest"] == 0 and all(ang(op[0, n, :3, :3]) > 10.0 for n in range(3, t))

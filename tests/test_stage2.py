@@ -348,12 +348,14 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     logs, seen = [], []
     real = phototrack.track_photometric
     monkeypatch.setattr(phototrack, "track_photometric",
-                        lambda *a, **k: seen.append((k["only_moving"], k["subset_margin"], k["steps"])) or real(*a, **k))
+                        lambda *a, **k: seen.append((k["only_moving"], k["subset_margin"], k["steps"], k["rest_check"]))
+                        or real(*a, **k))
     cfg = stage2.config_from_overrides(["auto_eps=true", "distill_steps=5", "photo_steps=2", "refit_steps=4",
                                         "track_photo=5", "track_only_moving=false", "track_subset_margin=3",
-                                        "track_photo_next=3", "track_rounds=1"])
+                                        "track_photo_next=3", "track_rounds=1", "track_rest=true"])
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
-    assert seen == [(False, 3, (2, 2, 1))] and stage2.Stage2Config().track_only_moving
+    assert seen == [(False, 3, (2, 2, 1), True)] and stage2.Stage2Config().track_only_moving
+    assert not stage2.Stage2Config().track_rest
     assert stage2.Stage2Config().track_subset_margin == 2
     assert res.num_objects > 0, logs
     assert sum(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs) == 1, logs

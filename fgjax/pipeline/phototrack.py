@@ -50,7 +50,7 @@ from fgjax.render.project import project_gaussians
 from fgjax.render.tiles import tile_ranges
 
 __all__ = ["blur", "blur_kernel", "blur_with", "pose_delta", "relabel_candidates", "mixed_opacity_logits", "mixed_copies", "soft_members",
-           "tile_region", "rects_meeting", "subset_bucket", "track_photometric", "joint_poses", "converged_joints"]
+           "tile_region", "rects_meeting", "subset_bucket", "rest_spans", "track_photometric", "joint_poses", "converged_joints"]
 
 
 def blur_kernel(sigma: float, radius: int | None = None) -> np.ndarray:
@@ -180,12 +180,41 @@ def subset_bucket(n_subset: int, n_all: int, fractions=(0.5, 0.75)) -> int:
     return int(n_all)
 
 
+def rest_spans(moving, poses, fixed=None, *, tol_deg: float = 0.1, tol_shift: float = 1e-4) -> list[tuple[int, int, int]]:
+    """The still spans of `track_photometric`'s ``rest_check``: (k, a, b) for each object k and maximal run of
+    frames a..b-1 (a >= 2) in which k is not fitted (``moving`` [K, T-1] false for pairs a-1..b-2) right after a
+    frame in which it was, and in which its pose (``poses`` [K, T, 4, 4], the same in the whole run) is off the
+    identity by more than ``tol_deg`` degrees or ``tol_shift`` (scene units). ``fixed`` [K] bool: objects skipped."""
+    mov = np.asarray(moving, bool)
+    poses = np.asarray(poses, np.float64)
+    n_obj, t_all = poses.shape[:2]
+    if mov.shape != (n_obj, t_all - 1):
+        raise ValueError(f"rest_spans: moving must be [K, T-1] = [{n_obj}, {t_all - 1}], got {list(mov.shape)}")
+    fixed = np.zeros(n_obj, bool) if fixed is None else np.asarray(fixed, bool)
+    out = []
+    for k in np.flatnonzero(~fixed):
+        n = 1
+        while n < t_all:
+            if mov[k, n - 1] or n < 2 or not mov[k, n - 2]:
+                n += 1
+                continue
+            b = n
+            while b < t_all and not mov[k, b - 1]:
+                b += 1
+            R, t = poses[k, n, :3, :3], poses[k, n, :3, 3]
+            angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+            if not (angle <= tol_deg and np.linalg.norm(t) <= tol_shift):  # a non-finite pose is off too
+                out.append((int(k), n, b))
+            n = b
+    return out
+
+
 def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, *, moving=None,
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
                       radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, only_moving: bool = True,
-                      subset_margin: int | None = None, fixed=None, progress_every: int = 10, return_stats: bool = False,
-                      log=print):
+                      subset_margin: int | None = None, fixed=None, rest_check: bool = False, progress_every: int = 10,
+                      return_stats: bool = False, log=print):
     """Poses [K, T, 4, 4] of each object fitted to the images frame by frame (module docstring, 1-3).
 
     Args:
@@ -215,6 +244,11 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         fixed: [K] bool, objects not fitted: their poses are ``init_poses`` (required then) in every frame,
             and the fitted objects are tracked with them drawn there (e.g. the objects whose joint has
             converged over earlier rounds; None: none).
+        rest_check: after the frames are fitted, each object's still spans (the runs of frames after a fitted one
+            in which it is not fitted: it keeps that frame's pose) are also rendered with the object at rest (the
+            identity, the reference pose); where that renders closer to the images over the whole span (the mean
+            absolute difference at the finest blur), the span takes it (`rest_spans`). A part that closes again
+            is otherwise left wherever its last fitted frame put it.
         progress_every: a progress line every this many fitted frames (0: none).
         return_stats: also return what the run did (the summary line's numbers, for benchmarks).
 
@@ -223,7 +257,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         other members and 0 for the other Gaussians), and with ``return_stats`` a dict: "frames_fitted",
         "steps_per_frame", "skipped_steps", "drawn_per_step" (Gaussians drawn per step, mean over the fitted
         frames), "gaussians" (of the two-copy scene), "fitted_again" (frames fitted again with every Gaussian),
-        "frame_seconds" (list, each fitted frame's wall time; the first compiles) and "seconds".
+        "spans_at_rest" (``rest_check``'s spans put at rest), "frame_seconds" (list, each fitted frame's wall time; the first compiles) and "seconds".
     """
     from fgjax.pipeline.stage1 import render_params
 
@@ -416,10 +450,29 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         frame_s.append(time.perf_counter() - t_frame)
         if progress_every > 0 and n_fit % progress_every == 0:
             log(f"photometric tracking: frame {n + 1}/{t_all}, {n_fit} fitted ({time.perf_counter() - t_start:.0f} s)")
+    n_rest = 0
+    if rest_check:
+        @jax.jit
+        def frame_loss(P, lg, i):
+            img, _, _, _ = render_params({"gaussians": posed(P, lg)}, alive2, vms[i], Kj[i], 0.0, spec=None,
+                                         sh_degree=sh_degree, width=width, height=height, background=bg,
+                                         capacity=capacity, tile_size=tile_size)
+            return jnp.mean(jnp.abs(blur_with(img, kernels[-1]) - targets[-1, i]))
+
+        for k, a, b in rest_spans(mov, poses, fixed):
+            at_rest = poses.copy()
+            at_rest[k, a:b] = eye
+            kept = sum(float(frame_loss(jnp.asarray(poses[:, n]), lg, jnp.asarray(n, jnp.int32))) for n in range(a, b))
+            rest = sum(float(frame_loss(jnp.asarray(at_rest[:, n]), lg, jnp.asarray(n, jnp.int32))) for n in range(a, b))
+            if rest < kept:  # nan never wins
+                poses = at_rest
+                n_rest += 1
+                log(f"photometric tracking: object {k + 1} back at rest in frames {a + 1}-{b} (loss {kept / (b - a):.5f} "
+                    f"-> {rest / (b - a):.5f} a frame)")
     pi = (labels >= 0).astype(np.float64)
     pi[cand] = np.asarray(jax.nn.sigmoid(lg))
-    stats = dict(frames_fitted=n_fit, steps_per_frame=sum(n for _, n in levels), skipped_steps=n_bad,
-                 drawn_per_step=n_drawn / max(n_fit, 1), gaussians=n_all, fitted_again=n_redone,
+    stats = dict(frames_fitted=n_fit, spans_at_rest=n_rest, steps_per_frame=sum(n for _, n in levels),
+                 skipped_steps=n_bad, drawn_per_step=n_drawn / max(n_fit, 1), gaussians=n_all, fitted_again=n_redone,
                  frame_seconds=frame_s, seconds=time.perf_counter() - t_start)
     log(f"photometric tracking: {n_fit} of {t_all - 1} frames fitted, {stats['steps_per_frame']} steps each "
         f"({n_bad} skipped), {stats['drawn_per_step']:.0f} of {n_all} Gaussians drawn per step on average "

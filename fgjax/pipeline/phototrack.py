@@ -8,7 +8,8 @@ the poses are fitted by analysis by synthesis instead:
 
 1. Frames in time order. Object k's pose in frame n starts from its pose in frame n-1, extrapolated at
    constant velocity or not, or from an earlier fit's pose when one is given (whichever renders closest
-   to image n), and only objects moving in pair (n-1, n) are fitted (the others keep their pose).
+   to image n), and only objects moving in pair (n-1, n) are fitted (the others keep their pose; with
+   ``rest_check``, a run of such frames is put back at rest afterwards where that renders closer).
 2. A pose update is a rotation about the object's current centroid and a shift, both in world
    coordinates (``x`` [K, 6]: rotation vector, shift in units of the object's radius times
    ``translation_scale``). The loss is the mean absolute difference of the rendered and the observed

@@ -1,4 +1,4 @@
-"""Image and flow metrics: PSNR, SSIM, masked PSNR, end-point error, adjusted Rand index.
+"""Image and flow metrics: PSNR, SSIM, masked PSNR, end-point error, adjusted Rand index; rotation angles.
 
 SSIM follows Wang et al. 2004 with the usual evaluation settings (skimage ``structural_similarity(...,
 gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1)``): an 11x11 Gaussian
@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-__all__ = ["psnr", "mse", "ssim", "ssim_map", "masked_psnr", "epe", "ari", "gaussian_window", "filter_valid"]
+__all__ = ["psnr", "mse", "ssim", "ssim_map", "masked_psnr", "epe", "ari", "gaussian_window", "filter_valid",
+           "rotation_angle_deg"]
 
 
 def mse(a: Float[ArrayLike, "... C"], b: Float[ArrayLike, "... C"]) -> Float[Array, ""]:
@@ -163,3 +164,11 @@ def psnr_from_mse(m: float, data_range: float = 1.0) -> float:
 
 
 _ = jax  # jax is part of the public contract (jit-able functions)
+
+
+def rotation_angle_deg(rot: Float[ArrayLike, "*batch 3 3"]) -> Float[np.ndarray, "*batch"]:
+    """Rotation angle in degrees, in [0, 180], of rotation matrices [..., 3, 3]: arccos((tr R - 1) / 2) with the
+    cosine clipped to [-1, 1], in numpy float64. For errors and thresholds, not gradients
+    (`fgjax.geometry.so3_log` has those): near 0 arccos leaves about 1e-6 degrees of round-off. NaN in, NaN out."""
+    r = np.asarray(rot, np.float64)
+    return np.degrees(np.arccos(np.clip((np.trace(r, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)))

@@ -103,11 +103,12 @@ def camera_errors(viewmats, true) -> tuple[float, float]:
     """Mean rotation error (degrees) and mean camera-centre distance (the viewmats' units) of world-to-camera
     `viewmats` [T, 4, 4] against `true` [T, 4, 4]."""
     a, b = np.asarray(viewmats, np.float64), np.asarray(true, np.float64)
+    from fgjax.metrics import rotation_angle_deg
+
     rel = a[:, :3, :3] @ np.transpose(b[:, :3, :3], (0, 2, 1))
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
     ca = -np.einsum("tji,tj->ti", a[:, :3, :3], a[:, :3, 3])
     cb = -np.einsum("tji,tj->ti", b[:, :3, :3], b[:, :3, 3])
-    return float(np.degrees(np.arccos(cos)).mean()), float(np.linalg.norm(ca - cb, axis=1).mean())
+    return float(rotation_angle_deg(rel).mean()), float(np.linalg.norm(ca - cb, axis=1).mean())
 
 
 def _centres(viewmats) -> np.ndarray:
@@ -208,8 +209,8 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         for key, vm in (("written", train.viewmats), ("used", used)):
             res[f"camera_rotation_error_{key}_deg"], res[f"camera_centre_error_{key}"] = camera_errors(vm, true)
         s, rot, t = align_cameras(used, true)
-        res["camera_alignment"] = {"scale": s, "rotation_deg": float(np.degrees(np.arccos(np.clip(
-            (np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))), "translation": [float(x) for x in t]}
+        res["camera_alignment"] = {"scale": s, "rotation_deg": float(metrics.rotation_angle_deg(rot)),
+                                   "translation": [float(x) for x in t]}
         res["camera_rotation_error_aligned_deg"], res["camera_centre_error_aligned"] = camera_errors(
             used, apply_alignment(true, s, rot, t))
         # the test cameras into the run's frame (module docstring)

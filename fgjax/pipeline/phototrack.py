@@ -45,7 +45,7 @@ import optax
 from fgjax import geometry
 from fgjax.gaussians import Gaussians, activate
 from fgjax.geometry import HIGHEST
-from fgjax.metrics import filter_valid
+from fgjax.metrics import filter_valid, rotation_angle_deg
 from fgjax.pipeline.track import JOINT_KINDS, _project_rows, fit_joint, transform_gaussians
 from fgjax.render.project import project_gaussians
 from fgjax.render.tiles import tile_ranges
@@ -202,9 +202,8 @@ def rest_spans(moving, poses, fixed=None, *, tol_deg: float = 0.1, tol_shift: fl
             b = n
             while b < t_all and not mov[k, b - 1]:
                 b += 1
-            R, t = poses[k, n, :3, :3], poses[k, n, :3, 3]
-            angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
-            if not (angle <= tol_deg and np.linalg.norm(t) <= tol_shift):  # a non-finite pose is off too
+            angle = rotation_angle_deg(poses[k, n, :3, :3])
+            if not (angle <= tol_deg and np.linalg.norm(poses[k, n, :3, 3]) <= tol_shift):  # non-finite: off too
                 out.append((int(k), n, b))
             n = b
     return out

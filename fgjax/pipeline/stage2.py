@@ -794,15 +794,20 @@ def _fill_hulls(labels: np.ndarray, gs: Gaussians, alive, min_opacity: float, ma
     """`Stage2Config.hull_fill`: `fgjax.cluster.fill_hulls` on the reference scene ``gs`` (its centres, and
     its members with opacity >= ``min_opacity`` as each hull's core); labels [N] -> labels [N]. Logs how many
     joined each cluster."""
-    from scipy.special import expit
-
-    opacity = expit(np.asarray(gs.opacity_logits, np.float64))  # sigmoid, without exp's overflow at pruned logits
-    alive = np.asarray(alive, bool)
-    new = cluster.fill_hulls(np.asarray(gs.means, np.float64), labels, alive & (opacity >= min_opacity), alive,
-                             max_growth=max_growth)
+    alive, core = _opaque(gs, alive, min_opacity)
+    new = cluster.fill_hulls(np.asarray(gs.means, np.float64), labels, core, alive, max_growth=max_growth)
     log(f"stage 2: {_joined(labels, new)} static Gaussians (objects 1, 2, ...) inside the hulls of the clusters' opaque "
         f"members joined them (a hull holding more than {max_growth:g}x its cluster's size is not filled)")
     return new
+
+
+def _opaque(gs: Gaussians, alive, min_opacity: float) -> tuple[np.ndarray, np.ndarray]:
+    """(alive [N] bool, core [N] bool: alive with opacity >= ``min_opacity``) of ``gs``: the fills' core (labels
+    select the members). The sigmoid is scipy's expit, without exp's overflow at pruned logits."""
+    from scipy.special import expit
+
+    alive = np.asarray(alive, bool)
+    return alive, alive & (expit(np.asarray(gs.opacity_logits, np.float64)) >= min_opacity)
 
 
 def _joined(before: np.ndarray, after: np.ndarray) -> list[int]:
@@ -816,14 +821,10 @@ def _fill_hinges(labels: np.ndarray, gs: Gaussians, alive, poses: np.ndarray, cf
     alive members with opacity >= ``cfg.hull_opacity``) with the hinges of ``poses`` [K, T, 4, 4]
     (`fgjax.cluster.hinge_axes`). Returns (labels [N], hinges: per cluster {"axis", "pivot", "angle_deg"} or
     None where it does not turn by ``cfg.hinge_min_deg``). Logs the hinges and how many joined."""
-    from scipy.special import expit
-
-    opacity = expit(np.asarray(gs.opacity_logits, np.float64))
-    alive = np.asarray(alive, bool)
+    alive, core = _opaque(gs, alive, cfg.hull_opacity)
     axes, pivots, angles = cluster.hinge_axes(poses, min_deg=cfg.hinge_min_deg)
-    new = cluster.fill_hinges(np.asarray(gs.means, np.float64), labels, alive & (opacity >= cfg.hull_opacity),
-                              alive, axes, pivots, radius=cfg.hinge_radius, reach=cfg.hinge_reach,
-                              max_growth=cfg.hull_max_growth)
+    new = cluster.fill_hinges(np.asarray(gs.means, np.float64), labels, core, alive, axes, pivots,
+                              radius=cfg.hinge_radius, reach=cfg.hinge_reach, max_growth=cfg.hull_max_growth)
     hinges = [None if not np.all(np.isfinite(a)) else
               {"axis": [float(v) for v in a], "pivot": [float(v) for v in p], "angle_deg": float(g)}
               for a, p, g in zip(axes, pivots, angles)]

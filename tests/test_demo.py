@@ -26,3 +26,24 @@ def test_demo_tiny(tmp_path, capsys):
     (tmp_path / "other" / "scene" / "keep.txt").write_text("x")
     assert cli.main(["demo", "--out", str(tmp_path / "other"), "--quick", "--synth-only"]) == 2
     assert (tmp_path / "other" / "scene" / "keep.txt").read_text() == "x"
+
+
+def test_demo_set_overrides(tmp_path, capsys):
+    """`fgjax demo --set`: stage2.* on top of the demo's own stage-2 settings, SECTION.KEY on top of stage 1's
+    TOML; a bad override exits 2 naming the key, before anything is written."""
+    from fgjax.pipeline import demo
+
+    s1, s2 = demo.pipeline_configs(tmp_path / "fc", quick=False,
+                                   overrides=["stage2.track_rest=true", "train.steps=123", "stage2.eps=0.07"])
+    assert s2.track_rest and s2.eps == 0.07 and s1.train.steps == 123
+    assert s2.track_photo == 40 and s2.track_rounds == 3 and s2.flow_cache == str(tmp_path / "fc")  # the demo's own
+    q1, q2 = demo.pipeline_configs(tmp_path / "fc", quick=True, overrides=[])
+    assert q2.track_photo == 0 and q1.train.video_frames == 0
+    for bad, msg in (("stage2.track_rest=maybe", "stage2.track_rest=maybe: expected true or false"),
+                     ("stage2.nope=1", "stage2.nope: unknown stage-2 option"),
+                     ("stage2.hinge_radius=-1", "hinge_radius must be"),
+                     ("train.stepz=3", "train.stepz")):
+        out = tmp_path / "bad"
+        assert cli.main(["demo", "--out", str(out), "--quick", "--set", bad]) == 2
+        assert msg in capsys.readouterr().err
+        assert not out.exists()

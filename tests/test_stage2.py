@@ -722,3 +722,30 @@ def test_size_cut_after_the_second_pass_keeps_a_part_that_moves_in_few_frames():
         stage2.run_stage2("nowhere", "nowhere", stage2.Stage2Config(local_min_fraction=-0.1))
     with pytest.raises(ValueError, match="local_floor"):
         stage2.run_stage2("nowhere", "nowhere", stage2.Stage2Config(local_floor=1.0))
+
+
+def test_config_from_overrides_parses_strictly_and_names_the_key():
+    """`fgjax stage2 --set` / `fgjax demo --set stage2.*`: values of the wrong type are refused (a typo in a
+    bool used to read as False), the message names the key, and `base` keeps the fields not set."""
+    base = stage2.Stage2Config(track_photo=40, refit_steps=300)
+    cfg = stage2.config_from_overrides(["track_rest=ON", "hinge_fill=0", "eps= 0.07", "track_rounds=2",
+                                        "threshold_px=1.5", "score_threshold=otsu"], base=base)
+    assert (cfg.track_rest, cfg.hinge_fill, cfg.eps, cfg.track_rounds) == (True, False, 0.07, 2)
+    assert (cfg.threshold_px, cfg.score_threshold) == (1.5, "otsu")
+    assert (cfg.track_photo, cfg.refit_steps) == (40, 300)  # from base
+    assert stage2.config_from_overrides([]) == stage2.Stage2Config()
+    for item, msg in (("track_rest=maybe", "track_rest=maybe: expected true or false"),
+                      ("track_rounds=1.5", "track_rounds=1.5: expected an integer"),
+                      ("eps=wide", "eps=wide: expected a number$"),
+                      ("score_threshold=high", "score_threshold=high: expected a number or 'otsu'"),
+                      ("eps", "--set stage2.eps: expected KEY=VALUE")):
+        with pytest.raises(ValueError, match=msg):
+            stage2.config_from_overrides([item], prefix="stage2.")
+
+
+def test_validate_config_names_the_field():
+    stage2.validate_config(stage2.Stage2Config())
+    for kw, msg in (({"hinge_radius": -1.0}, "hinge_radius"), ({"track_rounds": 0}, "track_rounds"),
+                    ({"camera_correction": "maybe"}, "camera_correction"), ({"hull_opacity": 1.5}, "hull_opacity")):
+        with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
+            stage2.validate_config(stage2.Stage2Config(**kw))

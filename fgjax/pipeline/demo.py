@@ -13,6 +13,10 @@ while the others stay still; ``OUT/run/metrics.json``). Ground-truth pictures:
   ``OUT/demo.gif`` when mp4 writing fails).
 
 ``--quick`` makes a smaller scene (96x72, 24 frames) and uses experiments/demo_quick.toml, for a smoke run.
+``--set KEY=VALUE`` (repeatable) overrides a setting of the pipeline: ``stage2.FIELD=VALUE`` a `Stage2Config`
+field on top of the demo's own stage-2 settings (e.g. ``--set stage2.track_rest=true``), ``SECTION.KEY=VALUE``
+a stage-1 config key on top of experiments/default.toml (e.g. ``--set train.steps=3000``). Every override is
+checked before anything is written, and a bad one exits with status 2 and names the key.
 """
 
 from __future__ import annotations
@@ -169,13 +173,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--synth-only", action="store_true",
                    help="only the synthetic scene and its ground-truth pictures (no training)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a setting (repeatable): stage2.FIELD=VALUE for stage 2 (e.g. stage2.track_rest=true), "
+                        "SECTION.KEY=VALUE for stage 1 (e.g. train.steps=3000)")
     args = p.parse_args(argv)
+    out = Path(args.out)
     try:
         cfg = _scene_config(args)
+        s1cfg, s2cfg = pipeline_configs(out / "flow_cache", quick=args.quick, overrides=args.overrides)
     except ValueError as e:
         print(f"fgjax demo: error: {e}", file=sys.stderr)
         return 2
-    out = Path(args.out)
     scene_dir = out / "scene"
     if scene_dir.exists() and (not scene_dir.is_dir() or (any(scene_dir.iterdir()) and not _is_synth_output(scene_dir))):
         print(f"fgjax demo: error: {scene_dir} exists and is not a synthetic scene from an earlier demo; "
@@ -192,32 +200,22 @@ def main(argv: list[str] | None = None) -> int:
     print(f"contact sheet: {sheet_path}")
     print(f"video:         {video_path}")
     if not args.synth_only:
-        _pipeline(out, scene_dir, quick=args.quick, say=say)
+        _pipeline(out, scene_dir, s1cfg, s2cfg, say=say)
     say(f"demo: done in {time.perf_counter() - t0:.1f} s")
     return 0
 
 
-def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
-    """Optical flow -> stage 1 -> discovery/stage 2 -> control (sweep videos, cluster map) -> eval."""
+def pipeline_configs(flow_cache: Path, *, quick: bool, overrides: list[str]):
+    """The demo's stage-1 `Config` and `Stage2Config`, with ``--set`` `overrides` applied (``stage2.FIELD=VALUE``
+    to stage 2, ``SECTION.KEY=VALUE`` to stage 1). Raises ValueError (`fgjax.config.ConfigError` is one) naming
+    the key of a bad override, before any work is done."""
     from fgjax.config import load_config
-    from fgjax.data.loaders import load_scene
-    from fgjax.data.opticalflow import estimate_flow
-    from fgjax.pipeline import evaluate, stage1, stage2
+    from fgjax.pipeline import stage2
 
-    repo = Path(__file__).resolve().parents[2]
-    t0 = time.perf_counter()
-    cache = out / "flow_cache"
-    train = load_scene(scene_dir, "train")
-    u8 = lambda x: (np.clip(x, 0, 1) * 255 + 0.5).astype(np.uint8)
-    order = np.argsort(train.times, kind="stable")
-    for a, b in zip(order[:-1], order[1:], strict=True):
-        estimate_flow(u8(train.images[a]), u8(train.images[b]), "dis_deepflow", cache_dir=cache)
-    say(f"demo: optical flow of {len(order) - 1} pairs ({time.perf_counter() - t0:.1f} s)")
-    toml = repo / "experiments" / ("demo_quick.toml" if quick else "default.toml")
-    cfg = load_config(toml if toml.exists() else None, ["train.video_frames=0"] if quick else [])
-    run_dir = out / "run"
-    stage1.run(cfg, scene_dir, run_dir, log=say)
-    say(f"demo: stage 1 done ({time.perf_counter() - t0:.1f} s)")
+    s2_items = [o.split(".", 1)[1] for o in overrides if o.split("=", 1)[0].strip().startswith("stage2.")]
+    s1_items = [o for o in overrides if not o.split("=", 1)[0].strip().startswith("stage2.")]
+    toml = Path(__file__).resolve().parents[2] / "experiments" / ("demo_quick.toml" if quick else "default.toml")
+    s1cfg = load_config(toml if toml.exists() else None, (["train.video_frames=0"] if quick else []) + s1_items)
     # the quick demo: the flow tracking and fewer steps; both skip the control network's photometric phase
     # (from the re-fitted scene it did not lower the loss: 0.0121 -> 0.0122 in the full demo; in the quick one
     # 20 steps took 16 s of its 3 minutes, 0.0408 -> 0.0390; tests/test_stage2.py covers the phase); the full
@@ -232,11 +230,33 @@ def _pipeline(out: Path, scene_dir: Path, *, quick: bool, say) -> None:
     # (150 steps each) lost the gain (26.59 dB), and so did 20 steps in the first round (25.36). The third round
     # (stage 2's default) tracks only the objects whose joint has not converged (`Stage2Config.track_converged_deg`;
     # on the default scene the lid alone, about 60 s: 28.51 dB; docs/benchmarks.md, session 23)
-    s2cfg = stage2.Stage2Config(flow_cache=str(cache), auto_eps=quick, photo_steps=0,
+    s2cfg = stage2.Stage2Config(flow_cache=str(flow_cache), auto_eps=quick, photo_steps=0,
                                 **({"distill_steps": 100, "refit_steps": 100, "track_photo": 0, "track_joints": "off",
                                     "relabel_steps": 0, "local_threshold": 0.4, "track_rounds": 1} if quick else
                                    {"track_photo": 40, "track_photo_next": 20, "distill_steps": 300,
                                     "refit_steps": 300, "relabel_steps": 150, "track_rounds": 3}))
+    s2cfg = stage2.config_from_overrides(s2_items, base=s2cfg, prefix="stage2.")
+    stage2.validate_config(s2cfg)
+    return s1cfg, s2cfg
+
+
+def _pipeline(out: Path, scene_dir: Path, s1cfg, s2cfg, *, say) -> None:
+    """Optical flow -> stage 1 -> discovery/stage 2 -> control (sweep videos, cluster map) -> eval."""
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.opticalflow import estimate_flow
+    from fgjax.pipeline import evaluate, stage1, stage2
+
+    t0 = time.perf_counter()
+    cache = Path(s2cfg.flow_cache)
+    train = load_scene(scene_dir, "train")
+    u8 = lambda x: (np.clip(x, 0, 1) * 255 + 0.5).astype(np.uint8)
+    order = np.argsort(train.times, kind="stable")
+    for a, b in zip(order[:-1], order[1:], strict=True):
+        estimate_flow(u8(train.images[a]), u8(train.images[b]), "dis_deepflow", cache_dir=cache)
+    say(f"demo: optical flow of {len(order) - 1} pairs ({time.perf_counter() - t0:.1f} s)")
+    run_dir = out / "run"
+    stage1.run(s1cfg, scene_dir, run_dir, log=say)
+    say(f"demo: stage 1 done ({time.perf_counter() - t0:.1f} s)")
     s2 = stage2.run_stage2(run_dir, scene_dir, s2cfg, log=say)
     run = stage2.load_stage2(run_dir)
     vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height

@@ -58,6 +58,8 @@ __all__ = [
     "Stage2Result",
     "Stage2Error",
     "run_stage2",
+    "config_from_overrides",
+    "validate_config",
     "select_objects",
     "load_stage2",
     "controlled_gaussians",
@@ -1209,22 +1211,10 @@ def select_objects(canonical: np.ndarray, disc, cfg: Stage2Config, candidates: n
     return labels, disc, report
 
 
-def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = Stage2Config(), *,
-               log=print) -> Stage2Result:
-    """Steps 5-7 on a trained stage-1 run; writes RUN/stage2.npz and RUN/stage2.json.
-
-    Args:
-        run_dir: stage-1 run folder (`fgjax train`).
-        data_dir: the dataset the run was trained on (training split only is read; never gt/).
-        cfg: `Stage2Config`.
-
-    Returns:
-        `Stage2Result`.
-    """
-    from fgjax.data.loaders import load_scene
-    from fgjax.data.scene import Normalization
-
-    if cfg.trajectories not in ("flow", "deformation"):  # checked before any work is done
+def validate_config(cfg: Stage2Config) -> None:
+    """Raise ValueError naming the field when a `Stage2Config` value is out of its range (`run_stage2` checks
+    this before any work; ``fgjax demo`` before stage 1)."""
+    if cfg.trajectories not in ("flow", "deformation"):
         raise ValueError(f"Stage2Config.trajectories must be 'flow' or 'deformation'; got {cfg.trajectories!r}")
     if cfg.track_joints not in ("auto", "off"):
         raise ValueError(f"Stage2Config.track_joints must be 'auto' or 'off'; got {cfg.track_joints!r}")
@@ -1241,9 +1231,6 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     if not cfg.track_converged_deg >= 0:
         raise ValueError(f"Stage2Config.track_converged_deg must be >= 0 (0: every round tracks every object); got "
                          f"{cfg.track_converged_deg!r}")
-    if cfg.track_rounds > 1 and (cfg.track_photo == 0 or cfg.refit_steps == 0 or cfg.trajectories != "flow"):
-        log(f"stage 2: track_rounds={cfg.track_rounds} has no effect without track_photo > 0, refit_steps > 0 and "
-            f"trajectories='flow'; one round")
     if not 0.0 <= cfg.hull_opacity <= 1.0:
         raise ValueError(f"Stage2Config.hull_opacity must be in [0, 1], got {cfg.hull_opacity!r}")
     if not cfg.hull_max_growth >= 0:
@@ -1258,6 +1245,27 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
         raise ValueError(f"Stage2Config.hull_refit_steps must be >= 0, got {cfg.hull_refit_steps!r}")
     if cfg.camera_correction not in ("auto", "on", "off"):
         raise ValueError(f"Stage2Config.camera_correction must be 'auto', 'on' or 'off'; got {cfg.camera_correction!r}")
+
+
+def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = Stage2Config(), *,
+               log=print) -> Stage2Result:
+    """Steps 5-7 on a trained stage-1 run; writes RUN/stage2.npz and RUN/stage2.json.
+
+    Args:
+        run_dir: stage-1 run folder (`fgjax train`).
+        data_dir: the dataset the run was trained on (training split only is read; never gt/).
+        cfg: `Stage2Config`.
+
+    Returns:
+        `Stage2Result`.
+    """
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+
+    validate_config(cfg)  # before any work is done
+    if cfg.track_rounds > 1 and (cfg.track_photo == 0 or cfg.refit_steps == 0 or cfg.trajectories != "flow"):
+        log(f"stage 2: track_rounds={cfg.track_rounds} has no effect without track_photo > 0, refit_steps > 0 and "
+            f"trajectories='flow'; one round")
     t_start = time.perf_counter()
     run_dir, data_dir = Path(run_dir), Path(data_dir)
     run = load_stage2(run_dir, require_stage2=False)
@@ -1381,27 +1389,43 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def config_from_overrides(items: list[str]) -> Stage2Config:
+_TRUE, _FALSE = ("true", "1", "yes", "on"), ("false", "0", "no", "off")
+
+
+def config_from_overrides(items: list[str], base: Stage2Config | None = None, *, prefix: str = "") -> Stage2Config:
+    """`base` (default: `Stage2Config()`) with ``KEY=VALUE`` strings applied (``fgjax stage2 --set``).
+
+    Each value is parsed as its field's type: a bool from true/false, 1/0, yes/no or on/off (any case),
+    an int, a float, and for ``threshold_px`` and ``score_threshold`` "otsu" or a float. Raises ValueError
+    naming the key on an unknown key or a value of the wrong type (the values' ranges are checked by
+    `validate_config`). `prefix` goes before the key in the messages (``fgjax demo``'s "stage2.").
+    """
     fields = {f.name: f for f in dataclasses.fields(Stage2Config)}
+    defaults = Stage2Config()
     kw: dict[str, Any] = {}
     for it in items:
         if "=" not in it:
-            raise ValueError(f"--set {it!r}: expected KEY=VALUE")
-        key, val = it.split("=", 1)
+            raise ValueError(f"--set {prefix}{it}: expected KEY=VALUE")
+        key, val = (x.strip() for x in it.split("=", 1))
         if key not in fields:
-            raise ValueError(f"--set {key}: unknown stage-2 option (choose from {', '.join(fields)})")
-        default = getattr(Stage2Config(), key)
+            raise ValueError(f"--set {prefix}{key}: unknown stage-2 option (choose from {', '.join(fields)})")
+        default = getattr(defaults, key)
         if isinstance(default, bool):
-            kw[key] = val.lower() in ("1", "true", "yes")
-        elif isinstance(default, int):
-            kw[key] = int(val)
-        elif isinstance(default, float):
-            kw[key] = float(val)
-        elif key in ("threshold_px", "score_threshold"):
-            kw[key] = val if val == "otsu" else float(val)
+            if val.lower() not in _TRUE + _FALSE:
+                raise ValueError(f"--set {prefix}{key}={val}: expected true or false")
+            kw[key] = val.lower() in _TRUE
+        elif key in ("threshold_px", "score_threshold") and val == "otsu":
+            kw[key] = val
+        elif isinstance(default, int | float) or key in ("threshold_px", "score_threshold"):
+            typ = int if isinstance(default, int) else float
+            try:
+                kw[key] = typ(val)
+            except ValueError:
+                want = "an integer" if typ is int else "a number" if isinstance(default, float) else "a number or 'otsu'"
+                raise ValueError(f"--set {prefix}{key}={val}: expected {want}") from None
         else:
             kw[key] = val
-    return Stage2Config(**kw)
+    return dataclasses.replace(defaults if base is None else base, **kw)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -71,6 +71,9 @@ def test_eval_writes_metrics(tiny, tmp_path, capsys):
     al = m["camera_alignment"]
     assert abs(al["scale"] - 1.0) < 1e-6 and al["rotation_deg"] < 1e-3 and np.abs(al["translation"]).max() < 1e-6
     assert abs(m["state_psnr_unaligned"] - m["state_psnr"]) < 1e-3
+    # ... and the state frames, seen from training cameras, get the run's own cameras: the same exact ones
+    assert abs(m["state_psnr_run_cameras"] - m["state_psnr"]) < 1e-3
+    assert len(m["state_psnr_run_cameras_per_frame"]) == len(m["state_psnr_per_frame"])
     assert abs(m["view_psnr_stage1_unaligned"] - m["view_psnr_stage1"]) < 1e-3 and np.isfinite(m["view_psnr_stage1"])
     if m["num_objects_found"]:
         assert np.isfinite(m["state_psnr_true_motion"]) and np.isfinite(m["state_psnr_true_motion_labels"])
@@ -280,6 +283,35 @@ def _cameras_around(n: int, rng) -> np.ndarray:
 
     return np.stack([look_at([2.0 * np.sin(a), -2.0 * np.cos(a), 0.5 + 0.1 * rng.normal()])
                      for a in np.linspace(-0.8, 0.8, n)])
+
+
+def test_run_camera_carries_a_test_camera_by_way_of_its_training_camera():
+    """`run_camera`: a test camera D T_src seen through the run's camera for T_src. When the run's cameras are the
+    true ones carried by a similarity, it is the test camera carried by the same similarity (`apply_alignment`,
+    tested above); when the run's camera of the source frame is off, the test camera is off by the same
+    camera-side error; D = I gives the run's camera itself."""
+    from fgjax import geometry
+    from fgjax.pipeline.evaluate import apply_alignment, run_camera
+
+    rng = np.random.default_rng(1)
+    true = _cameras_around(6, rng)
+    rot = np.asarray(geometry.so3_exp(np.array([0.1, 0.3, -0.2])), np.float64)
+    s, t = 0.8, np.array([0.1, 0.4, -0.3])
+    used = apply_alignment(true, s, rot, t)
+    d = np.eye(4)
+    d[:3, :3] = np.asarray(geometry.so3_exp(np.array([0.05, -0.2, 0.1])), np.float64)
+    d[:3, 3] = [0.3, -0.1, 0.2]
+    test = d @ true[2]
+    np.testing.assert_allclose(run_camera(test, true[2], used[2], s), apply_alignment(test[None], s, rot, t)[0],
+                               atol=1e-12)
+    np.testing.assert_allclose(run_camera(true[4], true[4], used[4], s), used[4], atol=1e-12)
+    err = np.eye(4)
+    err[:3, :3] = np.asarray(geometry.so3_exp(np.array([0.0, 0.003, 0.0])), np.float64)
+    err[:3, 3] = [0.001, 0.0, 0.0]
+    off = run_camera(test, true[2], err @ used[2], s)
+    np.testing.assert_allclose(off, run_camera(test, true[2], used[2], s) @ np.linalg.inv(used[2]) @ err @ used[2],
+                               atol=1e-12)
+    assert not np.allclose(off, apply_alignment(test[None], s, rot, t)[0], atol=1e-4)
 
 
 def test_align_cameras_recovers_a_similarity_and_keeps_every_image():

@@ -1262,10 +1262,10 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
 
-    validate_config(cfg)  # before any work is done
     if cfg.track_rounds > 1 and (cfg.track_photo == 0 or cfg.refit_steps == 0 or cfg.trajectories != "flow"):
         log(f"stage 2: track_rounds={cfg.track_rounds} has no effect without track_photo > 0, refit_steps > 0 and "
             f"trajectories='flow'; one round")
+    validate_config(cfg)  # before any work is done
     t_start = time.perf_counter()
     run_dir, data_dir = Path(run_dir), Path(data_dir)
     run = load_stage2(run_dir, require_stage2=False)

@@ -34,8 +34,8 @@ def test_demo_set_overrides(tmp_path, capsys):
     from fgjax.pipeline import demo
 
     s1, s2 = demo.pipeline_configs(tmp_path / "fc", quick=False,
-                                   overrides=["stage2.track_rest=true", "train.steps=123", "stage2.eps=0.07"])
-    assert s2.track_rest and s2.eps == 0.07 and s1.train.steps == 123
+                                   overrides=["stage2.track_rest=false", "train.steps=123", "stage2.eps=0.07"])
+    assert not s2.track_rest and s2.eps == 0.07 and s1.train.steps == 123
     assert s2.track_photo == 40 and s2.track_rounds == 3 and s2.flow_cache == str(tmp_path / "fc")  # the demo's own
     q1, q2 = demo.pipeline_configs(tmp_path / "fc", quick=True, overrides=[])
     assert q2.track_photo == 0 and q1.train.video_frames == 0

@@ -355,7 +355,7 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
                                         "track_photo_next=3", "track_rounds=1", "track_rest=true"])
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
     assert seen == [(False, 3, (2, 2, 1), True)] and stage2.Stage2Config().track_only_moving
-    assert not stage2.Stage2Config().track_rest
+    assert stage2.Stage2Config().track_rest  # on by default (session 26)
     assert stage2.Stage2Config().track_subset_margin == 2
     assert res.num_objects > 0, logs
     assert sum(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs) == 1, logs

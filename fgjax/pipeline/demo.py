@@ -14,7 +14,7 @@ while the others stay still; ``OUT/run/metrics.json``). Ground-truth pictures:
 
 ``--quick`` makes a smaller scene (96x72, 24 frames) and uses experiments/demo_quick.toml, for a smoke run.
 ``--set KEY=VALUE`` (repeatable) overrides a setting of the pipeline: ``stage2.FIELD=VALUE`` a `Stage2Config`
-field on top of the demo's own stage-2 settings (e.g. ``--set stage2.track_rest=true``), ``SECTION.KEY=VALUE``
+field on top of the demo's own stage-2 settings (e.g. ``--set stage2.track_rest=false``), ``SECTION.KEY=VALUE``
 a stage-1 config key on top of experiments/default.toml (e.g. ``--set train.steps=3000``). Every override is
 checked before anything is written, and a bad one exits with status 2 and names the key.
 """
@@ -174,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--synth-only", action="store_true",
                    help="only the synthetic scene and its ground-truth pictures (no training)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a setting (repeatable): stage2.FIELD=VALUE for stage 2 (e.g. stage2.track_rest=true), "
+                   help="override a setting (repeatable): stage2.FIELD=VALUE for stage 2 (e.g. stage2.track_rest=false), "
                         "SECTION.KEY=VALUE for stage 1 (e.g. train.steps=3000)")
     args = p.parse_args(argv)
     out = Path(args.out)

@@ -212,8 +212,12 @@ def pipeline_configs(flow_cache: Path, *, quick: bool, overrides: list[str]):
     from fgjax.config import load_config
     from fgjax.pipeline import stage2
 
-    s2_items = [o.split(".", 1)[1] for o in overrides if o.split("=", 1)[0].strip().startswith("stage2.")]
-    s1_items = [o for o in overrides if not o.split("=", 1)[0].strip().startswith("stage2.")]
+    s1_items, s2_items = [], []
+    for o in overrides:  # stage2.FIELD=VALUE -> FIELD=VALUE for stage 2; the rest as they are for stage 1
+        if o.split("=", 1)[0].strip().startswith("stage2."):
+            s2_items.append(o.split(".", 1)[1])
+        else:
+            s1_items.append(o)
     toml = Path(__file__).resolve().parents[2] / "experiments" / ("demo_quick.toml" if quick else "default.toml")
     s1cfg = load_config(toml if toml.exists() else None, (["train.video_frames=0"] if quick else []) + s1_items)
     # the quick demo: the flow tracking and fewer steps; both skip the control network's photometric phase

@@ -280,6 +280,22 @@ def test_refit_moves_the_objects_by_their_poses_and_repairs_damaged_colours(tiny
     assert np.abs(g2.sh[part, 0] - (sh[part, 0] - 0.3)).mean() < 0.3  # closer to the undamaged colours
 
 
+def test_refit_lr_scale_scales_every_group_of_the_first_step(tiny):
+    """Adam's first step is lr g / (|g| + eps) per entry, so with ``lr_scale`` 2 every parameter group of the
+    re-fit moves twice as far as with 1 (the means' schedule included), and the same direction."""
+    run, labels, poses, moved, order = _sliding_part(tiny, 0.1)
+    still = np.tile(np.eye(4), (1, poses.shape[1], 1, 1))  # the images disagree: real gradients
+    g0 = stage2._reference_scene(run, float(moved.times[order[0]]))
+    steps = {f: stage2.refit_gaussians(run, moved, order, labels, still, 1, lr_scale=f, log=lambda *_: None)[0]
+             for f in (1.0, 2.0)}
+    for field in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        d1 = np.asarray(getattr(steps[1.0], field), np.float64) - np.asarray(getattr(g0, field), np.float64)
+        d2 = np.asarray(getattr(steps[2.0], field), np.float64) - np.asarray(getattr(g0, field), np.float64)
+        big = np.abs(d1) > 0.5 * np.abs(d1).max()
+        assert big.any(), field
+        np.testing.assert_allclose(d2[big], 2.0 * d1[big], rtol=0.05, err_msg=field)
+
+
 def test_refit_is_saved_and_the_controlled_scene_starts_from_it(tiny, tmp_path):
     import shutil
 
@@ -746,6 +762,7 @@ def test_config_from_overrides_parses_strictly_and_names_the_key():
 def test_validate_config_names_the_field():
     stage2.validate_config(stage2.Stage2Config())
     for kw, msg in (({"hinge_radius": -1.0}, "hinge_radius"), ({"track_rounds": 0}, "track_rounds"),
-                    ({"camera_correction": "maybe"}, "camera_correction"), ({"hull_opacity": 1.5}, "hull_opacity")):
+                    ({"camera_correction": "maybe"}, "camera_correction"), ({"hull_opacity": 1.5}, "hull_opacity"),
+                    ({"refit_lr_scale": 0.0}, "refit_lr_scale"), ({"refit_lr_scale": float("nan")}, "refit_lr_scale")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))

@@ -291,6 +291,12 @@ class Stage2Config:
     hull_refit_steps: int = 100
     """Steps of `refit_gaussians` (no relabelling) after `hull_fill` and `hinge_fill`: the Gaussians that joined
     were re-fitted as static; 0: none."""
+    refit_lr_scale: float = 1.0
+    """Every learning rate of `refit_gaussians` (stage 1's optimiser groups and schedules) times this. Each
+    re-fit restarts Adam at stage 1's first learning rates, which might blur what stage 1 had settled; measured at
+    the demo's settings on the default scene (session 28, docs/benchmarks.md), it does not: held-out states
+    26.01 / 26.58 / 27.89 / 28.11 dB at 0.1 / 0.3 / 1 / 2 (seed 0), and at 2 against 1 on seeds 1 and 2 27.22 /
+    27.85 against 28.25 / 28.18 dB; under pose noise 26.81 at 2 against 26.71 at 1."""
     trajectories: str = "flow"
     """Where the objects' motion comes from: "flow" (rigid poses tracked from optical flow,
     `fgjax.pipeline.track`) or "deformation" (the stage-1 deformation field)."""
@@ -864,7 +870,7 @@ def _guarded_step(loss_fn, opt):
 
 def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.ndarray, steps: int, *, seed: int = 0,
                     relabel_steps: int = 0, relabel_radius: float = 0.1, relabel_lr: float = 0.05,
-                    init: Gaussians | None = None, log=print) -> tuple[Gaussians, np.ndarray]:
+                    init: Gaussians | None = None, lr_scale: float = 1.0, log=print) -> tuple[Gaussians, np.ndarray]:
     """Re-fit the reference Gaussians (stage 1 at t0, or ``init``: an earlier re-fit's) to the training
     images under the tracked motion.
 
@@ -874,8 +880,8 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     Here every Gaussian's parameters (centres, scales, rotations, opacities, SH) are optimised with the
     photometric loss of stage 1 on frame i rendered with each object moved by its pose T_k(t_i)
     (`track.transform_gaussians`; static Gaussians stay), with stage 1's optimiser groups and
-    learning rates (decaying over `steps`). No densification. A step whose render overflows the tile
-    capacity or whose loss is not finite is skipped.
+    learning rates (decaying over `steps`), all times ``lr_scale``. No densification. A step whose render
+    overflows the tile capacity or whose loss is not finite is skipped.
 
     Relabelling (the first ``relabel_steps`` of the steps): discovery labels a part by where its residual
     flow is large, so a door's hinge side is missed and static surfaces next to a part can join it. Each
@@ -907,8 +913,11 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     bg = jnp.asarray(run.cfg.model.background, jnp.float32)
     cap = _render_capacity(run)
     lam = float(run.cfg.train.lambda_dssim)
-    opt = make_optimizer(OptimSpec(steps=max(int(steps), 1), scene_extent=scene_extent(scene.viewmats)),
-                         int(ref.sh.shape[1]))
+    s1, f = OptimSpec(steps=1), float(lr_scale)  # stage 1's learning rates, times f
+    opt = make_optimizer(OptimSpec(steps=max(int(steps), 1), scene_extent=scene_extent(scene.viewmats),
+                                   lr_means=s1.lr_means * f, lr_means_final=s1.lr_means_final * f,
+                                   lr_opacity=s1.lr_opacity * f, lr_scales=s1.lr_scales * f,
+                                   lr_quats=s1.lr_quats * f, lr_sh=s1.lr_sh * f), int(ref.sh.shape[1]))
 
     def photo(gs: Gaussians, alive_, i):
         """(photometric loss, overflow) of training frame i (time order) rendered from `gs` as given."""
@@ -1242,6 +1251,8 @@ def validate_config(cfg: Stage2Config) -> None:
         raise ValueError(f"Stage2Config.hinge_reach must be finite and >= 0, got {cfg.hinge_reach!r}")
     if not (np.isfinite(cfg.hinge_min_deg) and 0 < cfg.hinge_min_deg <= 180):
         raise ValueError(f"Stage2Config.hinge_min_deg must be in (0, 180], got {cfg.hinge_min_deg!r}")
+    if not (np.isfinite(cfg.refit_lr_scale) and cfg.refit_lr_scale > 0):
+        raise ValueError(f"Stage2Config.refit_lr_scale must be finite and > 0, got {cfg.refit_lr_scale!r}")
     if cfg.hull_refit_steps < 0:
         raise ValueError(f"Stage2Config.hull_refit_steps must be >= 0, got {cfg.hull_refit_steps!r}")
     if cfg.camera_correction not in ("auto", "on", "off"):
@@ -1333,7 +1344,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                     history.append(joints)
                 refit, labels = refit_gaussians(run, scene, order, labels, poses, cfg.refit_steps, seed=cfg.seed + r,
                                                 relabel_steps=cfg.relabel_steps, relabel_radius=cfg.relabel_radius,
-                                                init=refit, log=log)
+                                                init=refit, lr_scale=cfg.refit_lr_scale, log=log)
             filled = labels
             if cfg.hull_fill:
                 filled = _fill_hulls(filled, refit, run.state.densify.alive, cfg.hull_opacity, cfg.hull_max_growth,
@@ -1345,7 +1356,7 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                 fills["hinge_joined"] = _joined(before, filled)
             if (cfg.hull_fill or cfg.hinge_fill) and cfg.hull_refit_steps > 0:
                 refit, _ = refit_gaussians(run, scene, order, filled, poses, cfg.hull_refit_steps,
-                                           seed=cfg.seed + rounds, init=refit, log=log)
+                                           seed=cfg.seed + rounds, init=refit, lr_scale=cfg.refit_lr_scale, log=log)
             labels = filled
             report = cluster.cluster_report(labels[disc.dynamic | (labels >= 0)])
             base = (refit.means, refit.quats, refit.log_scales)

@@ -428,7 +428,7 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
         return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [float(len(calls))] * k}
 
     def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
-                   init=None, log=print):
+                   init=None, lr_scale=1.0, log=print):
         out = jax.tree_util.tree_map(lambda a: a + 0, init)  # a new object, told apart from `init`
         calls.append(("refit", init, poses, seed, out))
         return out, labels
@@ -478,7 +478,7 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
             return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": axes}
 
         def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
-                       init=None, log=print):
+                       init=None, lr_scale=1.0, log=print):
             calls.append(("refit",))
             return jax.tree_util.tree_map(lambda a: a + 0, init), labels
 
@@ -530,7 +530,7 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
             return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": [[1.0, 0, 0]] * k}
 
         def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
-                       init=None, log=print):
+                       init=None, lr_scale=1.0, log=print):
             calls.append(("refit", np.asarray(labels).copy(), steps, relabel_steps))
             return jax.tree_util.tree_map(lambda a: a + 1, init), labels  # each re-fit shifts every leaf by 1
 

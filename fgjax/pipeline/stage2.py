@@ -913,11 +913,9 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     bg = jnp.asarray(run.cfg.model.background, jnp.float32)
     cap = _render_capacity(run)
     lam = float(run.cfg.train.lambda_dssim)
-    s1, f = OptimSpec(steps=1), float(lr_scale)  # stage 1's learning rates, times f
-    opt = make_optimizer(OptimSpec(steps=max(int(steps), 1), scene_extent=scene_extent(scene.viewmats),
-                                   lr_means=s1.lr_means * f, lr_means_final=s1.lr_means_final * f,
-                                   lr_opacity=s1.lr_opacity * f, lr_scales=s1.lr_scales * f,
-                                   lr_quats=s1.lr_quats * f, lr_sh=s1.lr_sh * f), int(ref.sh.shape[1]))
+    # Adam's update is linear in its learning rate: scaling the update scales every group's rate and schedule
+    opt = optax.chain(make_optimizer(OptimSpec(steps=max(int(steps), 1), scene_extent=scene_extent(scene.viewmats)),
+                                     int(ref.sh.shape[1])), optax.scale(float(lr_scale)))
 
     def photo(gs: Gaussians, alive_, i):
         """(photometric loss, overflow) of training frame i (time order) rendered from `gs` as given."""

@@ -57,7 +57,7 @@ def test_control_renders_and_sweeps(tiny, tmp_path, capsys):
 def test_eval_writes_metrics(tiny, tmp_path, capsys):
     run_dir = tmp_path / "run"  # a copy: the shared run is read by other test workers at the same time
     shutil.copytree(tiny[0], run_dir)
-    assert cli.main(["eval", "--run", str(run_dir)]) == 0
+    assert cli.main(["eval", "--run", str(run_dir), "--maps", str(tmp_path / "maps")]) == 0
     m = json.loads((run_dir / "metrics.json").read_text())["control"]
     assert -1.0 <= m["ari"] <= 1.0 and -1.0 <= m["ari_controlled"] <= 1.0 and np.isfinite(m["state_psnr"])
     assert len(m["ari_per_view"]) == len(m["ari_controlled_per_view"]) >= 1
@@ -83,6 +83,18 @@ def test_eval_writes_metrics(tiny, tmp_path, capsys):
     assert shares.shape == pixels.shape == (len(m["state_mse_by_object"]), len(m["state_psnr_per_frame"]))
     assert "0" in m["state_mse_by_object"] and np.all(shares >= 0) and np.all(pixels >= 0)
     np.testing.assert_allclose(-10 * np.log10(shares.sum(0)), m["state_psnr_per_frame"], atol=1e-3)
+    # ... and the static pixels' share split into those a part sweeps and the rest
+    sw = m["state_mse_static_swept"]
+    np.testing.assert_allclose(np.add(sw["swept"], sw["rest"]), m["state_mse_by_object"]["0"], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(np.add(*m["state_pixels_static_swept"].values()), m["state_pixels_by_object"]["0"])
+    # --maps: one render | image | error picture per state frame
+    import imageio.v3 as iio
+
+    maps = sorted((tmp_path / "maps").glob("state_*.png"))
+    assert len(maps) == len(m["state_psnr_per_frame"])
+    h, w = np.load(tiny[1] / "gt" / "test" / "object_id.npy").shape[1:]
+    assert iio.imread(maps[0]).shape == (h, 3 * w, 3)
+    assert not list((tmp_path / "maps").glob("*.tmp*"))
     for row in m.get("motion_preference", {}).values():
         assert 1 <= row["frames"] <= 8 and 0.0 <= row["true_wins"] <= 1.0 and 0.0 <= row["true_wins_gt_labels"] <= 1.0
         assert all(0.0 < row[key] < 1.0 for key in ("l1_learned", "l1_true", "l1_true_gt_labels"))
@@ -107,6 +119,34 @@ def test_error_by_object_splits_the_squared_error_by_gt_id():
     assert out["2"]["pixels"] == 4 / 20 and out["0"]["pixels"] == 15 / 20
     with pytest.raises(ValueError, match="ids must have shape"):
         error_by_object(img, image, ids[:3])
+
+
+def test_swept_mask_and_error_map_image():
+    """`swept_mask`: the union of the two frames' part pixels, grown by the radius (a square); `error_map_image`:
+    render | image | |difference| x gain, clipped."""
+    from fgjax.pipeline.evaluate import error_map_image, swept_mask
+
+    a = np.zeros((7, 9), int)
+    b = np.zeros((7, 9), int)
+    a[1, 1] = 2
+    b[5, 7] = 1
+    b[0, 8] = -1  # no gt: not a part
+    m = swept_mask(a, b, radius=1)
+    want = np.zeros((7, 9), bool)
+    want[0:3, 0:3] = True
+    want[4:7, 6:9] = True
+    np.testing.assert_array_equal(m, want)
+    np.testing.assert_array_equal(swept_mask(a, b, radius=0), (a > 0) | (b > 0))
+    with pytest.raises(ValueError, match="swept_mask"):
+        swept_mask(a, b[:3])
+    img = np.full((2, 3, 3), 0.5)
+    image = img.copy()
+    image[0, 0] = [0.4, 0.5, 1.5]  # off by 0.1 (x 4 = 0.4), 0, and beyond 1 (clipped to 1 first: 0.5 x 4 -> 1)
+    out = error_map_image(img, image, gain=4.0)
+    assert out.shape == (2, 9, 3) and out.dtype == np.uint8
+    np.testing.assert_array_equal(out[0, 6], [102, 0, 255])
+    np.testing.assert_array_equal(out[1, 6:], 0)
+    np.testing.assert_array_equal(out[:, :3], 128)
 
 
 def test_motion_preference_compares_the_three_renders_with_the_same_frames(tiny, monkeypatch):

@@ -29,6 +29,11 @@ kept):
   static): {id: [per state frame]}: the id's pixels' squared error as a share of the frame's MSE (the shares
   sum to it: `error_by_object`), and the fraction of the pixels they are. On session 21's demo run the lid,
   2% of the pixels, carried 19-37% of the error (docs/benchmarks.md, session 21).
+- ``state_mse_static_swept`` and ``state_pixels_static_swept``: the static pixels' share split in two,
+  {"swept": [per state frame], "rest": [...]}: "swept" are the static pixels within 4 px of a part in the
+  state frame or in the training frame it was made from (the same camera; `swept_mask`), which a part uncovers
+  or passes over between the two states; "rest" the other static pixels. Their shares sum to ``state_mse_by_object``'s
+  "0". ``fgjax eval --maps DIR`` also writes each state frame's render, image and error (`error_map_image`).
 - ``state_psnr_stage1`` is stage 1 rendered at the frame's time, for reference.
 - ``state_psnr_true_motion`` and ``state_psnr_true_motion_labels``: ceilings, no control network. The
   reference Gaussians with each matched cluster moved by the gt motion of its object (the discovered
@@ -198,8 +203,9 @@ def gt_labels_of_gaussians(means, gt_dir: Path, objs: dict, states, norm, match:
                      for g, dd in zip(near, d[:, 0])], np.int32)
 
 
-def evaluate_control(run, data_dir: Path, log=print) -> dict:
-    """The metrics above (a dict); raises FileNotFoundError without ground truth."""
+def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = None) -> dict:
+    """The metrics above (a dict); raises FileNotFoundError without ground truth. With `maps_dir`, each held-out
+    state frame's render, image and error (`error_map_image`) go to maps_dir/state_NNN.png (NNN its test index)."""
     from fgjax import metrics
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
@@ -294,7 +300,10 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         if errs:
             res["trajectory_error"] = float(np.mean(list(errs.values())))
             res["trajectory_error_per_object"] = errs
-    ps, ps_c, ps1, by_obj, ps_exact, ps_run = [], [], [], [], [], []
+    ps, ps_c, ps1, by_obj, ps_exact, ps_run, swept = [], [], [], [], [], [], []
+    if maps_dir is not None:
+        maps_dir = Path(maps_dir)
+        maps_dir.mkdir(parents=True, exist_ok=True)
     for i, kd in enumerate(kinds):
         if kd != "state":
             continue
@@ -320,6 +329,16 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
             out.append(float(metrics.psnr(img, test.images[i])))
             if out is ps:
                 by_obj.append(error_by_object(img, test.images[i], ids_test[i]))
+                if src is not None and 0 <= int(src) < len(ids_train):
+                    sw = swept_mask(ids_test[i], ids_train[int(src)]) & (ids_test[i] == 0)
+                    swept.append(error_by_object(img, test.images[i], np.where(sw, 1, np.where(ids_test[i] == 0, 0, -1))))
+                if maps_dir is not None:
+                    import imageio.v3 as iio
+
+                    from fgjax.pipeline.stage2 import _atomic_bytes
+
+                    png = iio.imwrite("<bytes>", error_map_image(img, test.images[i]), extension=".png")
+                    _atomic_bytes(maps_dir / f"state_{i:03d}.png", lambda f, b=png: f.write(b))
         if test_exact is not test:
             img = stage2.render_controlled(run, vecs[:k] if k else vecs, test_exact.viewmats[i], test.Ks[i],
                                            test.width, test.height)
@@ -347,6 +366,11 @@ def evaluate_control(run, data_dir: Path, log=print) -> dict:
         res["state_mse_by_object"] = {g: [row.get(g, {"mse": 0.0})["mse"] for row in by_obj] for g in labels_seen}
         res["state_pixels_by_object"] = {g: [row.get(g, {"pixels": 0.0})["pixels"] for row in by_obj]
                                          for g in labels_seen}
+        if swept and len(swept) == len(ps):  # the static pixels' share split: swept by a part (1) or not (0)
+            res["state_mse_static_swept"] = {
+                name: [row.get(g, {"mse": 0.0})["mse"] for row in swept] for name, g in (("swept", "1"), ("rest", "0"))}
+            res["state_pixels_static_swept"] = {
+                name: [row.get(g, {"pixels": 0.0})["pixels"] for row in swept] for name, g in (("swept", "1"), ("rest", "0"))}
     if k and states_train is not None:
         # the controlled scene's reference labelled from the gt (radius 0.03): the ceilings' and motion_preference's
         lab_gt = gt_labels_of_gaussians(np.asarray(run.base()[0]), gt, objs, states_train[ref], norm, match, 0.03)
@@ -370,6 +394,31 @@ def error_by_object(img, image, ids) -> dict[str, dict[str, float]]:
         raise ValueError(f"error_by_object: ids must have shape {list(se.shape)}, got {list(ids.shape)}")
     return {str(int(g)): {"mse": float(se[ids == g].sum() / se.size), "pixels": float(np.mean(ids == g))}
             for g in np.unique(ids) if g >= 0}
+
+
+def swept_mask(ids_state, ids_source, radius: int = 4) -> np.ndarray:
+    """Pixels [H, W] (bool) a part covers in either of two views from the same camera: a held-out state frame
+    (`ids_state` [H, W], gt object ids, 0 static, < 0 no gt) and the training frame it was made from
+    (`ids_source` [H, W]), grown by `radius` pixels (a square neighbourhood). Its static pixels are those a
+    part uncovers or sweeps past between the two states: where a reconstruction that blurs the parts' states
+    leaves ghosts."""
+    a, b = np.asarray(ids_state), np.asarray(ids_source)
+    if a.shape != b.shape:
+        raise ValueError(f"swept_mask: ids_source must have shape {list(a.shape)}, got {list(b.shape)}")
+    m = ((a > 0) | (b > 0)).astype(np.uint8)
+    if radius > 0:
+        import cv2
+
+        m = cv2.dilate(m, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
+    return m.astype(bool)
+
+
+def error_map_image(img, image, gain: float = 4.0) -> np.ndarray:
+    """uint8 [H, 3 W, 3]: the render `img`, the image and their absolute difference x `gain` (per channel,
+    clipped), side by side, for looking at where a held-out state loses (`fgjax eval --maps`)."""
+    img, image = np.clip(np.asarray(img, np.float64), 0, 1), np.clip(np.asarray(image, np.float64), 0, 1)
+    err = np.clip(np.abs(img - image) * gain, 0, 1)
+    return (np.concatenate([img, image, err], axis=1) * 255 + 0.5).astype(np.uint8)
 
 
 def _render_posed(run, labels, poses, viewmat, K, width: int, height: int) -> np.ndarray:
@@ -454,6 +503,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="fgjax eval", description="Evaluate a run against ground truth.")
     p.add_argument("--run", required=True, help="run folder with stage-2 results")
     p.add_argument("--data", default=None, help="dataset folder (default: the one stage 2 recorded)")
+    p.add_argument("--maps", default=None, metavar="DIR",
+                   help="also write each held-out state's render | image | error x4 to DIR/state_NNN.png")
     args = p.parse_args(argv)
     from fgjax.pipeline import stage2
     from fgjax.train.checkpoint import CheckpointError
@@ -467,7 +518,7 @@ def main(argv: list[str] | None = None) -> int:
     if not (data / "gt" / "meta.json").is_file():
         print(f"fgjax eval: no ground truth at {data / 'gt'}; nothing to evaluate", file=sys.stderr)
         return 0
-    res = evaluate_control(run, data)
+    res = evaluate_control(run, data, maps_dir=Path(args.maps) if args.maps else None)
     path = Path(args.run) / "metrics.json"
     old = json.loads(path.read_text()) if path.is_file() else {}
     old["control"] = res

@@ -319,6 +319,44 @@ def grow_clusters(
     return lab
 
 
+def near_swept(
+    points: Float[np.ndarray, "M 3"], labels: Int[np.ndarray, " M"], poses: Float[np.ndarray, "K T 4 4"],
+    radius: float, *, max_frames: int = 64,
+) -> Bool[np.ndarray, " M"]:
+    """Unlabelled points (label < 0) within `radius` of a cluster's members at any of its poses.
+
+    Cluster k's members, moved rigidly by each of its poses T_k(t) (x -> R x + t; up to `max_frames` of the
+    T, evenly spaced), sweep the volume the part passes through. A static point near it sits where the part
+    is at some time, or right behind where it is at others: a reconstruction that blurred the part's states
+    leaves Gaussians there that the rest frames cannot correct, since the part hides them (`Stage2Config.
+    ghost_radius`). Returns [M] bool (False for every labelled point; all False when `radius` is 0)."""
+    pts = np.asarray(points, np.float64)
+    lab = np.asarray(labels, np.int64)
+    pz = np.asarray(poses, np.float64)
+    if lab.shape != (len(pts),):
+        raise ValueError(f"near_swept: labels must have shape [{len(pts)}], got {lab.shape}")
+    if not (np.isfinite(radius) and radius >= 0):
+        raise ValueError(f"near_swept: radius must be finite and >= 0, got {radius!r}")
+    k = int(lab.max(initial=-1)) + 1
+    if pz.ndim != 4 or pz.shape[0] < k or pz.shape[2:] != (4, 4):
+        raise ValueError(f"near_swept: poses must have shape [>= {k}, T, 4, 4], got {list(pz.shape)}")
+    out = np.zeros(len(pts), bool)
+    todo = np.flatnonzero(lab < 0)
+    if radius == 0 or k == 0 or len(todo) == 0:
+        return out
+    from scipy.spatial import cKDTree
+
+    frames = np.unique(np.linspace(0, pz.shape[1] - 1, min(pz.shape[1], max_frames)).round().astype(int))
+    swept = [np.einsum("tij,mj->tmi", pz[c, frames, :3, :3], pts[lab == c]) + pz[c, frames, None, :3, 3]
+             for c in range(k) if np.any(lab == c)]  # [T', M_c, 3] each
+    swept = np.concatenate([x.reshape(-1, 3) for x in swept], 0)
+    swept = swept[np.all(np.isfinite(swept), axis=1)]
+    if len(swept):
+        d, _ = cKDTree(swept).query(pts[todo], k=1, distance_upper_bound=radius)
+        out[todo] = np.isfinite(d)
+    return out
+
+
 def fill_hulls(
     points: Float[np.ndarray, "M 3"], labels: Int[np.ndarray, " M"], core: Bool[np.ndarray, " M"],
     candidates: Bool[np.ndarray, " M"], *, max_growth: float = np.inf,

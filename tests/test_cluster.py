@@ -540,3 +540,38 @@ def test_fill_hinges_brings_in_the_static_points_along_a_turning_clusters_axis()
         fill_hinges(pts, labels[:-1], core, cand, z_axis, origin)
     with pytest.raises(ValueError, match="radius"):
         fill_hinges(pts, labels, core, cand, z_axis, origin, radius=-0.1)
+
+
+def test_near_swept_marks_the_static_points_the_parts_pass_by_at_any_pose():
+    """A one-point cluster at the origin slides to x = 1 over 5 poses (0, 0.25, ..., 1): static points within the
+    radius of any of its 5 positions are near; between two positions farther than the radius from both, or beyond
+    the last one, they are not; members never are. A second cluster turned 90 degrees about z puts its member
+    (1, 0, 5) at (0, 1, 5)."""
+    from fgjax.cluster import near_swept
+
+    t = 5
+    poses = np.tile(np.eye(4), (2, t, 1, 1))
+    poses[0, :, 0, 3] = np.linspace(0.0, 1.0, t)
+    poses[1, -1, :3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    pts = np.array([[0.0, 0.0, 0.0],  # cluster 0's member
+                    [1.0, 0.0, 5.0],  # cluster 1's member
+                    [0.5, 0.05, 0.0],  # 0.05 from the middle position: near
+                    [0.125, 0.09, 0.0],  # between two positions, sqrt(0.125^2 + 0.09^2) = 0.154 from both: not
+                    [1.09, 0.0, 0.0],  # 0.09 beyond the last position: near
+                    [1.2, 0.0, 0.0],  # 0.2 beyond: not
+                    [0.0, 1.05, 5.0],  # by cluster 1's turned member: near
+                    [0.7, 0.7, 5.0]])  # on the arc it did not sample: not
+    lab = np.array([0, 1, -1, -1, -1, -1, -1, -1])
+    np.testing.assert_array_equal(near_swept(pts, lab, poses, 0.1), [0, 0, 1, 0, 1, 0, 1, 0])
+    np.testing.assert_array_equal(near_swept(pts, lab, poses, 0.0), 0)  # off
+    np.testing.assert_array_equal(near_swept(pts, np.full(len(pts), -1), poses, 0.1), 0)  # no clusters
+    # a dropped (non-finite) pose is left out, not spread
+    bad = poses.copy()
+    bad[0, 2] = np.nan
+    np.testing.assert_array_equal(near_swept(pts, lab, bad, 0.1), [0, 0, 0, 0, 1, 0, 1, 0])
+    with pytest.raises(ValueError, match="near_swept: radius"):
+        near_swept(pts, lab, poses, -1.0)
+    with pytest.raises(ValueError, match="near_swept: poses"):
+        near_swept(pts, lab, poses[:1], 0.1)
+    with pytest.raises(ValueError, match="near_swept: labels"):
+        near_swept(pts, lab[:-1], poses, 0.1)

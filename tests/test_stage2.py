@@ -763,6 +763,34 @@ def test_validate_config_names_the_field():
     stage2.validate_config(stage2.Stage2Config())
     for kw, msg in (({"hinge_radius": -1.0}, "hinge_radius"), ({"track_rounds": 0}, "track_rounds"),
                     ({"camera_correction": "maybe"}, "camera_correction"), ({"hull_opacity": 1.5}, "hull_opacity"),
-                    ({"refit_lr_scale": 0.0}, "refit_lr_scale"), ({"refit_lr_scale": float("nan")}, "refit_lr_scale")):
+                    ({"refit_lr_scale": 0.0}, "refit_lr_scale"), ({"refit_lr_scale": float("nan")}, "refit_lr_scale"),
+                    ({"ghost_radius": -0.1}, "ghost_radius"), ({"ghost_radius": float("inf")}, "ghost_radius"),
+                    ({"ghost_opacity": 0.0}, "ghost_opacity"), ({"ghost_opacity": 1.0}, "ghost_opacity")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
+
+
+def test_fade_ghosts_caps_the_opacity_of_the_alive_static_gaussians_near_the_swept_volume():
+    """`stage2._fade_ghosts`: a part (one member at the origin) slides to x = 1; of the static Gaussians by its
+    path, the opaque alive ones are capped at ``ghost_opacity``, a fainter one keeps its logit, a dead one is
+    left; far ones and the member keep theirs, and nothing but the opacities changes."""
+    from scipy.special import expit
+
+    from fgjax.gaussians import Gaussians
+
+    means = np.array([[0.0, 0.0, 0.0], [0.5, 0.02, 0.0], [1.0, 0.0, 0.03], [0.5, 0.0, 0.01], [0.3, 0.0, 0.0],
+                      [0.5, 2.0, 0.0]])
+    n = len(means)
+    logits = np.array([4.0, 3.0, 0.5, -6.0, 2.0, 3.0], np.float32)  # member, near, near, near faint, near dead, far
+    g = Gaussians(means, np.zeros((n, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), logits, np.ones((n, 1, 3)))
+    poses = np.tile(np.eye(4), (1, 5, 1, 1))
+    poses[0, :, 0, 3] = np.linspace(0.0, 1.0, 5)
+    alive = np.array([1, 1, 1, 1, 0, 1], bool)
+    msgs = []
+    cfg = stage2.Stage2Config(ghost_radius=0.1, ghost_opacity=0.05)
+    out = stage2._fade_ghosts(g, np.array([0, -1, -1, -1, -1, -1]), poses, alive, cfg, log=msgs.append)
+    np.testing.assert_allclose(expit(out.opacity_logits[1:3]), 0.05, rtol=1e-5)
+    np.testing.assert_array_equal(out.opacity_logits[[0, 3, 4, 5]], logits[[0, 3, 4, 5]])
+    for f in ("means", "log_scales", "quats", "sh"):
+        np.testing.assert_array_equal(getattr(out, f), getattr(g, f))
+    assert "2 static Gaussians" in msgs[0] and "(3 within 0.1)" in msgs[0]

@@ -297,6 +297,14 @@ class Stage2Config:
     the demo's settings on the default scene (session 28, docs/benchmarks.md), it does not: held-out states
     26.01 / 26.58 / 27.89 / 28.11 dB at 0.1 / 0.3 / 1 / 2 (seed 0), and at 2 against 1 on seeds 1 and 2 27.22 /
     27.85 against 28.25 / 28.18 dB; under pose noise 26.81 at 2 against 26.71 at 1."""
+    ghost_radius: float = 0.0
+    """Before each round's re-fit, static Gaussians within this distance (scene units) of a part's members at any
+    of its tracked poses (`fgjax.cluster.near_swept`) start it with their opacity at most ``ghost_opacity``:
+    what stage 1 left where the parts pass (its blur of their states) or behind them is hidden at rest, so the
+    rest frames cannot correct it and the few frames that show it barely do; faded, it returns only where those
+    frames show something. 0: off."""
+    ghost_opacity: float = 0.05
+    """The opacity ``ghost_radius``'s Gaussians start a re-fit at (at most), in (0, 1)."""
     trajectories: str = "flow"
     """Where the objects' motion comes from: "flow" (rigid poses tracked from optical flow,
     `fgjax.pipeline.track`) or "deformation" (the stage-1 deformation field)."""
@@ -843,6 +851,20 @@ def _fill_hinges(labels: np.ndarray, gs: Gaussians, alive, poses: np.ndarray, cf
     return new, hinges
 
 
+def _fade_ghosts(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, alive, cfg: Stage2Config,
+                 log=print) -> Gaussians:
+    """`Stage2Config.ghost_radius`: the opacity of alive static Gaussians of ``gs`` near the volume the parts
+    sweep under ``poses`` [K, T, 4, 4] (`fgjax.cluster.near_swept`) capped at ``cfg.ghost_opacity``."""
+    near = cluster.near_swept(np.asarray(gs.means, np.float64), labels, poses, cfg.ghost_radius) & np.asarray(alive, bool)
+    cap = float(np.log(cfg.ghost_opacity) - np.log1p(-cfg.ghost_opacity))  # logit
+    o = np.asarray(gs.opacity_logits)  # [N]
+    faded = near & (o > cap)
+    o = np.where(faded, np.asarray(cap, o.dtype), o)
+    log(f"stage 2: {int(faded.sum())} static Gaussians near the parts' swept volume faded to opacity "
+        f"{cfg.ghost_opacity:g} before the re-fit ({int(near.sum())} within {cfg.ghost_radius:g})")
+    return Gaussians(gs.means, gs.log_scales, gs.quats, o, gs.sh)
+
+
 def _reference_scene(run: LoadedRun, t: float) -> Gaussians:
     """Stage 1's Gaussians deformed to time `t` (raw parameters, with their opacities and colours): the
     reference scene that the tracked poses move and the re-fit starts from."""
@@ -1243,6 +1265,10 @@ def validate_config(cfg: Stage2Config) -> None:
         raise ValueError(f"Stage2Config.hull_opacity must be in [0, 1], got {cfg.hull_opacity!r}")
     if not cfg.hull_max_growth >= 0:
         raise ValueError(f"Stage2Config.hull_max_growth must be >= 0, got {cfg.hull_max_growth!r}")
+    if not (np.isfinite(cfg.ghost_radius) and cfg.ghost_radius >= 0):
+        raise ValueError(f"Stage2Config.ghost_radius must be finite and >= 0, got {cfg.ghost_radius!r}")
+    if not (np.isfinite(cfg.ghost_opacity) and 0 < cfg.ghost_opacity < 1):
+        raise ValueError(f"Stage2Config.ghost_opacity must be in (0, 1), got {cfg.ghost_opacity!r}")
     if not (np.isfinite(cfg.hinge_radius) and cfg.hinge_radius >= 0):
         raise ValueError(f"Stage2Config.hinge_radius must be finite and >= 0, got {cfg.hinge_radius!r}")
     if not (np.isfinite(cfg.hinge_reach) and cfg.hinge_reach >= 0):
@@ -1340,6 +1366,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                     poses, joints = _photometric_poses(run, scene, order, refit, labels, report.n_clusters, cfg,
                                                        moving, log, init_poses=poses, fixed=fixed, prev_joints=joints)
                     history.append(joints)
+                if cfg.ghost_radius > 0:
+                    refit = _fade_ghosts(refit, labels, poses, run.state.densify.alive, cfg, log)
                 refit, labels = refit_gaussians(run, scene, order, labels, poses, cfg.refit_steps, seed=cfg.seed + r,
                                                 relabel_steps=cfg.relabel_steps, relabel_radius=cfg.relabel_radius,
                                                 init=refit, lr_scale=cfg.refit_lr_scale, log=log)

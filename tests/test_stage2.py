@@ -381,6 +381,10 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert any("inside the hulls" in m for m in logs) and any("re-fitted" in m and "100 steps" in m for m in logs), logs
     assert sum("along the hinges" in m for m in logs) == 1, logs  # `hinge_fill`, on by default, shares that re-fit
     assert not any("round 2" in m for m in logs), logs
+    # `ghost_radius` (0.03 by default, session 29): the round's re-fit, not the hull fill's, starts with the static
+    # Gaussians by the parts' swept volume faded
+    assert stage2.Stage2Config().ghost_radius == 0.03
+    assert sum("swept volume faded" in m and "(within" not in m and "within 0.03)" in m for m in logs) == 1, logs
     # numbers in the log are rounded for reading (the distillation's first loss was once printed to 17 digits)
     assert not [m for m in logs if m.startswith("stage 2:") and re.search(r"\d\.\d{7,}", m)], logs
     assert np.all(np.isfinite(res.traj)) and res.refit is not None

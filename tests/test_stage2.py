@@ -442,7 +442,8 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     logs = []
     cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                               track_rounds=2, seed=3, hull_fill=False,
-                              hinge_fill=False)  # (their re-fit: test_hull_fill_...)
+                              hinge_fill=False,  # (their re-fit: test_hull_fill_...)
+                              ghost_radius=0.0)  # (its fade makes a new start: test_stage2_with_photometric_...)
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
     assert [c[0] for c in calls] == ["track", "refit", "track", "refit"], [c[0] for c in calls]
     (_, ref1, init1, poses1), (_, rinit1, rposes1, seed1, refit1) = calls[0], calls[1]

@@ -302,6 +302,10 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
             res["trajectory_error_per_object"] = errs
     ps, ps_c, ps1, by_obj, ps_exact, ps_run, swept = [], [], [], [], [], [], []
     if maps_dir is not None:
+        import imageio.v3 as iio
+
+        from fgjax.io import atomic_write
+
         maps_dir = Path(maps_dir)
         maps_dir.mkdir(parents=True, exist_ok=True)
     for i, kd in enumerate(kinds):
@@ -333,12 +337,8 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
                     sw = swept_mask(ids_test[i], ids_train[int(src)]) & (ids_test[i] == 0)
                     swept.append(error_by_object(img, test.images[i], np.where(sw, 1, np.where(ids_test[i] == 0, 0, -1))))
                 if maps_dir is not None:
-                    import imageio.v3 as iio
-
-                    from fgjax.pipeline.stage2 import _atomic_bytes
-
-                    png = iio.imwrite("<bytes>", error_map_image(img, test.images[i]), extension=".png")
-                    _atomic_bytes(maps_dir / f"state_{i:03d}.png", lambda f, b=png: f.write(b))
+                    emap = error_map_image(img, test.images[i])
+                    atomic_write(maps_dir / f"state_{i:03d}.png", lambda f: iio.imwrite(f, emap, extension=".png"))
         if test_exact is not test:
             img = stage2.render_controlled(run, vecs[:k] if k else vecs, test_exact.viewmats[i], test.Ks[i],
                                            test.width, test.height)
@@ -363,14 +363,12 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
             res["state_psnr_run_cameras"] = float(np.mean(ps_run))
             res["state_psnr_run_cameras_per_frame"] = ps_run
         labels_seen = sorted({g for row in by_obj for g in row})
-        res["state_mse_by_object"] = {g: [row.get(g, {"mse": 0.0})["mse"] for row in by_obj] for g in labels_seen}
-        res["state_pixels_by_object"] = {g: [row.get(g, {"pixels": 0.0})["pixels"] for row in by_obj]
-                                         for g in labels_seen}
+        ids = {g: g for g in labels_seen}
+        res["state_mse_by_object"], res["state_pixels_by_object"] = (_per_frame(by_obj, f, ids) for f in ("mse", "pixels"))
         if swept and len(swept) == len(ps):  # the static pixels' share split: swept by a part (1) or not (0)
-            res["state_mse_static_swept"] = {
-                name: [row.get(g, {"mse": 0.0})["mse"] for row in swept] for name, g in (("swept", "1"), ("rest", "0"))}
-            res["state_pixels_static_swept"] = {
-                name: [row.get(g, {"pixels": 0.0})["pixels"] for row in swept] for name, g in (("swept", "1"), ("rest", "0"))}
+            ids = {"swept": "1", "rest": "0"}
+            res["state_mse_static_swept"], res["state_pixels_static_swept"] = (_per_frame(swept, f, ids)
+                                                                               for f in ("mse", "pixels"))
     if k and states_train is not None:
         # the controlled scene's reference labelled from the gt (radius 0.03): the ceilings' and motion_preference's
         lab_gt = gt_labels_of_gaussians(np.asarray(run.base()[0]), gt, objs, states_train[ref], norm, match, 0.03)
@@ -394,6 +392,12 @@ def error_by_object(img, image, ids) -> dict[str, dict[str, float]]:
         raise ValueError(f"error_by_object: ids must have shape {list(se.shape)}, got {list(ids.shape)}")
     return {str(int(g)): {"mse": float(se[ids == g].sum() / se.size), "pixels": float(np.mean(ids == g))}
             for g in np.unique(ids) if g >= 0}
+
+
+def _per_frame(rows: list[dict], field: str, ids: dict[str, str]) -> dict[str, list[float]]:
+    """{name: [row[id][field] for each frame's row]} from per-frame `error_by_object` rows, 0 where a frame lacks
+    the id."""
+    return {name: [row.get(g, {field: 0.0})[field] for row in rows] for name, g in ids.items()}
 
 
 def swept_mask(ids_state, ids_source, radius: int = 4) -> np.ndarray:

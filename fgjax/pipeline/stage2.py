@@ -304,7 +304,7 @@ class Stage2Config:
     rest frames cannot correct it and the few frames that show it barely do; faded, it returns only where those
     frames show something. 0: off. Measured at the demo's settings (session 29, docs/benchmarks.md): 0.03 against
     off raised ari_controlled on 4 of 5 runs (default scene seeds 0-2 +0.010 / +0.019 / +0.020, the close pair
-    +0.031, pose noise -0.001); the held-out states moved +0.27 / -0.34 / +0.07 / -0.14 / +0.82 dB. 0.08 fades
+    +0.031, pose noise -0.001); the held-out states moved +0.27 / -0.34 / +0.07 / -0.14 / +0.83 dB. 0.08 fades
     static surfaces the re-fit does not restore (seed 0: -0.14 dB, ari_controlled -0.017)."""
     ghost_opacity: float = 0.05
     """The opacity ``ghost_radius``'s Gaussians start a re-fit at (at most), in (0, 1)."""

@@ -77,6 +77,8 @@ def test_eval_writes_metrics(tiny, tmp_path, capsys):
     assert abs(m["view_psnr_stage1_unaligned"] - m["view_psnr_stage1"]) < 1e-3 and np.isfinite(m["view_psnr_stage1"])
     if m["num_objects_found"]:
         assert np.isfinite(m["state_psnr_true_motion"]) and np.isfinite(m["state_psnr_true_motion_labels"])
+        assert -1.0 <= m["ari_controlled_true_motion"] <= 1.0
+        assert -1.0 <= m["ari_controlled_true_motion_gt_labels"] <= 1.0
     # where the state frames' error lies: per gt id, shares that sum to each frame's MSE (its PSNR)
     shares = np.array(list(m["state_mse_by_object"].values()))  # [ids, frames]
     pixels = np.array(list(m["state_pixels_by_object"].values()))
@@ -298,6 +300,43 @@ def test_render_clusters_with_given_labels(tiny):
         assert (one == 1).any() or not (own == 1).any()
     with pytest.raises(ValueError, match="labels must have shape"):
         stage2.render_clusters(run, vm, K, w, h, labels=lab[:-1])
+
+
+def test_render_clusters_with_poses(tiny):
+    """``poses`` moves each cluster rigidly from the controlled scene's reference: the identity gives the
+    controlled scene at zero vectors, and a pose that carries object 1 far behind a camera that sees it takes
+    it out of that camera's map while the others stay where they were."""
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+    from fgjax.pipeline import stage2
+
+    run_dir, data = tiny
+    run = stage2.load_stage2(run_dir)
+    k = run.s2.num_objects
+    if k == 0:
+        pytest.skip("no clusters in the tiny run")
+    train = load_scene(data, "train", normalize=Normalization.from_dict(run.meta["normalization"]),
+                       downscale=run.cfg.data.downscale)
+    w, h = train.width, train.height
+    eye = np.tile(np.eye(4), (k, 1, 1))
+    for i in range(train.num_frames):  # the first training camera that sees object 1
+        vm, K = train.viewmats[i], train.Ks[i]
+        at_rest = stage2.render_clusters(run, vm, K, w, h, vectors=np.zeros((k, 3)))
+        np.testing.assert_array_equal(stage2.render_clusters(run, vm, K, w, h, poses=eye), at_rest)
+        if (at_rest == 1).any():
+            break
+    else:
+        pytest.skip("no training camera sees object 1 in the tiny run")
+    away = eye.copy()
+    away[0, :3, 3] = -1e3 * np.linalg.inv(np.asarray(vm, np.float64))[:3, 2]  # far behind the camera
+    gone = stage2.render_clusters(run, vm, K, w, h, poses=away)
+    assert not (gone == 1).any()
+    others = (at_rest > 1) & (gone > 0)
+    np.testing.assert_array_equal(gone[others], at_rest[others])
+    with pytest.raises(ValueError, match="poses must have shape"):
+        stage2.render_clusters(run, vm, K, w, h, poses=eye[:, :3])
+    with pytest.raises(ValueError, match="not both"):
+        stage2.render_clusters(run, vm, K, w, h, poses=eye, vectors=np.zeros((k, 3)))
 
 
 def test_camera_errors_against_a_known_perturbation():

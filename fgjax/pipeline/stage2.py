@@ -571,7 +571,8 @@ def render_controlled(run: LoadedRun, vectors, viewmat, K, width: int, height: i
 
 
 def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: float | None = None,
-                    vectors=None, source: str = "stage1", alpha_threshold: float = 0.5, labels=None) -> np.ndarray:
+                    vectors=None, source: str = "stage1", alpha_threshold: float = 0.5, labels=None,
+                    poses=None) -> np.ndarray:
     """Per-pixel object ids [H, W] int (0 = static or background, k = cluster k - 1 + 1).
 
     One-hot cluster features (channel 0 for every Gaussian outside the clusters, channel k for
@@ -579,8 +580,10 @@ def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: f
     rendered alpha is below `alpha_threshold`. Geometry: the controlled scene for `vectors` [K, 3] when
     given; else, at time `t` (default: the reference time), ``source`` "stage1": the stage-1 model at t
     (the scene `fgjax render` draws in colour for the same camera), or "control": the controlled scene
-    with each object at its trajectory vector v_c(t, k). ``labels`` [N] (-1..K-1) replaces stage 2's
-    clustering (evaluation: `fgjax.pipeline.evaluate`'s labels taken from the ground truth).
+    with each object at its trajectory vector v_c(t, k). ``poses`` [K, 4, 4] (instead of `vectors`): the
+    controlled scene's reference (`LoadedRun.base`) with each object's Gaussians moved rigidly by its pose, no
+    control network (evaluation: the gt motion). ``labels`` [N] (-1..K-1) replaces stage 2's clustering
+    (evaluation: `fgjax.pipeline.evaluate`'s labels taken from the ground truth).
     """
     s2 = run.s2
     if s2 is None:
@@ -590,10 +593,21 @@ def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: f
     labels = s2.labels if labels is None else np.asarray(labels, np.int64)
     if labels.shape != s2.labels.shape:
         raise ValueError(f"render_clusters: labels must have shape {list(s2.labels.shape)}, got {list(labels.shape)}")
-    if vectors is None and source == "control" and s2.num_objects > 0:  # each object at v_c(t, k)
+    if poses is not None and vectors is not None:
+        raise ValueError("render_clusters: give vectors or poses, not both")
+    if poses is None and vectors is None and source == "control" and s2.num_objects > 0:  # each object at v_c(t, k)
         vectors = cluster_vectors_at(s2, s2.t0 if t is None else float(t))
     params = None
-    if vectors is not None:
+    if poses is not None:
+        from fgjax.pipeline.track import transform_gaussians
+
+        poses = np.asarray(poses, np.float32)
+        if poses.shape != (s2.num_objects, 4, 4):
+            raise ValueError(f"render_clusters: poses must have shape [{s2.num_objects}, 4, 4], got {list(poses.shape)}")
+        m0, q0, ls0 = run.base()
+        m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses))
+        geo, params = (m, q, ls0), run.control_params()
+    elif vectors is not None:
         geo = controlled_gaussians(s2.control, run.base(), run.state.params["gaussians"].means,
                                    jnp.asarray(labels), jnp.asarray(np.asarray(vectors).reshape(-1, 3), jnp.float32))
         params = run.control_params()

@@ -305,7 +305,8 @@ class Stage2Config:
     frames show something. 0: off. Measured at the demo's settings (session 29, docs/benchmarks.md): 0.03 against
     off raised ari_controlled on 4 of 5 runs (default scene seeds 0-2 +0.010 / +0.019 / +0.020, the close pair
     +0.031, pose noise -0.001); the held-out states moved +0.27 / -0.34 / +0.07 / -0.14 / +0.83 dB. 0.08 fades
-    static surfaces the re-fit does not restore (seed 0: -0.14 dB, ari_controlled -0.017)."""
+    static surfaces the re-fit does not restore (seed 0: -0.14 dB, ari_controlled -0.017). 0.02 and 0.05 (session
+    30) gave 0.831 and 0.841 on seed 0 against 0.873 at 0.03: the gain is within the spread between radii."""
     ghost_opacity: float = 0.05
     """The opacity ``ghost_radius``'s Gaussians start a re-fit at (at most), in (0, 1)."""
     trajectories: str = "flow"

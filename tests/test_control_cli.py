@@ -335,6 +335,10 @@ def test_render_clusters_with_poses(tiny):
     np.testing.assert_array_equal(gone[others], at_rest[others])
     with pytest.raises(ValueError, match="poses must have shape"):
         stage2.render_clusters(run, vm, K, w, h, poses=eye[:, :3])
+    bad = eye.copy()
+    bad[0, 0, 3] = np.nan
+    with pytest.raises(ValueError, match="poses must be finite"):
+        stage2.render_clusters(run, vm, K, w, h, poses=bad)
     with pytest.raises(ValueError, match="not both"):
         stage2.render_clusters(run, vm, K, w, h, poses=eye, vectors=np.zeros((k, 3)))
 

@@ -436,13 +436,10 @@ def error_map_image(img, image, gain: float = 4.0) -> np.ndarray:
 def _render_posed(run, labels, poses, viewmat, K, width: int, height: int) -> np.ndarray:
     """Image [H, W, 3] in [0, 1] of the controlled scene's reference (`LoadedRun.base`, no control network)
     with each cluster's Gaussians (`labels` [N], -1 static) moved by its pose (`poses` [K, 4, 4])."""
-    import jax.numpy as jnp
+    from fgjax.pipeline import stage2
 
-    from fgjax.pipeline.track import transform_gaussians
-
-    m0, q0, ls0 = run.base()
-    m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses, jnp.float32))
-    img, _, _ = run.render_geometry(m, q, ls0, viewmat, K, width, height, params=run.control_params())
+    img, _, _ = run.render_geometry(*stage2.posed_base(run, labels, poses), viewmat, K, width, height,
+                                    params=run.control_params())
     return np.clip(np.asarray(img), 0.0, 1.0)
 
 

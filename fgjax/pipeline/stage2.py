@@ -65,6 +65,7 @@ __all__ = [
     "controlled_gaussians",
     "render_controlled",
     "render_clusters",
+    "posed_base",
     "write_cluster_maps",
     "cluster_vectors_at",
     "snap_vector",
@@ -571,6 +572,23 @@ def render_controlled(run: LoadedRun, vectors, viewmat, K, width: int, height: i
     return np.clip(np.asarray(img), 0.0, 1.0)
 
 
+def posed_base(run: LoadedRun, labels, poses):
+    """(means [N, 3], raw quats [N, 4], log-scales [N, 3]) of the controlled scene's reference (`LoadedRun.base`)
+    with each object's Gaussians (``labels`` [N], -1 static) moved rigidly by its pose (``poses`` [K, 4, 4],
+    x -> R x + t in scene units; finite); no control network."""
+    from fgjax.pipeline.track import transform_gaussians
+
+    k = run.s2.num_objects if run.s2 is not None else int(np.max(labels, initial=-1)) + 1
+    poses = np.asarray(poses, np.float32)
+    if poses.shape != (k, 4, 4):
+        raise ValueError(f"posed_base: poses must have shape [{k}, 4, 4], got {list(poses.shape)}")
+    if not np.isfinite(poses).all():
+        raise ValueError("posed_base: poses must be finite")
+    m0, q0, ls0 = run.base()
+    m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses))
+    return m, q, ls0
+
+
 def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: float | None = None,
                     vectors=None, source: str = "stage1", alpha_threshold: float = 0.5, labels=None,
                     poses=None) -> np.ndarray:
@@ -600,14 +618,7 @@ def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: f
         vectors = cluster_vectors_at(s2, s2.t0 if t is None else float(t))
     params = None
     if poses is not None:
-        from fgjax.pipeline.track import transform_gaussians
-
-        poses = np.asarray(poses, np.float32)
-        if poses.shape != (s2.num_objects, 4, 4):
-            raise ValueError(f"render_clusters: poses must have shape [{s2.num_objects}, 4, 4], got {list(poses.shape)}")
-        m0, q0, ls0 = run.base()
-        m, q = transform_gaussians(m0, q0, jnp.asarray(labels), jnp.asarray(poses))
-        geo, params = (m, q, ls0), run.control_params()
+        geo, params = posed_base(run, labels, poses), run.control_params()
     elif vectors is not None:
         geo = controlled_gaussians(s2.control, run.base(), run.state.params["gaussians"].means,
                                    jnp.asarray(labels), jnp.asarray(np.asarray(vectors).reshape(-1, 3), jnp.float32))

@@ -483,6 +483,16 @@ def _motion_preference(run, train, objs: dict, match: dict[int, int], states, re
     return out
 
 
+def _gt_poses(k: int, match: dict[int, int], objs: dict, s_from, s_to, norm) -> np.ndarray:
+    """[k, 4, 4]: each matched cluster's pose, the gt motion of its object from state ``s_from`` [K_gt] to
+    ``s_to`` [K_gt] (`gt_motion_scene`); the identity for a cluster matched to no gt object."""
+    poses = np.tile(np.eye(4), (k, 1, 1))
+    for c, j in match.items():
+        if j >= 1 and j in objs:
+            poses[c] = gt_motion_scene(objs[j], float(s_from[j - 1]), float(s_to[j - 1]), norm)
+    return poses
+
+
 def _true_motion_aris(run, test, ids_test, meta: dict, kinds, objs: dict, match: dict[int, int], s_ref, norm,
                       lab_gt) -> dict:
     """``ari_controlled_true_motion`` and ``ari_controlled_true_motion_gt_labels`` (module docstring): the ARI of
@@ -498,10 +508,7 @@ def _true_motion_aris(run, test, ids_test, meta: dict, kinds, objs: dict, match:
         states = meta["test_frames"][i].get("states")
         if kd != "view" or states is None:
             continue
-        poses = np.tile(np.eye(4), (s2.num_objects, 1, 1))
-        for c, j in match.items():
-            if j >= 1 and j in objs:
-                poses[c] = gt_motion_scene(objs[j], float(s_ref[j - 1]), float(states[j - 1]), norm)
+        poses = _gt_poses(s2.num_objects, match, objs, s_ref, states, norm)
         ok = ids_test[i] >= 0
         for key, labels in zip(out, (None, lab_gt)):
             pred = stage2.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height, poses=poses,
@@ -525,10 +532,7 @@ def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], 
     for i, f in enumerate(meta.get("test_frames", [])):
         if f.get("kind") != "state" or f.get("states") is None:
             continue
-        poses = np.tile(np.eye(4), (s2.num_objects, 1, 1))
-        for c, j in match.items():
-            if j >= 1 and j in objs:
-                poses[c] = gt_motion_scene(objs[j], float(s_ref[j - 1]), float(f["states"][j - 1]), norm)
+        poses = _gt_poses(s2.num_objects, match, objs, s_ref, f["states"], norm)
         for key, labels in label_sets.items():
             img = _render_posed(run, labels, poses, test.viewmats[i], test.Ks[i], test.width, test.height)
             out[key].append(float(metrics.psnr(img, test.images[i])))

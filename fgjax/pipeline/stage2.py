@@ -578,7 +578,9 @@ def posed_base(run: LoadedRun, labels, poses):
     x -> R x + t in scene units; finite); no control network."""
     from fgjax.pipeline.track import transform_gaussians
 
-    k = run.s2.num_objects if run.s2 is not None else int(np.max(labels, initial=-1)) + 1
+    if run.s2 is None:
+        raise Stage2Error("posed_base needs stage-2 results")
+    k = run.s2.num_objects
     poses = np.asarray(poses, np.float32)
     if poses.shape != (k, 4, 4):
         raise ValueError(f"posed_base: poses must have shape [{k}, 4, 4], got {list(poses.shape)}")

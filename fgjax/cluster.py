@@ -22,6 +22,7 @@ __all__ = [
     "fill_hulls",
     "hinge_axes",
     "fill_hinges",
+    "drop_isolated",
     "localize_clusters",
     "split_by_motion",
     "merge_fragments",
@@ -397,6 +398,53 @@ def fill_hulls(
         best[take], new[take] = d[take], k
     lab[todo] = np.where(new >= 0, new, lab[todo])
     return lab
+
+
+def drop_isolated(
+    points: Float[np.ndarray, "M 3"], labels: Int[np.ndarray, " M"], factor: float,
+    alive: Bool[np.ndarray, " M"] | None = None,
+) -> Int[np.ndarray, " M"]:
+    """Members farther from every other member of their cluster than ``factor`` times the cluster's median
+    spacing made unlabelled (-1).
+
+    A part's Gaussians lie on its surfaces, each a spacing s_k (the median over cluster k of the distance to the
+    nearest other member) from the next. The passes that grow a cluster (`localize_clusters`, the fills) join
+    static Gaussians within a radius of any member, several spacings away from the part: the box under a lid,
+    the frame around a door. Such a member has no other member near it. Only alive members (``alive`` [M],
+    default all) count as neighbours and can be dropped; a cluster with fewer than 3 of them is left as it is.
+
+    Args:
+        points: [M, 3] centres (finite).
+        labels: [M] int, -1 for unlabelled.
+        factor: >= 1 (below 1 it would drop a regular grid whole); ``inf`` drops nothing.
+        alive: [M] bool or None.
+
+    Returns:
+        [M] int labels (the same ids; no cluster is emptied: at least half its members are within its median
+        spacing of another).
+    """
+    pts = _points(points, "drop_isolated")
+    lab = np.asarray(labels, np.int64)
+    if lab.shape != (len(pts),):
+        raise ValueError(f"drop_isolated: labels must have shape [{len(pts)}], got {list(lab.shape)}")
+    if not factor >= 1:  # NaN too
+        raise ValueError(f"drop_isolated: factor must be >= 1, got {factor!r}")
+    ok = np.ones(len(pts), bool) if alive is None else np.asarray(alive, bool)
+    if ok.shape != (len(pts),):
+        raise ValueError(f"drop_isolated: alive must have shape [{len(pts)}], got {list(ok.shape)}")
+    out = lab.copy()
+    if not np.isfinite(factor):
+        return out
+    from scipy.spatial import cKDTree
+
+    for k in np.unique(lab[(lab >= 0) & ok]):
+        idx = np.flatnonzero((lab == k) & ok)
+        if len(idx) < 3:
+            continue
+        d, _ = cKDTree(pts[idx]).query(pts[idx], k=2)  # [m, 2]: itself, then its nearest other member
+        nearest = d[:, 1]
+        out[idx[nearest > factor * np.median(nearest)]] = -1
+    return out
 
 
 def hinge_axes(

@@ -575,3 +575,37 @@ def test_near_swept_marks_the_static_points_the_parts_pass_by_at_any_pose():
         near_swept(pts, lab, poses[:1], 0.1)
     with pytest.raises(ValueError, match="near_swept: labels"):
         near_swept(pts, lab[:-1], poses, 0.1)
+
+
+def test_drop_isolated_drops_the_members_far_from_the_rest_of_their_cluster():
+    """`drop_isolated`: two clusters on grids of spacings 0.01 and 0.05 (the cut is each cluster's own median
+    spacing times the factor), three members of the dense one 0.04 off its face are dropped, the sparse one keeps
+    every member; a member whose only close neighbour is dead is dropped too; unlabelled points and dead members keep
+    their labels; a cluster of two is left alone; inf drops nothing; bad inputs raise."""
+    from fgjax.cluster import drop_isolated
+
+    g = np.stack(np.meshgrid(np.arange(10), np.arange(10), indexing="ij"), -1).reshape(-1, 2) * 1.0
+    dense = np.c_[g * 0.01, np.zeros(100)]  # a 0.09 x 0.09 face, spacing 0.01
+    sparse = np.c_[g * 0.05 + [2.0, 0.0], np.zeros(100)]  # spacing 0.05, far away
+    off = np.array([[0.02, 0.02, 0.04], [0.05, 0.05, -0.04], [0.09, 0.0, 0.04]])  # 0.04 from the face
+    lonely = np.array([[-0.2, 0.0, 0.0], [-0.205, 0.0, 0.0]])  # a member and its only neighbour (dead)
+    static = np.array([[0.5, 0.5, 0.5]])
+    pair = np.array([[5.0, 0.0, 0.0], [6.0, 0.0, 0.0]])
+    pts = np.concatenate([dense, sparse, off, lonely, static, pair])
+    lab = np.r_[np.zeros(100), np.ones(100), np.zeros(3), [0, 0], [-1], [2, 2]].astype(int)
+    alive = np.ones(len(pts), bool)
+    alive[204] = False  # the lonely member's neighbour
+    out = drop_isolated(pts, lab, 2.5, alive)
+    dropped = np.flatnonzero(out != lab)
+    np.testing.assert_array_equal(dropped, [200, 201, 202, 203])  # the three off the face, the lonely one
+    assert np.all(out[dropped] == -1)
+    assert out[204] == 0 and out[205] == -1 and list(out[206:208]) == [2, 2]
+    # without the alive mask the lonely pair keeps each other
+    assert drop_isolated(pts, lab, 2.5)[203] == 0
+    np.testing.assert_array_equal(drop_isolated(pts, lab, np.inf, alive), lab)
+    for bad, msg in ((dict(factor=0.0), "factor"), (dict(factor=0.9), "factor"), (dict(factor=float("nan")), "factor"),
+                     (dict(labels=lab[:-1]), "labels"), (dict(alive=alive[:-1]), "alive"),
+                     (dict(points=np.where(np.arange(len(pts))[:, None] == 3, np.nan, pts)), "non-finite")):
+        kw = {"points": pts, "labels": lab, "factor": 2.5, "alive": alive, **bad}
+        with pytest.raises(ValueError, match=msg):
+            drop_isolated(**kw)

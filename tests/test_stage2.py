@@ -442,7 +442,7 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     logs = []
     cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                               track_rounds=2, seed=3, hull_fill=False,
-                              hinge_fill=False,  # (their re-fit: test_hull_fill_...)
+                              hinge_fill=False, isolated_factor=0.0,  # (their re-fit: test_hull_and_hinge_...)
                               ghost_radius=0.0)  # (its fade makes a new start: test_stage2_with_photometric_...)
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
     assert [c[0] for c in calls] == ["track", "refit", "track", "refit"], [c[0] for c in calls]
@@ -492,7 +492,7 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
         logs = []
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                                   track_rounds=4, track_converged_deg=limit, hull_fill=False,
-                                  hinge_fill=False)
+                                  hinge_fill=False, isolated_factor=0.0)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
         tracks = [c for c in calls if c[0] == "track"]
         assert [c[0] for c in calls] == ["track", "refit"] * want, [c[0] for c in calls]
@@ -508,22 +508,25 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
 
 
 def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tmp_path, monkeypatch):
-    """``hull_fill`` then ``hinge_fill``: after the last round's re-fit the hulls are filled once, then the hinges
-    (given the hull's labels and the last round's poses), and ``hull_refit_steps`` steps of re-fit without
-    relabelling follow under the filled labels; their scene and those labels are the ones kept, and stage2.json
-    records what joined. ``hull_refit_steps=0``: the fills alone; either fill alone; both off: neither fill nor
-    the extra re-fit. The tracking, re-fit and fills are recorders (the real fills: tests/test_cluster.py; the
+    """``hull_fill`` then ``hinge_fill`` then ``isolated_factor``: after the last round's re-fit the hulls are filled
+    once, then the hinges (given the hull's labels and the last round's poses), then the isolated members are
+    dropped (given the filled labels), and ``hull_refit_steps`` steps of re-fit without relabelling follow under
+    the final labels; their scene and those labels are the ones kept, and stage2.json records what joined and
+    left. ``hull_refit_steps=0``: the fills alone; any one alone; all off: none of them nor the extra re-fit. The tracking, re-fit and fills are recorders (the real fills: tests/test_cluster.py; the
     real re-fit: the tests above)."""
     import shutil
 
     import jax
 
-    for hull, hinge, steps, want in ((True, True, 7, ["track", "refit", "track", "refit", "fill", "hinge", "refit"]),
-                                     (True, True, 0, ["track", "refit", "track", "refit", "fill", "hinge"]),
-                                     (True, False, 7, ["track", "refit", "track", "refit", "fill", "refit"]),
-                                     (False, True, 7, ["track", "refit", "track", "refit", "hinge", "refit"]),
-                                     (False, False, 7, ["track", "refit", "track", "refit"])):
-        dst = tmp_path / f"{hull}{hinge}{steps}"
+    rounds = ["track", "refit", "track", "refit"]
+    for hull, hinge, iso, steps, want in ((True, True, False, 7, rounds + ["fill", "hinge", "refit"]),
+                                          (True, True, True, 7, rounds + ["fill", "hinge", "iso", "refit"]),
+                                          (True, True, False, 0, rounds + ["fill", "hinge"]),
+                                          (True, False, False, 7, rounds + ["fill", "refit"]),
+                                          (False, True, False, 7, rounds + ["hinge", "refit"]),
+                                          (False, False, True, 7, rounds + ["iso", "refit"]),
+                                          (False, False, False, 7, rounds)):
+        dst = tmp_path / f"{hull}{hinge}{iso}{steps}"
         shutil.copytree(tiny[0], dst)
         calls = []
 
@@ -536,7 +539,7 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
 
         def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
                        init=None, lr_scale=1.0, log=print):
-            calls.append(("refit", np.asarray(labels).copy(), steps, relabel_steps))
+            calls.append(("refit", np.asarray(labels).copy(), steps, relabel_steps, np.asarray(init.opacity_logits)))
             return jax.tree_util.tree_map(lambda a: a + 1, init), labels  # each re-fit shifts every leaf by 1
 
         def fake_fill(labels, gs, alive, min_opacity, max_growth, log=print):
@@ -553,32 +556,48 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
             new[np.flatnonzero(new < 0)[:2]] = 0  # two static Gaussians join cluster 0
             return new, [None] * (int(new.max()) + 1)
 
+        def fake_iso(labels, gs, alive, factor, log=print):
+            assert factor == 1.5
+            calls.append(("iso", np.asarray(labels).copy()))
+            new = np.asarray(labels).copy()
+            new[np.flatnonzero(new == 0)[:1]] = -1  # one member of cluster 0 leaves
+            return new, [1] + [0] * int(new.max())
+
         monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
         monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
         monkeypatch.setattr(stage2, "_fill_hulls", fake_fill)
         monkeypatch.setattr(stage2, "_fill_hinges", fake_hinge)
+        monkeypatch.setattr(stage2, "_drop_isolated", fake_iso)
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, relabel_steps=3,
                                   track_photo=5, track_rounds=2, track_converged_deg=0.0, hull_fill=hull,
                                   hull_opacity=0.6, hull_max_growth=0.25, hull_refit_steps=steps, hinge_fill=hinge,
-                                  hinge_radius=0.3, hinge_reach=0.1, hinge_min_deg=25.0)
+                                  hinge_radius=0.3, hinge_reach=0.1, hinge_min_deg=25.0,
+                                  isolated_factor=1.5 if iso else 0.0)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=lambda m: None)
         if res.num_objects == 0:
             pytest.skip("no clusters in the tiny run")
         assert [c[0] for c in calls] == want, (hull, hinge, steps, [c[0] for c in calls])
         before = calls[3][1]  # the labels the last round's re-fit was given
-        assert int(np.sum(res.labels >= 0)) == int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge)
+        assert int(np.sum(res.labels >= 0)) == int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge) - int(iso)
         if hinge:  # the hinges see the hull's labels and the last round's poses
             (fill_in,) = [c for c in calls if c[0] == "hinge"]
             assert int(np.sum(fill_in[1] >= 0)) == int(np.sum(before >= 0)) + int(hull)
             np.testing.assert_allclose(fill_in[2][..., 0, 3], 0.03)  # the second track call's poses
+        if iso:  # the drop sees the fills' labels; the one dropped starts the last re-fit faded, as the ghosts do
+            (iso_in,) = [c for c in calls if c[0] == "iso"]
+            assert int(np.sum(iso_in[1] >= 0)) == int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge)
+            (gone,) = np.flatnonzero((iso_in[1] >= 0) & (res.labels < 0))
+            cap = np.log(0.05 / 0.95)
+            assert calls[-2][0] == "iso" and calls[-1][0] == "refit" and calls[-1][4][gone] <= cap + 1e-5
         refits = [c for c in calls if c[0] == "refit"]
-        assert [c[2:] for c in refits[:2]] == [(4, 3), (4, 3)]
+        assert [c[2:4] for c in refits[:2]] == [(4, 3), (4, 3)]
         ref0 = stage2._reference_scene(stage2.load_stage2(dst, require_stage2=False), 0.0)
         if len(refits) == 3:  # the fills' re-fit: its steps, no relabelling, the filled labels
-            assert refits[2][2:] == (7, 0)
+            assert refits[2][2:4] == (7, 0)
             np.testing.assert_array_equal(refits[2][1], res.labels)
-        # the scene kept is the last re-fit's (one shift per re-fit)
-        shift = float(np.asarray(res.refit.opacity_logits)[0] - np.asarray(ref0.opacity_logits)[0])
+        # the scene kept is the last re-fit's (one shift per re-fit; a member throughout, which no fade touches)
+        j = np.flatnonzero((before >= 0) & (res.labels >= 0))[-1]
+        shift = float(np.asarray(res.refit.opacity_logits)[j] - np.asarray(ref0.opacity_logits)[j])
         assert shift == pytest.approx(len(refits), abs=1e-4), (shift, len(refits))
         meta = stage2.load_stage2(dst).s2.meta
         assert ("hull_joined" in meta) == hull and ("hinge_joined" in meta) == hinge and ("hinges" in meta) == hinge
@@ -586,6 +605,9 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
             assert meta["hull_joined"][0] == 1
         if hinge:
             assert meta["hinge_joined"][0] == 2 and meta["hinges"] == [None] * res.num_objects
+        assert ("isolated_dropped" in meta) == iso
+        if iso:
+            assert meta["isolated_dropped"][0] == 1
 
 
 def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quiet():
@@ -770,7 +792,11 @@ def test_validate_config_names_the_field():
                     ({"camera_correction": "maybe"}, "camera_correction"), ({"hull_opacity": 1.5}, "hull_opacity"),
                     ({"refit_lr_scale": 0.0}, "refit_lr_scale"), ({"refit_lr_scale": float("nan")}, "refit_lr_scale"),
                     ({"ghost_radius": -0.1}, "ghost_radius"), ({"ghost_radius": float("inf")}, "ghost_radius"),
-                    ({"ghost_opacity": 0.0}, "ghost_opacity"), ({"ghost_opacity": 1.0}, "ghost_opacity")):
+                    ({"ghost_opacity": 0.0}, "ghost_opacity"), ({"ghost_opacity": 1.0}, "ghost_opacity"),
+                    ({"mask_guide_radius": -1}, "mask_guide_radius"), ({"mask_guide_radius": 2.5}, "mask_guide_radius"),
+                    ({"mask_guide_eps": 0.0}, "mask_guide_eps"), ({"isolated_factor": -1.0}, "isolated_factor"),
+                    ({"isolated_factor": 0.5}, "isolated_factor"),
+                    ({"isolated_factor": float("nan")}, "isolated_factor")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

@@ -38,6 +38,7 @@ from fgjax import cluster
 __all__ = [
     "residual_flow",
     "binarize",
+    "guide_masks",
     "camera_flow_from_depth",
     "Scores",
     "accumulate_scores",
@@ -105,6 +106,52 @@ def binarize(
         else:
             thr = float(threshold_px)
         out[t] = ok[t] & (np.where(ok[t], mag[t], 0.0) > thr)
+    return out[0] if single else out
+
+
+def guide_masks(
+    masks: Bool[np.ndarray, "T H W"],
+    images: Float[np.ndarray, "T H W 3"],
+    radius: int,
+    eps: float = 0.01,
+) -> Bool[np.ndarray, "T H W"]:
+    """Moving-pixel masks snapped to the frames' edges: a guided filter (He, Sun and Tang, 2010) of each
+    binary mask with its frame as the guide, thresholded at 0.5.
+
+    Optical flow is smooth across motion boundaries, so |u - u_cam| spills a few pixels past a moving
+    part onto the static surface beside it, and discovery back-projects that spill onto static Gaussians.
+    The filter is locally an affine function of the guide's colour fitted to the mask: where the spill
+    crosses no edge of the image it is averaged away, and where the part's outline is an edge the mask
+    follows it. ``radius`` 0 returns the masks unchanged.
+
+    Args:
+        masks: [T, H, W] (or [H, W]) bool.
+        images: [T, H, W, 3] (or [H, W, 3]) frames in [0, 1], the frame each mask is on.
+        radius: window radius in pixels (>= 0).
+        eps: regularisation of the local fit, in squared intensity units of [0, 1] images (> 0): larger
+            is closer to a box filter, smaller follows fainter edges.
+
+    Returns:
+        bool masks of the input's shape.
+    """
+    m = np.asarray(masks, dtype=bool)
+    im = np.asarray(images, dtype=np.float64)
+    single = m.ndim == 2
+    m, im = (m[None], im[None]) if single else (m, im)
+    if m.ndim != 3 or im.shape != (*m.shape, 3):
+        raise ValueError(f"guide_masks: masks must be [T, H, W] and images [T, H, W, 3] of the same T, H, W; got "
+                         f"{list(np.shape(masks))} and {list(np.shape(images))}")
+    if int(radius) != radius or radius < 0:
+        raise ValueError(f"guide_masks: radius must be an integer >= 0, got {radius!r}")
+    if not (np.isfinite(eps) and eps > 0):
+        raise ValueError(f"guide_masks: eps must be finite and > 0, got {eps!r}")
+    if radius == 0:
+        return np.asarray(masks, dtype=bool).copy()
+    import cv2
+
+    guide = (np.clip(np.nan_to_num(im), 0.0, 1.0) * 255.0).round().astype(np.uint8)  # [T, H, W, 3]
+    out = np.stack([cv2.ximgproc.guidedFilter(g, f.astype(np.float32), int(radius), float(eps) * 255.0**2) > 0.5
+                    for g, f in zip(guide, m)])
     return out[0] if single else out
 
 
@@ -267,6 +314,9 @@ def discover(
     valid: Bool[np.ndarray, "T H W"] | None = None,
     threshold_px: float | Literal["otsu"] | None = "otsu",
     min_px: float = 0.5,
+    images: Float[np.ndarray, "T H W 3"] | None = None,
+    guide_radius: int = 0,
+    guide_eps: float = 0.01,
     score_threshold: float | Literal["otsu"] = "otsu",
     min_score: float = 0.02,
     min_total: float = 0.0,
@@ -287,6 +337,8 @@ def discover(
         camera_flows: [T, H, W, 2] camera flow of frame t-1 (`camera_flow_from_depth`).
         valid: [T, H, W] pixels where both flows are trusted (None: all finite ones).
         threshold_px, min_px: see `binarize`.
+        images: [T, H, W, 3] frames t-1 in [0, 1]; needed only with ``guide_radius > 0``.
+        guide_radius, guide_eps: the masks are snapped to the frames' edges by `guide_masks` (0: not).
         score_threshold, min_score: see `fgjax.cluster.select_dynamic`.
         min_total: Gaussians painting fewer pixel-equivalents than this over all frames are not
             selected (never seen, nothing to say about them).
@@ -300,6 +352,10 @@ def discover(
     masks = binarize(residual_flow(flows, camera_flows), threshold_px, valid=valid, min_px=min_px)
     if masks.ndim != 3:
         raise ValueError(f"discover: flows must have shape [T, H, W, 2], got {np.shape(flows)}")
+    if guide_radius > 0:
+        if images is None:
+            raise ValueError("discover: guide_radius > 0 needs the frames (images)")
+        masks = guide_masks(masks, images, guide_radius, guide_eps)
     sc = accumulate_scores(means, quats, scales, opacities, viewmats, K, masks, eps=eps, capacity=capacity,
                            per_frame=per_frame)
     ok = sc.total > min_total

@@ -93,6 +93,14 @@ class Stage2Config:
     """Binarisation of |u - u_cam|: pixels, or "otsu" per frame."""
     min_px: float = 0.5
     """Floor of the Otsu threshold (pixels)."""
+    mask_guide_radius: int = 0
+    """Snap the moving-pixel masks to the frames' edges before the back-projection (`discover.guide_masks`, a
+    guided filter of this radius in pixels); 0: off. On the default scene's 59 pairs (session 31, docs/benchmarks.md)
+    radius 4 / 6 halve the static pixels in the masks at the same recall and lift the first labels' `ari` 0.730 ->
+    0.748 / 0.761, but the lid's cluster shrinks (592 -> 514 / 353 Gaussians) and end to end the tracking is worse:
+    held-out states 26.34 dB at 4 and the door lost at 6, against 28.16 off. Off by default."""
+    mask_guide_eps: float = 0.01
+    """The guided filter's regularisation (squared intensity, images in [0, 1])."""
     min_alpha: float = 0.5
     """Pixels whose rendered alpha is below this have no trusted depth (excluded from the masks)."""
     score_threshold: float | str = "otsu"
@@ -289,9 +297,17 @@ class Stage2Config:
     largest distance from the axis (the axis does not run along the part: a far pivot, a mis-fitted joint)."""
     hinge_min_deg: float = 20.0
     """`hinge_fill` treats a part as turning when its tracked poses turn by at least this many degrees."""
+    isolated_factor: float = 2.5
+    """After the fills, members farther from every other member of their cluster than this times the cluster's
+    median spacing become static (`fgjax.cluster.drop_isolated`), starting the fills' re-fit faded to
+    ``ghost_opacity`` like the ghosts (when ``ghost_radius`` > 0); 0: off, else >= 1. The second pass and the fills
+    join static Gaussians a few spacings from a part (the box under a lid, a door's frame), and the relabelling does
+    not send them back. Measured (docs/benchmarks.md, session 31): labels only, on seven finished runs,
+    `ari_controlled` +0.012 on average (-0.025 to +0.030); end to end on six (without the fade) +0.005 to +0.030 on
+    five and -0.033 on the close pair's seed 0, the held-out states -0.16 dB on average (-0.66 to +0.89)."""
     hull_refit_steps: int = 100
-    """Steps of `refit_gaussians` (no relabelling) after `hull_fill` and `hinge_fill`: the Gaussians that joined
-    were re-fitted as static; 0: none."""
+    """Steps of `refit_gaussians` (no relabelling) after `hull_fill`, `hinge_fill` and `isolated_factor`: the
+    Gaussians that joined were re-fitted as static, those dropped as members; 0: none."""
     refit_lr_scale: float = 1.0
     """Every learning rate of `refit_gaussians` (stage 1's optimiser groups and schedules) times this. Each
     re-fit restarts Adam at stage 1's first learning rates, which might blur what stage 1 had settled; measured at
@@ -725,6 +741,8 @@ def discover_run(run: LoadedRun, scene, cfg: Stage2Config, cache_dir: Path, log=
     disc = discover(np.stack(means_t[:n]), np.stack(quats_t[:n]), np.asarray(sa), np.asarray(oa),
                     scene.viewmats[order][:n], scene.Ks[order][:n], np.stack(flows), np.stack(cams),
                     valid=np.stack(valid), threshold_px=thr, min_px=cfg.min_px,
+                    images=scene.images[order][:n] if cfg.mask_guide_radius > 0 else None,
+                    guide_radius=cfg.mask_guide_radius, guide_eps=cfg.mask_guide_eps,
                     score_threshold=cfg.score_threshold, min_score=cfg.min_score,
                     per_frame=cfg.local_radius > 0 or cfg.track_active > 0 or cfg.split_motion or cfg.merge_eps > 0)
     dyn = disc.dynamic & np.asarray(alive)
@@ -849,6 +867,16 @@ def _fill_hulls(labels: np.ndarray, gs: Gaussians, alive, min_opacity: float, ma
     return new
 
 
+def _drop_isolated(labels: np.ndarray, gs: Gaussians, alive, factor: float, log=print) -> tuple[np.ndarray, list[int]]:
+    """`Stage2Config.isolated_factor`: `fgjax.cluster.drop_isolated` on the reference scene ``gs`` (centres of the
+    alive Gaussians). Returns (labels [N], how many left each cluster [K]) and logs the counts."""
+    new = cluster.drop_isolated(np.asarray(gs.means, np.float64), labels, factor, np.asarray(alive, bool))
+    left = [int(np.sum((labels == k) & (new != k))) for k in range(int(labels.max(initial=-1)) + 1)]
+    log(f"stage 2: {left} members (objects 1, 2, ...) farther than {factor:g}x their cluster's median spacing from "
+        f"every other member made static")
+    return new, left
+
+
 def _opaque(gs: Gaussians, alive, min_opacity: float) -> tuple[np.ndarray, np.ndarray]:
     """(alive [N] bool, core [N] bool: alive with opacity >= ``min_opacity``) of ``gs``: the fills' core (labels
     select the members). The sigmoid is scipy's expit, without exp's overflow at pruned logits."""
@@ -882,18 +910,24 @@ def _fill_hinges(labels: np.ndarray, gs: Gaussians, alive, poses: np.ndarray, cf
     return new, hinges
 
 
+def _cap_opacity(gs: Gaussians, mask, opacity: float) -> tuple[Gaussians, np.ndarray]:
+    """``gs`` with the opacity of the Gaussians in ``mask`` [N] capped at ``opacity`` in (0, 1); (scene, [N] bool:
+    those whose opacity was above it)."""
+    cap = float(np.log(opacity) - np.log1p(-opacity))  # logit
+    o = np.asarray(gs.opacity_logits)  # [N]
+    faded = np.asarray(mask, bool) & (o > cap)
+    return Gaussians(gs.means, gs.log_scales, gs.quats, np.where(faded, np.asarray(cap, o.dtype), o), gs.sh), faded
+
+
 def _fade_ghosts(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, alive, cfg: Stage2Config,
                  log=print) -> Gaussians:
     """`Stage2Config.ghost_radius`: the opacity of alive static Gaussians of ``gs`` near the volume the parts
     sweep under ``poses`` [K, T, 4, 4] (`fgjax.cluster.near_swept`) capped at ``cfg.ghost_opacity``."""
     near = cluster.near_swept(np.asarray(gs.means, np.float64), labels, poses, cfg.ghost_radius) & np.asarray(alive, bool)
-    cap = float(np.log(cfg.ghost_opacity) - np.log1p(-cfg.ghost_opacity))  # logit
-    o = np.asarray(gs.opacity_logits)  # [N]
-    faded = near & (o > cap)
-    o = np.where(faded, np.asarray(cap, o.dtype), o)
+    gs, faded = _cap_opacity(gs, near, cfg.ghost_opacity)
     log(f"stage 2: {int(faded.sum())} static Gaussians near the parts' swept volume faded to opacity "
         f"{cfg.ghost_opacity:g} before the re-fit ({int(near.sum())} within {cfg.ghost_radius:g})")
-    return Gaussians(gs.means, gs.log_scales, gs.quats, o, gs.sh)
+    return gs
 
 
 def _reference_scene(run: LoadedRun, t: float) -> Gaussians:
@@ -1308,8 +1342,14 @@ def validate_config(cfg: Stage2Config) -> None:
         raise ValueError(f"Stage2Config.hinge_min_deg must be in (0, 180], got {cfg.hinge_min_deg!r}")
     if not (np.isfinite(cfg.refit_lr_scale) and cfg.refit_lr_scale > 0):
         raise ValueError(f"Stage2Config.refit_lr_scale must be finite and > 0, got {cfg.refit_lr_scale!r}")
+    if not (cfg.isolated_factor == 0 or cfg.isolated_factor >= 1):
+        raise ValueError(f"Stage2Config.isolated_factor must be 0 (off) or >= 1, got {cfg.isolated_factor!r}")
     if cfg.hull_refit_steps < 0:
         raise ValueError(f"Stage2Config.hull_refit_steps must be >= 0, got {cfg.hull_refit_steps!r}")
+    if int(cfg.mask_guide_radius) != cfg.mask_guide_radius or cfg.mask_guide_radius < 0:
+        raise ValueError(f"Stage2Config.mask_guide_radius must be an integer >= 0, got {cfg.mask_guide_radius!r}")
+    if not (np.isfinite(cfg.mask_guide_eps) and cfg.mask_guide_eps > 0):
+        raise ValueError(f"Stage2Config.mask_guide_eps must be finite and > 0, got {cfg.mask_guide_eps!r}")
     if cfg.camera_correction not in ("auto", "on", "off"):
         raise ValueError(f"Stage2Config.camera_correction must be 'auto', 'on' or 'off'; got {cfg.camera_correction!r}")
 
@@ -1411,7 +1451,13 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                 before = filled
                 filled, fills["hinges"] = _fill_hinges(before, refit, run.state.densify.alive, poses, cfg, log)
                 fills["hinge_joined"] = _joined(before, filled)
-            if (cfg.hull_fill or cfg.hinge_fill) and cfg.hull_refit_steps > 0:
+            if cfg.isolated_factor > 0:
+                before = filled
+                filled, fills["isolated_dropped"] = _drop_isolated(before, refit, run.state.densify.alive,
+                                                                   cfg.isolated_factor, log)
+                if cfg.ghost_radius > 0:  # as the ghosts: the re-fit brings back those the static frames need
+                    refit, _ = _cap_opacity(refit, (before >= 0) & (filled < 0), cfg.ghost_opacity)
+            if (cfg.hull_fill or cfg.hinge_fill or cfg.isolated_factor > 0) and cfg.hull_refit_steps > 0:
                 refit, _ = refit_gaussians(run, scene, order, filled, poses, cfg.hull_refit_steps,
                                            seed=cfg.seed + rounds, init=refit, lr_scale=cfg.refit_lr_scale, log=log)
             labels = filled

@@ -304,7 +304,9 @@ class Stage2Config:
     join static Gaussians a few spacings from a part (the box under a lid, a door's frame), and the relabelling does
     not send them back. Measured (docs/benchmarks.md, session 31): labels only, on seven finished runs,
     `ari_controlled` +0.012 on average (-0.025 to +0.030); end to end on six (without the fade) +0.005 to +0.030 on
-    five and -0.033 on the close pair's seed 0, the held-out states -0.16 dB on average (-0.66 to +0.89)."""
+    five and -0.033 on the close pair's seed 0, the held-out states -0.16 dB on average (-0.66 to +0.89); with the
+    fade, on four, +0.007 (-0.023 to +0.025) and -0.09 dB (-0.63 to +0.93; the demo's run 0.873 -> 0.879 and
+    28.16 -> 29.09 dB)."""
     hull_refit_steps: int = 100
     """Steps of `refit_gaussians` (no relabelling) after `hull_fill`, `hinge_fill` and `isolated_factor`: the
     Gaussians that joined were re-fitted as static, those dropped as members; 0: none."""
@@ -1456,7 +1458,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                 filled, fills["isolated_dropped"] = _drop_isolated(before, refit, run.state.densify.alive,
                                                                    cfg.isolated_factor, log)
                 if cfg.ghost_radius > 0:  # as the ghosts: the re-fit brings back those the static frames need
-                    refit, _ = _cap_opacity(refit, (before >= 0) & (filled < 0), cfg.ghost_opacity)
+                    refit, faded = _cap_opacity(refit, (before >= 0) & (filled < 0), cfg.ghost_opacity)
+                    log(f"stage 2: {int(faded.sum())} of them faded to opacity {cfg.ghost_opacity:g} before the re-fit")
             if (cfg.hull_fill or cfg.hinge_fill or cfg.isolated_factor > 0) and cfg.hull_refit_steps > 0:
                 refit, _ = refit_gaussians(run, scene, order, filled, poses, cfg.hull_refit_steps,
                                            seed=cfg.seed + rounds, init=refit, lr_scale=cfg.refit_lr_scale, log=log)

@@ -50,6 +50,20 @@ def scene():
     }
 
 
+@pytest.fixture(scope="module")
+def real_flow(scene):
+    """(optical flow [T-1, H, W, 2] of the rendered frames, DIS + DeepFlow; camera flow by reprojection of the
+    rendered depth; valid [T-1, H, W]: depth and reprojection defined, and the pixel rendered)."""
+    from fgjax.data.opticalflow import estimate_flow
+
+    sc, r, c2w = scene["sc"], scene["r"], scene["c2w"]
+    u8 = np.round(np.clip(r.rgb, 0, 1) * 255).astype(np.uint8)
+    n = len(u8) - 1
+    flows = np.stack([estimate_flow(u8[i], u8[i + 1]) for i in range(n)])
+    cams = [D.camera_flow_from_depth(r.depth[i], sc.K, c2w[i], c2w[i + 1]) for i in range(n)]
+    return flows, np.stack([c[0] for c in cams]), np.stack([c[1] for c in cams]) & r.valid[:-1]
+
+
 def _run(s, flows, camera_flows, valid, **kw):
     sc = s["sc"]
     return D.discover(s["means"], s["quats"], sc.scales, sc.opacities, s["vm"][:-1], sc.K, flows, camera_flows,
@@ -101,16 +115,8 @@ def test_discovery_with_ground_truth_flow(scene):
     assert np.all(res.scores.score >= 0) and np.all(res.scores.score < 1)
 
 
-def test_discovery_with_real_optical_flow(scene):
-    from fgjax.data.opticalflow import estimate_flow
-
-    sc, r, c2w = scene["sc"], scene["r"], scene["c2w"]
-    u8 = np.round(np.clip(r.rgb, 0, 1) * 255).astype(np.uint8)
-    n = len(u8) - 1
-    flows = np.stack([estimate_flow(u8[i], u8[i + 1]) for i in range(n)])
-    cams = [D.camera_flow_from_depth(r.depth[i], sc.K, c2w[i], c2w[i + 1]) for i in range(n)]
-    cam_flow = np.stack([c[0] for c in cams])
-    valid = np.stack([c[1] for c in cams]) & r.valid[:-1]
+def test_discovery_with_real_optical_flow(scene, real_flow):
+    flows, cam_flow, valid = real_flow
     # the camera flow from rendered depth matches synth's ground-truth camera flow (tolerance: the
     # float32 depth round trip)
     gv = scene["f"]["flow_valid"]
@@ -212,19 +218,12 @@ def test_guide_masks_snaps_a_spilled_mask_to_the_part_edge():
         D.guide_masks(spill, img[:, :-1], 4)
 
 
-def test_guided_masks_on_real_flow_gain_precision_at_the_same_recall(scene):
+def test_guided_masks_on_real_flow_gain_precision_at_the_same_recall(scene, real_flow):
     """On the scene's real optical flow (DIS + DeepFlow at 64 x 48) the moving-pixel masks spill onto static
     surfaces; snapped to the frames' edges (radius 4) they hold a larger share of pixels of moving objects at about
     the same recall. Measured: precision 0.328 -> 0.483, recall 0.435 -> 0.428 (the gt moving-object pixels)."""
-    from fgjax.data.opticalflow import estimate_flow
-
-    sc, r, c2w, f = scene["sc"], scene["r"], scene["c2w"], scene["f"]
-    u8 = np.round(np.clip(r.rgb, 0, 1) * 255).astype(np.uint8)
-    n = len(u8) - 1
-    flows = np.stack([estimate_flow(u8[i], u8[i + 1]) for i in range(n)])
-    cams = [D.camera_flow_from_depth(r.depth[i], sc.K, c2w[i], c2w[i + 1]) for i in range(n)]
-    cam_flow = np.stack([c[0] for c in cams])
-    valid = np.stack([c[1] for c in cams]) & r.valid[:-1]
+    r, f = scene["r"], scene["f"]
+    flows, cam_flow, valid = real_flow
     raw = D.binarize(D.residual_flow(flows, cam_flow), valid=valid, min_px=1.0)
     ids = r.object_id[:-1]
     truth = np.zeros_like(raw)

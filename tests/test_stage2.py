@@ -443,6 +443,7 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                               track_rounds=2, seed=3, hull_fill=False,
                               hinge_fill=False, isolated_factor=0.0,  # (their re-fit: test_hull_and_hinge_...)
+                              through_prune=0.0,
                               ghost_radius=0.0)  # (its fade makes a new start: test_stage2_with_photometric_...)
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
     assert [c[0] for c in calls] == ["track", "refit", "track", "refit"], [c[0] for c in calls]
@@ -492,7 +493,7 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
         logs = []
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                                   track_rounds=4, track_converged_deg=limit, hull_fill=False,
-                                  hinge_fill=False, isolated_factor=0.0)
+                                  hinge_fill=False, isolated_factor=0.0, through_prune=0.0)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
         tracks = [c for c in calls if c[0] == "track"]
         assert [c[0] for c in calls] == ["track", "refit"] * want, [c[0] for c in calls]
@@ -519,14 +520,17 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
     import jax
 
     rounds = ["track", "refit", "track", "refit"]
-    for hull, hinge, iso, steps, want in ((True, True, False, 7, rounds + ["fill", "hinge", "refit"]),
-                                          (True, True, True, 7, rounds + ["fill", "hinge", "iso", "refit"]),
-                                          (True, True, False, 0, rounds + ["fill", "hinge"]),
-                                          (True, False, False, 7, rounds + ["fill", "refit"]),
-                                          (False, True, False, 7, rounds + ["hinge", "refit"]),
-                                          (False, False, True, 7, rounds + ["iso", "refit"]),
-                                          (False, False, False, 7, rounds)):
-        dst = tmp_path / f"{hull}{hinge}{iso}{steps}"
+    for hull, hinge, iso, thr, steps, want in (
+            (True, True, False, False, 7, rounds + ["fill", "hinge", "refit"]),
+            (True, True, True, False, 7, rounds + ["fill", "hinge", "iso", "refit"]),
+            (True, True, True, True, 7, rounds + ["fill", "hinge", "iso", "thr", "refit"]),
+            (True, True, False, False, 0, rounds + ["fill", "hinge"]),
+            (True, False, False, False, 7, rounds + ["fill", "refit"]),
+            (False, True, False, False, 7, rounds + ["hinge", "refit"]),
+            (False, False, True, False, 7, rounds + ["iso", "refit"]),
+            (False, False, False, True, 7, rounds + ["thr", "refit"]),
+            (False, False, False, False, 7, rounds)):
+        dst = tmp_path / f"{hull}{hinge}{iso}{thr}{steps}"
         shutil.copytree(tiny[0], dst)
         calls = []
 
@@ -563,8 +567,16 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
             new[np.flatnonzero(new == 0)[:1]] = -1  # one member of cluster 0 leaves
             return new, [1] + [0] * int(new.max())
 
+        def fake_thr(gs, labels, poses, run, scene, order, max_ratio, log=print):
+            assert max_ratio == 0.4
+            calls.append(("thr", np.asarray(labels).copy(), np.asarray(poses).copy()))
+            o = np.asarray(gs.opacity_logits).copy()
+            o[np.flatnonzero(np.asarray(labels) < 0)[-1:]] = -13.8  # the last static Gaussian pruned
+            return stage2.Gaussians(gs.means, gs.log_scales, gs.quats, o, gs.sh), 1
+
         monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
         monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
+        monkeypatch.setattr(stage2, "_prune_seen_through", fake_thr)
         monkeypatch.setattr(stage2, "_fill_hulls", fake_fill)
         monkeypatch.setattr(stage2, "_fill_hinges", fake_hinge)
         monkeypatch.setattr(stage2, "_drop_isolated", fake_iso)
@@ -572,7 +584,7 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
                                   track_photo=5, track_rounds=2, track_converged_deg=0.0, hull_fill=hull,
                                   hull_opacity=0.6, hull_max_growth=0.25, hull_refit_steps=steps, hinge_fill=hinge,
                                   hinge_radius=0.3, hinge_reach=0.1, hinge_min_deg=25.0,
-                                  isolated_factor=1.5 if iso else 0.0)
+                                  isolated_factor=1.5 if iso else 0.0, through_prune=0.4 if thr else 0.0)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=lambda m: None)
         if res.num_objects == 0:
             pytest.skip("no clusters in the tiny run")
@@ -588,7 +600,13 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
             assert int(np.sum(iso_in[1] >= 0)) == int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge)
             (gone,) = np.flatnonzero((iso_in[1] >= 0) & (res.labels < 0))
             cap = np.log(0.05 / 0.95)
-            assert calls[-2][0] == "iso" and calls[-1][0] == "refit" and calls[-1][4][gone] <= cap + 1e-5
+            assert calls[-3 if thr else -2][0] == "iso" and calls[-1][0] == "refit" and calls[-1][4][gone] <= cap + 1e-5
+        if thr:  # the prune sees the final labels and the last round's poses; what it pruned starts the re-fit so
+            (thr_in,) = [c for c in calls if c[0] == "thr"]
+            np.testing.assert_array_equal(thr_in[1], res.labels)
+            np.testing.assert_allclose(thr_in[2][..., 0, 3], 0.03)
+            gone = np.flatnonzero(res.labels < 0)[-1]
+            assert calls[-1][0] == "refit" and calls[-1][4][gone] == pytest.approx(-13.8)
         refits = [c for c in calls if c[0] == "refit"]
         assert [c[2:4] for c in refits[:2]] == [(4, 3), (4, 3)]
         ref0 = stage2._reference_scene(stage2.load_stage2(dst, require_stage2=False), 0.0)
@@ -608,6 +626,7 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
         assert ("isolated_dropped" in meta) == iso
         if iso:
             assert meta["isolated_dropped"][0] == 1
+        assert meta.get("through_pruned") == (1 if thr else None)
 
 
 def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quiet():
@@ -796,7 +815,8 @@ def test_validate_config_names_the_field():
                     ({"mask_guide_radius": -1}, "mask_guide_radius"), ({"mask_guide_radius": 2.5}, "mask_guide_radius"),
                     ({"mask_guide_eps": 0.0}, "mask_guide_eps"), ({"isolated_factor": -1.0}, "isolated_factor"),
                     ({"isolated_factor": 0.5}, "isolated_factor"),
-                    ({"isolated_factor": float("nan")}, "isolated_factor")):
+                    ({"isolated_factor": float("nan")}, "isolated_factor"), ({"through_prune": -0.1}, "through_prune"),
+                    ({"through_prune": 1.5}, "through_prune"), ({"through_prune": float("nan")}, "through_prune")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 
@@ -825,3 +845,50 @@ def test_fade_ghosts_caps_the_opacity_of_the_alive_static_gaussians_near_the_swe
     for f in ("means", "log_scales", "quats", "sh"):
         np.testing.assert_array_equal(getattr(out, f), getattr(g, f))
     assert "2 static Gaussians" in msgs[0] and "(3 within 0.1)" in msgs[0]
+
+
+def test_seen_through_matches_the_dense_reference_weights():
+    """`stage2.seen_through` against an independent float64 reference: the dense rasterizer
+    (`fgjax.render.reference`) with one colour channel per Gaussian gives every Gaussian's T alpha at every
+    pixel, so the members' coverage is the sum of their channels and each Gaussian's share follows by sums.
+    A member plane at z = 3 that slides sideways between two frames (a translation, so its isotropic
+    Gaussians need no rotation) half hides a static Gaussian behind it; a static Gaussian beside it and a
+    semi-transparent one in front complete the scene; a dead Gaussian (any position) gets 0."""
+    import jax.numpy as jnp
+
+    from fgjax.gaussians import Gaussians
+    from fgjax.render.reference import rasterize_dense
+
+    w, h = 24, 20
+    K = np.array([[20.0, 0, 12.0], [0, 20.0, 10.0], [0, 0, 1]])
+    vm = np.eye(4)
+    gx, gy = np.meshgrid(np.linspace(-0.5, 0.1, 4), np.linspace(-0.3, 0.3, 4))
+    plane = np.stack([gx.ravel(), gy.ravel(), np.full(16, 3.0)], -1)  # members
+    static = np.array([[0.0, 0.0, 4.0], [1.4, 0.0, 3.5], [-0.3, 0.1, 2.0], [0.0, 0.0, 3.0]])  # behind, beside, front, dead
+    means = np.concatenate([plane, static])
+    n = len(means)
+    labels = np.r_[np.zeros(16, int), -np.ones(4, int)]
+    alive = np.r_[np.ones(19, bool), False]
+    log_scales = np.log(np.r_[np.full(16, 0.12), 0.15, 0.15, 0.1, 0.1])[:, None] * np.ones((1, 3))
+    logits = np.r_[np.full(16, 0.5), 3.0, 3.0, -1.0, 3.0]
+    g = Gaussians(means, log_scales, np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), logits, np.zeros((n, 1, 3)))
+    poses = np.tile(np.eye(4), (1, 2, 1, 1))
+    poses[0, 1, 0, 3] = 0.35  # frame 1: the plane slides right, over the static Gaussian behind it
+    got = stage2.seen_through(g, alive, labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h)
+
+    inside, total = np.zeros(n), np.zeros(n)
+    op = 1.0 / (1.0 + np.exp(-logits)) * alive
+    for i in range(2):
+        m = means + (labels >= 0)[:, None] * poses[0, i, :3, 3]
+        img, _, _ = rasterize_dense(jnp.asarray(m), jnp.asarray(g.quats), jnp.exp(jnp.asarray(log_scales)),
+                                    jnp.asarray(op), jnp.eye(n, dtype=jnp.float64), jnp.asarray(vm), jnp.asarray(K), w, h)
+        wts = np.asarray(img)  # [H, W, N]: T alpha of each Gaussian at each pixel
+        cov = wts[..., labels >= 0].sum(-1)
+        inside += np.einsum("hwn,hw->n", wts, cov)
+        total += wts.sum((0, 1))
+    want = np.where(total > 0, inside / np.maximum(total, 1e-30), 0.0)
+    np.testing.assert_allclose(got, want, atol=2e-4)
+    print("seen_through: behind, beside, in front:", np.round(got[16:19], 3))
+    assert got[19] == 0.0 and got[17] < 0.05  # dead; beside the plane
+    assert got[16] > 0.5 and 0.05 < got[18] < got[16]  # behind: seen through the plane; the one in front less so
+    assert np.all(np.isfinite(got)) and got.min() >= 0 and got.max() <= 1

@@ -307,9 +307,15 @@ class Stage2Config:
     five and -0.033 on the close pair's seed 0, the held-out states -0.16 dB on average (-0.66 to +0.89); with the
     fade, on four, +0.007 (-0.023 to +0.025) and -0.09 dB (-0.63 to +0.93; the demo's run 0.873 -> 0.879 and
     28.16 -> 29.09 dB)."""
+    through_prune: float = 0.5
+    """After the fills and `isolated_factor`, before their re-fit: the static Gaussians with more than this share of
+    their painted weight over the training frames where the parts' members cover the pixel (`seen_through`, the
+    parts at their tracked poses) get opacity ~0. They lend a part their colour where its own Gaussians are
+    sparse (a door's members cover its pixels by ~0.8 on the default scene) and show as streaks of it where a
+    held-out state moves the part away. 0: off, else in (0, 1]."""
     hull_refit_steps: int = 100
-    """Steps of `refit_gaussians` (no relabelling) after `hull_fill`, `hinge_fill` and `isolated_factor`: the
-    Gaussians that joined were re-fitted as static, those dropped as members; 0: none."""
+    """Steps of `refit_gaussians` (no relabelling) after `hull_fill`, `hinge_fill`, `isolated_factor` and
+    `through_prune`: the Gaussians that joined were re-fitted as static, those dropped as members; 0: none."""
     refit_lr_scale: float = 1.0
     """Every learning rate of `refit_gaussians` (stage 1's optimiser groups and schedules) times this. Each
     re-fit restarts Adam at stage 1's first learning rates, which might blur what stage 1 had settled; measured at
@@ -921,6 +927,67 @@ def _cap_opacity(gs: Gaussians, mask, opacity: float) -> tuple[Gaussians, np.nda
     return Gaussians(gs.means, gs.log_scales, gs.quats, np.where(faded, np.asarray(cap, o.dtype), o), gs.sh), faded
 
 
+def seen_through(gs: Gaussians, alive, labels: np.ndarray, poses: np.ndarray, viewmats, Ks, width: int, height: int,
+                 *, capacity: int | None = None, tile_size: int = 16) -> np.ndarray:
+    """Per Gaussian, the fraction of the weight it paints over the frames (sum over pixels p of T_p alpha_p, as in
+    `fgjax.render.api.gaussian_weights`) that falls where the parts' members cover the pixel: [N] in [0, 1] (0 for
+    a Gaussian that paints nothing, or is dead).
+
+    Frame i renders the reference scene ``gs`` (raw parameters) with each cluster's members (``labels`` [N], -1
+    static) moved by its pose ``poses[:, i]`` ([K, T, 4, 4], `fgjax.pipeline.track.transform_gaussians`) from the
+    camera ``viewmats[i]`` ([T, 4, 4] OpenCV world-to-camera) with ``Ks[i]`` ([T, 3, 3]). The members' coverage
+    of a pixel is their composited share of it (an image of 1 for members and 0 for the rest, no background),
+    in [0, 1]. A static Gaussian whose weight lies mostly there is seen through a part (or mixed into its edge)
+    in the training frames: it lends the part its colour where the part's own Gaussians are sparse, and shows
+    when a held-out state moves the part away."""
+    from fgjax.pipeline.track import transform_gaussians
+    from fgjax.render.api import gaussian_weights, rasterization
+
+    alive_j = jnp.asarray(np.asarray(alive, bool))
+    lab = jnp.asarray(np.asarray(labels, np.int32))
+    member = (lab >= 0).astype(jnp.float32)[:, None]  # [N, 1]
+    q0 = jnp.asarray(gs.quats)
+    _, s, o = activate(jax.tree_util.tree_map(jnp.asarray, gs), alive_j)
+    poses_j = jnp.asarray(poses, jnp.float32)  # [K, T, 4, 4]
+
+    @jax.jit
+    def frame(pose, vm, K):  # ([N] weight under the members' coverage, [N] weight)
+        m, q = transform_gaussians(jnp.asarray(gs.means), q0, lab, pose)
+        cov, _, _ = rasterization(m, q, s, o, member, vm, K, int(width), int(height), capacity=capacity,
+                                  tile_size=tile_size, render_depth=False)
+        kw = dict(capacity=capacity, tile_size=tile_size)
+        return (gaussian_weights(m, q, s, o, vm, K, width, height, jnp.clip(cov[..., 0], 0.0, 1.0), **kw),
+                gaussian_weights(m, q, s, o, vm, K, width, height, jnp.ones((int(height), int(width))), **kw))
+
+    inside = np.zeros(len(lab))
+    total = np.zeros(len(lab))
+    for i in range(int(poses_j.shape[1])):
+        a, b = frame(poses_j[:, i], jnp.asarray(viewmats[i], jnp.float32), jnp.asarray(Ks[i], jnp.float32))
+        inside += np.asarray(a, np.float64)
+        total += np.asarray(b, np.float64)
+    ratio = np.where(total > 0, inside / np.maximum(total, 1e-30), 0.0)
+    return np.clip(np.where(np.asarray(alive, bool), ratio, 0.0), 0.0, 1.0)
+
+
+def _prune_seen_through(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, run: LoadedRun, scene, order,
+                        max_ratio: float, log=print) -> tuple[Gaussians, int]:
+    """`Stage2Config.through_prune`: the alive static Gaussians of ``gs`` whose `seen_through` share over the
+    training frames (time order ``order``, the parts at ``poses``) exceeds ``max_ratio`` get opacity ~0
+    (`_PRUNED_OPACITY`, which no re-fit brings back: the sigmoid's gradient vanishes there). Returns (scene, how
+    many)."""
+    t0 = time.perf_counter()
+    ratio = seen_through(gs, run.state.densify.alive, labels, poses, scene.viewmats[order], scene.Ks[order],
+                         scene.width, scene.height, capacity=_render_capacity(run), tile_size=run.cfg.train.tile_size)
+    sel = (np.asarray(labels) < 0) & np.asarray(run.state.densify.alive, bool) & (ratio > max_ratio)
+    gs, pruned = _cap_opacity(gs, sel, _PRUNED_OPACITY)
+    log(f"stage 2: {int(pruned.sum())} static Gaussians seen through the parts (more than {max_ratio:g} of their "
+        f"weight where the members cover the pixel) pruned ({time.perf_counter() - t0:.1f} s)")
+    return gs, int(pruned.sum())
+
+
+_PRUNED_OPACITY = 1e-6
+
+
 def _fade_ghosts(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, alive, cfg: Stage2Config,
                  log=print) -> Gaussians:
     """`Stage2Config.ghost_radius`: the opacity of alive static Gaussians of ``gs`` near the volume the parts
@@ -1346,6 +1413,8 @@ def validate_config(cfg: Stage2Config) -> None:
         raise ValueError(f"Stage2Config.refit_lr_scale must be finite and > 0, got {cfg.refit_lr_scale!r}")
     if not (cfg.isolated_factor == 0 or cfg.isolated_factor >= 1):
         raise ValueError(f"Stage2Config.isolated_factor must be 0 (off) or >= 1, got {cfg.isolated_factor!r}")
+    if not (np.isfinite(cfg.through_prune) and 0 <= cfg.through_prune <= 1):
+        raise ValueError(f"Stage2Config.through_prune must be 0 (off) or in (0, 1], got {cfg.through_prune!r}")
     if cfg.hull_refit_steps < 0:
         raise ValueError(f"Stage2Config.hull_refit_steps must be >= 0, got {cfg.hull_refit_steps!r}")
     if int(cfg.mask_guide_radius) != cfg.mask_guide_radius or cfg.mask_guide_radius < 0:
@@ -1460,7 +1529,11 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                 if cfg.ghost_radius > 0:  # as the ghosts: the re-fit brings back those the static frames need
                     refit, faded = _cap_opacity(refit, (before >= 0) & (filled < 0), cfg.ghost_opacity)
                     log(f"stage 2: {int(faded.sum())} of them faded to opacity {cfg.ghost_opacity:g} before the re-fit")
-            if (cfg.hull_fill or cfg.hinge_fill or cfg.isolated_factor > 0) and cfg.hull_refit_steps > 0:
+            if cfg.through_prune > 0:
+                refit, fills["through_pruned"] = _prune_seen_through(refit, filled, poses, run, scene, order,
+                                                                     cfg.through_prune, log)
+            if (cfg.hull_fill or cfg.hinge_fill or cfg.isolated_factor > 0 or cfg.through_prune > 0) \
+                    and cfg.hull_refit_steps > 0:
                 refit, _ = refit_gaussians(run, scene, order, filled, poses, cfg.hull_refit_steps,
                                            seed=cfg.seed + rounds, init=refit, lr_scale=cfg.refit_lr_scale, log=log)
             labels = filled

@@ -892,3 +892,9 @@ def test_seen_through_matches_the_dense_reference_weights():
     assert got[19] == 0.0 and got[17] < 0.05  # dead; beside the plane
     assert got[16] > 0.5 and 0.05 < got[18] < got[16]  # behind: seen through the plane; the one in front less so
     assert np.all(np.isfinite(got)) and got.min() >= 0 and got.max() <= 1
+    with pytest.raises(ValueError, match="poses must be"):
+        stage2.seen_through(g, alive, labels, poses[:, :1], np.stack([vm, vm]), np.stack([K, K]), w, h)
+    with pytest.raises(ValueError, match="labels and alive"):
+        stage2.seen_through(g, alive[:-1], labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h)
+    with pytest.raises(ValueError, match="overflowed the tile capacity"):
+        stage2.seen_through(g, alive, labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h, capacity=4)

@@ -930,6 +930,9 @@ def _cap_opacity(gs: Gaussians, mask, opacity: float) -> tuple[Gaussians, np.nda
     return Gaussians(gs.means, gs.log_scales, gs.quats, np.where(faded, np.asarray(cap, o.dtype), o), gs.sh), faded
 
 
+_PRUNED_OPACITY = 1e-6  # the opacity `_prune_seen_through` sets
+
+
 def seen_through(gs: Gaussians, alive, labels: np.ndarray, poses: np.ndarray, viewmats, Ks, width: int, height: int,
                  *, capacity: int | None = None, tile_size: int = 16) -> np.ndarray:
     """Per Gaussian, the fraction of the weight it paints over the frames (sum over pixels p of T_p alpha_p, as in
@@ -942,10 +945,23 @@ def seen_through(gs: Gaussians, alive, labels: np.ndarray, poses: np.ndarray, vi
     of a pixel is their composited share of it (an image of 1 for members and 0 for the rest, no background),
     in [0, 1]. A static Gaussian whose weight lies mostly there is seen through a part (or mixed into its edge)
     in the training frames: it lends the part its colour where the part's own Gaussians are sparse, and shows
-    when a held-out state moves the part away."""
+    when a held-out state moves the part away.
+
+    Raises ValueError on mismatched shapes, and when a frame's render overflows the tile ``capacity`` (its
+    weights would be incomplete)."""
     from fgjax.pipeline.track import transform_gaussians
     from fgjax.render.api import gaussian_weights, rasterization
 
+    n = int(np.shape(gs.means)[0])
+    k = int(np.asarray(labels).max(initial=-1)) + 1
+    if np.shape(labels) != (n,) or np.shape(alive) != (n,):
+        raise ValueError(f"seen_through: labels and alive must have shape [{n}], got {list(np.shape(labels))} and "
+                         f"{list(np.shape(alive))}")
+    t = int(np.shape(poses)[1]) if np.ndim(poses) == 4 else -1
+    if np.ndim(poses) != 4 or np.shape(poses)[0] < k or np.shape(poses)[2:] != (4, 4) \
+            or np.shape(viewmats) != (t, 4, 4) or np.shape(Ks) != (t, 3, 3):
+        raise ValueError(f"seen_through: poses must be [K >= {k}, T, 4, 4] with viewmats [T, 4, 4] and Ks [T, 3, 3], "
+                         f"got {list(np.shape(poses))}, {list(np.shape(viewmats))} and {list(np.shape(Ks))}")
     alive_j = jnp.asarray(np.asarray(alive, bool))
     lab = jnp.asarray(np.asarray(labels, np.int32))
     member = (lab >= 0).astype(jnp.float32)[:, None]  # [N, 1]
@@ -956,16 +972,19 @@ def seen_through(gs: Gaussians, alive, labels: np.ndarray, poses: np.ndarray, vi
     @jax.jit
     def frame(pose, vm, K):  # ([N] weight under the members' coverage, [N] weight)
         m, q = transform_gaussians(jnp.asarray(gs.means), q0, lab, pose)
-        cov, _, _ = rasterization(m, q, s, o, member, vm, K, int(width), int(height), capacity=capacity,
-                                  tile_size=tile_size, render_depth=False)
+        cov, _, info = rasterization(m, q, s, o, member, vm, K, int(width), int(height), capacity=capacity,
+                                     tile_size=tile_size, render_depth=False)
         kw = dict(capacity=capacity, tile_size=tile_size)
         return (gaussian_weights(m, q, s, o, vm, K, width, height, jnp.clip(cov[..., 0], 0.0, 1.0), **kw),
-                gaussian_weights(m, q, s, o, vm, K, width, height, jnp.ones((int(height), int(width))), **kw))
+                gaussian_weights(m, q, s, o, vm, K, width, height, jnp.ones((int(height), int(width))), **kw),
+                info["overflow"])
 
     inside = np.zeros(len(lab))
     total = np.zeros(len(lab))
     for i in range(int(poses_j.shape[1])):
-        a, b = frame(poses_j[:, i], jnp.asarray(viewmats[i], jnp.float32), jnp.asarray(Ks[i], jnp.float32))
+        a, b, over = frame(poses_j[:, i], jnp.asarray(viewmats[i], jnp.float32), jnp.asarray(Ks[i], jnp.float32))
+        if bool(over):
+            raise ValueError(f"seen_through: frame {i}'s render overflowed the tile capacity ({capacity})")
         inside += np.asarray(a, np.float64)
         total += np.asarray(b, np.float64)
     ratio = np.where(total > 0, inside / np.maximum(total, 1e-30), 0.0)
@@ -979,16 +998,18 @@ def _prune_seen_through(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, ru
     (`_PRUNED_OPACITY`, which no re-fit brings back: the sigmoid's gradient vanishes there). Returns (scene, how
     many)."""
     t0 = time.perf_counter()
-    ratio = seen_through(gs, run.state.densify.alive, labels, poses, scene.viewmats[order], scene.Ks[order],
-                         scene.width, scene.height, capacity=_render_capacity(run), tile_size=run.cfg.train.tile_size)
+    try:
+        ratio = seen_through(gs, run.state.densify.alive, labels, poses, scene.viewmats[order], scene.Ks[order],
+                             scene.width, scene.height, capacity=_render_capacity(run), tile_size=run.cfg.train.tile_size)
+    except ValueError as e:  # an overflow: prune nothing rather than on partial weights
+        log(f"stage 2: no static Gaussians pruned as seen through the parts: {e}")
+        return gs, 0
     sel = (np.asarray(labels) < 0) & np.asarray(run.state.densify.alive, bool) & (ratio > max_ratio)
     gs, pruned = _cap_opacity(gs, sel, _PRUNED_OPACITY)
     log(f"stage 2: {int(pruned.sum())} static Gaussians seen through the parts (more than {max_ratio:g} of their "
         f"weight where the members cover the pixel) pruned ({time.perf_counter() - t0:.1f} s)")
     return gs, int(pruned.sum())
 
-
-_PRUNED_OPACITY = 1e-6
 
 
 def _fade_ghosts(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, alive, cfg: Stage2Config,

@@ -896,5 +896,42 @@ def test_seen_through_matches_the_dense_reference_weights():
         stage2.seen_through(g, alive, labels, poses[:, :1], np.stack([vm, vm]), np.stack([K, K]), w, h)
     with pytest.raises(ValueError, match="labels and alive"):
         stage2.seen_through(g, alive[:-1], labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h)
-    with pytest.raises(ValueError, match="overflowed the tile capacity"):
+    with pytest.raises(stage2.TileOverflow, match="overflowed the tile capacity"):
         stage2.seen_through(g, alive, labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h, capacity=4)
+
+
+def test_prune_seen_through_prunes_nothing_on_an_overflow_and_lets_other_errors_through(monkeypatch):
+    """`stage2._prune_seen_through`: a `TileOverflow` from `seen_through` leaves the scene as it is and says so;
+    any other error (a shape mismatch: a bug) is raised; otherwise the alive static Gaussians above the cut get
+    `_PRUNED_OPACITY` and nothing else changes."""
+    from types import SimpleNamespace
+
+    from scipy.special import expit
+
+    from fgjax.gaussians import Gaussians
+
+    n = 4
+    g = Gaussians(np.zeros((n, 3)), np.zeros((n, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+                  np.full(n, 2.0, np.float32), np.zeros((n, 1, 3)))
+    run = SimpleNamespace(state=SimpleNamespace(densify=SimpleNamespace(alive=np.array([1, 1, 1, 0], bool))),
+                          meta={}, cfg=SimpleNamespace(train=SimpleNamespace(tile_size=16)))
+    scene = SimpleNamespace(viewmats=np.tile(np.eye(4), (2, 1, 1)), Ks=np.tile(np.eye(3), (2, 1, 1)), width=8, height=8)
+    labels = np.array([0, -1, -1, -1])
+
+    def raises(exc):
+        def f(*a, **k):
+            raise exc
+        return f
+
+    msgs = []
+    monkeypatch.setattr(stage2, "seen_through", raises(stage2.TileOverflow("frame 0 overflowed")))
+    out, k = stage2._prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
+    assert k == 0 and out is g and "no static Gaussians pruned" in msgs[0] and "overflowed" in msgs[0]
+    monkeypatch.setattr(stage2, "seen_through", raises(ValueError("seen_through: poses must be ...")))
+    with pytest.raises(ValueError, match="poses must be"):
+        stage2._prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
+    monkeypatch.setattr(stage2, "seen_through", lambda *a, **k: np.array([0.9, 0.9, 0.3, 0.9]))
+    out, k = stage2._prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
+    assert k == 1  # the member, the one below the cut and the dead one are kept
+    np.testing.assert_allclose(expit(np.asarray(out.opacity_logits, np.float64)), [expit(2.0), 1e-6, expit(2.0), expit(2.0)],
+                               rtol=1e-4)

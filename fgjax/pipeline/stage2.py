@@ -933,6 +933,10 @@ def _cap_opacity(gs: Gaussians, mask, opacity: float) -> tuple[Gaussians, np.nda
 _PRUNED_OPACITY = 1e-6  # the opacity `_prune_seen_through` sets
 
 
+class TileOverflow(ValueError):
+    """A render overflowed its tile capacity, so the per-Gaussian weights it gave would be incomplete."""
+
+
 def seen_through(gs: Gaussians, alive, labels: np.ndarray, poses: np.ndarray, viewmats, Ks, width: int, height: int,
                  *, capacity: int | None = None, tile_size: int = 16) -> np.ndarray:
     """Per Gaussian, the fraction of the weight it paints over the frames (sum over pixels p of T_p alpha_p, as in
@@ -947,8 +951,8 @@ def seen_through(gs: Gaussians, alive, labels: np.ndarray, poses: np.ndarray, vi
     in the training frames: it lends the part its colour where the part's own Gaussians are sparse, and shows
     when a held-out state moves the part away.
 
-    Raises ValueError on mismatched shapes, and when a frame's render overflows the tile ``capacity`` (its
-    weights would be incomplete)."""
+    Raises ValueError on mismatched shapes, and `TileOverflow` (a ValueError) when a frame's render overflows the
+    tile ``capacity`` (its weights would be incomplete)."""
     from fgjax.pipeline.track import transform_gaussians
     from fgjax.render.api import gaussian_weights, rasterization
 
@@ -984,7 +988,7 @@ def seen_through(gs: Gaussians, alive, labels: np.ndarray, poses: np.ndarray, vi
     for i in range(int(poses_j.shape[1])):
         a, b, over = frame(poses_j[:, i], jnp.asarray(viewmats[i], jnp.float32), jnp.asarray(Ks[i], jnp.float32))
         if bool(over):
-            raise ValueError(f"seen_through: frame {i}'s render overflowed the tile capacity ({capacity})")
+            raise TileOverflow(f"seen_through: frame {i}'s render overflowed the tile capacity ({capacity})")
         inside += np.asarray(a, np.float64)
         total += np.asarray(b, np.float64)
     ratio = np.where(total > 0, inside / np.maximum(total, 1e-30), 0.0)
@@ -1001,7 +1005,7 @@ def _prune_seen_through(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, ru
     try:
         ratio = seen_through(gs, run.state.densify.alive, labels, poses, scene.viewmats[order], scene.Ks[order],
                              scene.width, scene.height, capacity=_render_capacity(run), tile_size=run.cfg.train.tile_size)
-    except ValueError as e:  # an overflow: prune nothing rather than on partial weights
+    except TileOverflow as e:  # prune nothing rather than on partial weights
         log(f"stage 2: no static Gaussians pruned as seen through the parts: {e}")
         return gs, 0
     sel = (np.asarray(labels) < 0) & np.asarray(run.state.densify.alive, bool) & (ratio > max_ratio)
@@ -1009,7 +1013,6 @@ def _prune_seen_through(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, ru
     log(f"stage 2: {int(pruned.sum())} static Gaussians seen through the parts (more than {max_ratio:g} of their "
         f"weight where the members cover the pixel) pruned ({time.perf_counter() - t0:.1f} s)")
     return gs, int(pruned.sum())
-
 
 
 def _fade_ghosts(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, alive, cfg: Stage2Config,

@@ -412,7 +412,8 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
 
 def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatch):
     """``track_rounds=2``: round 2 tracks again rendering round 1's re-fit and starting from round 1's poses,
-    and its re-fit continues from round 1's (with the next seed); the last re-fit is the one kept. The
+    and its re-fit continues from round 1's (with the next seed); the last re-fit is the one kept. With
+    ``joint_search=2`` only round 2's tracking searches the joints. The
     tracking and the re-fit are replaced by recorders (the real ones: the test above and
     tests/test_phototrack.py), so this checks the wiring in seconds."""
     import shutil
@@ -421,11 +422,12 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
 
     dst = tmp_path / "run"
     shutil.copytree(tiny[0], dst)
-    calls = []
+    calls, searched = [], []
 
     def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
-                   prev_joints=None):
+                   prev_joints=None, search=False):
         assert fixed is None  # two rounds: no convergence test (`test_later_rounds_track_only_...`)
+        searched.append(search)
         poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
         poses[:, :, 0, 3] = 0.01 * (len(calls) + 1)  # each call's poses told apart by their shift
         calls.append(("track", ref, init_poses, poses))
@@ -441,12 +443,13 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
     logs = []
     cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
-                              track_rounds=2, seed=3, hull_fill=False,
+                              track_rounds=2, seed=3, hull_fill=False, joint_search=2,
                               hinge_fill=False, isolated_factor=0.0,  # (their re-fit: test_hull_and_hinge_...)
                               through_prune=0.0,
                               ghost_radius=0.0)  # (its fade makes a new start: test_stage2_with_photometric_...)
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
     assert [c[0] for c in calls] == ["track", "refit", "track", "refit"], [c[0] for c in calls]
+    assert searched == [False, True]  # joint_search=2: the joints are searched from round 2 on
     (_, ref1, init1, poses1), (_, rinit1, rposes1, seed1, refit1) = calls[0], calls[1]
     (_, ref2, init2, poses2), (_, rinit2, rposes2, seed2, refit2) = calls[2], calls[3]
     assert init1 is None and rinit1 is ref1 and rposes1 is poses1 and seed1 == 3
@@ -476,7 +479,8 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
         calls = []
 
         def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
-                       prev_joints=None):
+                       prev_joints=None, search=False):
+            assert not search  # joint_search=0, the default
             n = sum(c[0] == "track" for c in calls)
             poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
             axes = [turned(0.0)] * k if n == 0 else [turned(40.0)] + [turned(5.0)] * (k - 1)
@@ -535,7 +539,8 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
         calls = []
 
         def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
-                       prev_joints=None):
+                       prev_joints=None, search=False):
+            assert not search  # joint_search=0, the default
             calls.append(("track", np.asarray(labels).copy()))
             poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
             poses[..., 0, 3] = 0.01 * len(calls)  # a small shift, told apart per call
@@ -696,7 +701,8 @@ def test_fill_hinges_takes_the_hinge_from_the_poses_and_the_core_from_the_alive_
 def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
     """`_photometric_poses` gives the tracker ``track_photo`` steps per frame (2:2:1 over its blur levels) in the
     first round and ``track_photo_next`` in a round started from earlier poses; ``track_photo_next=0`` keeps
-    ``track_photo``. The tracker and the joint fit are recorders (the real ones: tests/test_phototrack.py)."""
+    ``track_photo``. The tracker and the joint fit are recorders (the real ones: tests/test_phototrack.py).
+    Also: the joint search's wiring (``search=True``)."""
     from types import SimpleNamespace
 
     from fgjax.pipeline import phototrack
@@ -729,6 +735,26 @@ def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
                                           log=lambda m: None, init_poses=earlier, fixed=np.array([True]),
                                           prev_joints=prev)
     assert joints == prev and len(pts_seen[-1][0]) == 0
+    # search=True: the joint fit's poses, kinds and the objects not fixed go to the search; where it replaces a
+    # joint, its kind and axis are the ones reported (the real search: tests/test_articulation.py)
+    from fgjax.pipeline import articulation
+
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False:
+                        (poses, ["revolute"], [1.0]) + ((np.array([[1.0, 0.0, 0.0]]),) if return_axes else ()))
+    got = []
+
+    def fake_search(g, alive, labels, k, imgs, vms, Ks, poses, *, kinds, objects, **kw):
+        got.append((list(kinds), np.asarray(objects).tolist(), kw["capacity"]))
+        out = poses.copy()
+        out[:, :, 1, 3] = 0.5
+        return out, [{"replaced": True, "kind": "prismatic", "axis": [0.0, 0.0, 1.0]}]
+
+    monkeypatch.setattr(articulation, "search_articulations", fake_search)
+    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(track_photo=40),
+                                              None, log=lambda m: None, search=True)
+    assert got == [(["revolute"], [True], None)]
+    assert joints["joint_kinds"] == ["prismatic"] and joints["joint_axes"] == [[0.0, 0.0, 1.0]]
+    assert np.all(poses[:, :, 1, 3] == 0.5)
 
 
 def _selection_case(seed=0, c_missed=0):
@@ -816,7 +842,9 @@ def test_validate_config_names_the_field():
                     ({"mask_guide_eps": 0.0}, "mask_guide_eps"), ({"isolated_factor": -1.0}, "isolated_factor"),
                     ({"isolated_factor": 0.5}, "isolated_factor"),
                     ({"isolated_factor": float("nan")}, "isolated_factor"), ({"through_prune": -0.1}, "through_prune"),
-                    ({"through_prune": 1.5}, "through_prune"), ({"through_prune": float("nan")}, "through_prune")):
+                    ({"through_prune": 1.5}, "through_prune"), ({"through_prune": float("nan")}, "through_prune"),
+                    ({"joint_search": -1}, "joint_search"), ({"joint_search": True}, "joint_search"),
+                    ({"joint_search": 1.5}, "joint_search")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

@@ -1,0 +1,307 @@
+"""One articulation per part over all its frames, chosen by the images: a discrete search over hinges and slides.
+
+The photometric tracker (`fgjax.pipeline.phototrack`) fits six degrees of freedom per frame, and `joint_poses`
+then fits one joint to those poses. A single image does not pin a part's pose: on the default scene the lid, started
+at its true pose in every frame, ends 10-48 degrees off at poses that render closer to the images than the truth,
+while along its true hinge the true turn renders closest (docs/benchmarks.md, session 27). So here the joint itself
+is chosen by the images:
+
+1. Hypotheses (`articulation_hypotheses`): from a part's reference points, its principal axes and their 5th-95th
+   percentile extents; a hinge along each axis through each of the four edges of the box around the others
+   (12 hinges), a slide along each axis (3), and the joint already fitted (`joint_from_poses`).
+2. Each hypothesis is scored by the images of the frames in which the part is displaced (its pose is not the
+   identity): in each, the amount (an angle, or a shift in scene units) is searched on a grid and refined by
+   halving steps, and the frame's loss is the least mean absolute difference of the rendered and the observed
+   image, both blurred by ``sigma`` pixels, over the amounts tried. A hypothesis' score is the sum over the
+   frames. First on the ``screen_frames`` frames of largest displacement, then the ``keep`` best (and the fitted
+   joint) on all of them, where a frame right after another starts from that one's amount, and the fitted joint
+   from its own amounts.
+3. The best hypothesis replaces the part's poses only where its score is below that of the poses as given
+   (rendered as they are): the search never makes the images worse on the frames it scores.
+
+What it found (docs/benchmarks.md, session 33; `Stage2Config.joint_search`, off by default): on the default scene's
+demo run, searched in round 1 (stage 1's reference, a blur of the parts' states) the images chose wrong joints (the
+door a horizontal hinge, the lid a vertical slide); searched from round 2 on (the re-fitted scene) the fitted joint won
+for every part, so the search only refined the amounts. The lid's nearest hypothesis is 29 degrees off its true
+hinge (the principal axes of its members, false ones included, are not its sides), as far off as the fitted joint.
+
+Only the part searched moves; the others are drawn at their given poses in each frame. The frame without the part
+is rendered once (its tiles reached by no member are pasted from it, as in the tracker).
+
+Conventions: OpenCV cameras (world-to-camera `viewmats` [T, 4, 4], `Ks` [T, 3, 3]); poses [K, T, 4, 4] are
+world-space rigid transforms of each object from the reference scene (pose 0 = I); quaternions wxyz.
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fgjax import geometry
+from fgjax.gaussians import Gaussians
+from fgjax.geometry import HIGHEST
+from fgjax.pipeline.phototrack import blur_kernel, blur_with
+from fgjax.pipeline.track import transform_gaussians
+
+__all__ = ["articulation_hypotheses", "joint_from_poses", "articulated_pose", "displaced_frames",
+           "search_articulations"]
+
+REVOLUTE, PRISMATIC = "revolute", "prismatic"
+
+
+def articulation_hypotheses(points) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Candidate joints of a part from its reference points [M, 3] (M >= 3): a list of (kind, unit axis [3],
+    pivot [3]). Principal axes e_a of the centred points, extents lo_a..hi_a their 5th and 95th percentiles
+    along each; for each axis a, a hinge along e_a through each of the 4 edges of the box lo..hi in the other
+    two axes (pivot at the median along e_a), then a slide along each e_a (pivot: the median point). 15 in all."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(p) < 3:
+        raise ValueError(f"articulation_hypotheses: at least 3 points needed, got {len(p)}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError("articulation_hypotheses: the points must be finite")
+    c = np.median(p, 0)  # [3]
+    _, _, vt = np.linalg.svd(p - p.mean(0), full_matrices=False)
+    e = vt  # [3, 3] rows: principal axes, largest spread first
+    proj = (p - c) @ e.T  # [M, 3]
+    lo, hi = np.percentile(proj, 5, axis=0), np.percentile(proj, 95, axis=0)
+    out = []
+    for a in range(3):
+        b, d = [x for x in range(3) if x != a]
+        for sb in (lo[b], hi[b]):
+            for sd in (lo[d], hi[d]):
+                out.append((REVOLUTE, e[a].copy(), c + sb * e[b] + sd * e[d]))
+    out += [(PRISMATIC, e[a].copy(), c.copy()) for a in range(3)]
+    return out
+
+
+def joint_from_poses(poses, kind: str):
+    """(unit axis [3], pivot [3]) of a one-joint trajectory ``poses`` [T, 4, 4] (e.g. `joint_poses`' output):
+    the axis of its largest rotation (revolute; the pivot is the point of the axis nearest the origin) or the
+    direction of its largest shift (prismatic; pivot 0). None when every pose is the identity."""
+    P = np.asarray(poses, np.float64)
+    if kind == REVOLUTE:
+        rv = np.asarray(geometry.so3_log(jnp.asarray(P[:, :3, :3])), np.float64)  # [T, 3]
+        j = int(np.argmax(np.linalg.norm(rv, axis=1)))
+        ang = float(np.linalg.norm(rv[j]))
+        if not ang > 1e-6:
+            return None
+        axis = rv[j] / ang
+        # x -> R x + t turns about the line {p + s axis} iff t = (I - R) p; least squares, min-norm along the axis
+        piv = np.linalg.lstsq(np.eye(3) - P[j, :3, :3], P[j, :3, 3], rcond=1e-9)[0]
+        return axis, piv - axis * float(piv @ axis)
+    if kind == PRISMATIC:
+        sh = P[:, :3, 3]
+        j = int(np.argmax(np.linalg.norm(sh, axis=1)))
+        n = float(np.linalg.norm(sh[j]))
+        return (sh[j] / n, np.zeros(3)) if n > 1e-12 else None
+    raise ValueError(f"joint_from_poses: kind must be {REVOLUTE!r} or {PRISMATIC!r}, got {kind!r}")
+
+
+def articulated_pose(revolute, axis, pivot, amount):
+    """World transform [4, 4]: a turn by ``amount`` radians about the unit ``axis`` [3] through ``pivot`` [3]
+    (``revolute`` true) or a shift by ``amount`` along it (false). Traceable (``revolute`` may be a traced bool)."""
+    axis, pivot = jnp.asarray(axis), jnp.asarray(pivot)
+    rot = geometry.so3_exp(amount * axis)
+    rot = jnp.where(revolute, rot, jnp.eye(3, dtype=rot.dtype))
+    t = jnp.where(revolute, pivot - jnp.matmul(rot, pivot, precision=HIGHEST), amount * axis)
+    return geometry.make_pose(rot, t)
+
+
+def _amounts(poses, kind: str, axis) -> np.ndarray:
+    """[T] each pose's amount along the unit ``axis`` [3]: its rotation vector's component (revolute) or its
+    shift's (prismatic); exact for the poses of one joint (`joint_from_poses`)."""
+    P = np.asarray(poses, np.float64)
+    if kind == REVOLUTE:
+        return np.asarray(geometry.so3_log(jnp.asarray(P[:, :3, :3])), np.float64) @ np.asarray(axis, np.float64)
+    return P[:, :3, 3] @ np.asarray(axis, np.float64)
+
+
+def displaced_frames(points, poses, tol: float) -> np.ndarray:
+    """[T] bool: the frames in which ``poses`` [T, 4, 4] move some of ``points`` [M, 3] by more than ``tol``."""
+    p = np.asarray(points, np.float64)
+    P = np.asarray(poses, np.float64)
+    moved = np.einsum("tij,mj->tmi", P[:, :3, :3], p) + P[:, None, :3, 3]
+    return np.max(np.linalg.norm(moved - p[None], axis=-1), axis=1) > tol
+
+
+def search_articulations(gaussians, alive, labels, num_objects: int, images, viewmats, Ks, poses, *, kinds,
+                         sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
+                         objects=None, sigma: float = 2.0, grid: int = 21, refine: int = 3,
+                         max_turn_deg: float = 100.0, max_shift: float = 2.0, screen_frames: int = 4, keep: int = 2,
+                         warm_start: bool = True, log=print):
+    """Each part's poses replaced by the one articulation that renders closest to its frames (module docstring).
+
+    Args:
+        gaussians: the reference scene (raw parameters), which the poses move; alive [N] bool; labels [N] in -1..K-1.
+        images: [T, H, W, 3]; viewmats, Ks: [T, 4, 4], [T, 3, 3], the frames of ``poses`` [K, T, 4, 4].
+        kinds: [K] each object's fitted joint ("revolute", "prismatic"; anything else: no fitted hypothesis).
+        objects: [K] bool, the objects searched (None: all).
+        sigma: blur of the loss (pixels). grid, refine: amounts on the grid, then halving steps about the best.
+        max_turn_deg, max_shift: the grid spans +-max_turn_deg degrees, or +-max_shift times the part's largest
+            extent (5th-95th percentile) for a slide.
+        screen_frames, keep: hypotheses are screened on this many frames, the ``keep`` best scored on all.
+        warm_start: on all frames, a frame right after a displaced one searches about that one's amount (+-1 grid
+            step, then the halving steps) instead of the whole grid.
+
+    Returns:
+        (poses [K, T, 4, 4], info: list of K dicts (None where not searched) with "kind", "axis", "pivot",
+        "score", "score_given" (the given poses' loss summed over the same frames), "replaced", "frames", "renders",
+        "hypothesis" (the best one's index; 0 is the fitted joint where "fitted_hypothesis"), "screen" (each
+        hypothesis' loss summed over the screening frames) and "scores" ({index: loss summed over all the frames}).
+    """
+    from fgjax.pipeline.stage1 import render_params
+
+    poses = np.asarray(poses, np.float32).copy()
+    labels = np.asarray(labels, np.int64)
+    alive_np = np.asarray(alive, bool)
+    t_all = poses.shape[1]
+    objects = np.ones(num_objects, bool) if objects is None else np.asarray(objects, bool)
+    info: list = [None] * num_objects
+    if num_objects == 0 or t_all < 2 or not objects.any():
+        return poses, info
+    g = jax.tree_util.tree_map(jnp.asarray, gaussians)
+    m_ref = np.asarray(g.means, np.float64)
+    lab_j, alive_j = jnp.asarray(labels, jnp.int32), jnp.asarray(alive_np)
+    vms, Kj = jnp.asarray(viewmats, jnp.float32), jnp.asarray(Ks, jnp.float32)
+    bg = jnp.asarray(background, jnp.float32)
+    images = jnp.asarray(images, jnp.float32)
+    width, height = int(images.shape[2]), int(images.shape[1])
+    kern = jnp.asarray(blur_kernel(float(sigma)), jnp.float32)
+
+    def draw(P, i, live, active):
+        m, q = transform_gaussians(g.means, g.quats, lab_j, P)
+        gs = Gaussians(m, g.log_scales, q, g.opacity_logits, g.sh)
+        img, _, info_, _ = render_params({"gaussians": gs}, live, vms[i], Kj[i], 0.0, spec=None, sh_degree=sh_degree,
+                                         width=width, height=height, background=bg, capacity=capacity,
+                                         tile_size=tile_size, active=active)
+        return img, info_
+
+    @jax.jit
+    def rest_image(P, i, k):
+        """Frame i without object k's members, the others at P [K, 4, 4]: [H, W, 3]."""
+        return draw(P, i, alive_j & (lab_j != k), None)[0]
+
+    @jax.jit
+    def losses(amounts, rev, axis, pivot, P, i, k, rest, target):
+        """[G] blurred L1 losses of frame i with object k at each of `amounts` [G] along the joint."""
+        member = alive_j & (lab_j == k)
+
+        def one(a):
+            Pk = P.at[k].set(articulated_pose(rev, axis, pivot, a).astype(P.dtype))
+            img, inf = draw(Pk, i, alive_j, member)
+            on = jnp.repeat(jnp.repeat(inf["tile_on"], tile_size, 0), tile_size, 1)[:height, :width]
+            img = jnp.where(on[..., None], img, rest)
+            loss = jnp.mean(jnp.abs(blur_with(img, kern) - target))
+            return jnp.where(jnp.isfinite(loss) & ~inf["overflow"], loss, jnp.inf)
+
+        return jax.lax.map(one, amounts)
+
+    @jax.jit
+    def given_loss(P, i, target):
+        img, inf = draw(P, i, alive_j, None)
+        loss = jnp.mean(jnp.abs(blur_with(img, kern) - target))
+        return jnp.where(jnp.isfinite(loss) & ~inf["overflow"], loss, jnp.inf)
+
+    targets: dict[int, jnp.ndarray] = {}
+
+    def target(i):
+        if i not in targets:
+            targets[i] = blur_with(images[i], kern)
+        return targets[i]
+
+    for k in np.flatnonzero(objects):
+        t0 = time.perf_counter()
+        pts = m_ref[(labels == k) & alive_np]
+        if len(pts) < 3:
+            continue
+        extent = np.percentile(pts, 95, axis=0) - np.percentile(pts, 5, axis=0)
+        size = float(np.max(extent))
+        frames = np.flatnonzero(displaced_frames(pts, poses[k], 1e-3 * max(size, 1e-9)))
+        if len(frames) == 0:
+            continue
+        hyps = articulation_hypotheses(pts)
+        fitted = joint_from_poses(poses[k], kinds[k]) if kinds[k] in (REVOLUTE, PRISMATIC) else None
+        if fitted is not None:
+            hyps = [(kinds[k], *fitted)] + hyps
+            fitted_amount = _amounts(poses[k], kinds[k], fitted[0])  # [T]
+        span = np.radians(max_turn_deg)
+        rests = {int(i): rest_image(jnp.asarray(poses[:, i]), jnp.asarray(i, jnp.int32), jnp.asarray(k, jnp.int32))
+                 for i in frames}
+        n_renders = 0
+
+        def frame_best(h, i, start=None):
+            """(loss, amount) of hypothesis h in frame i: the grid, then halving steps about the best; from
+            ``start`` (the amount of the frame before): that amount and +-1 grid step, then the halving steps."""
+            nonlocal n_renders
+            kind, axis, pivot = h
+            rev = kind == REVOLUTE
+            lim = span if rev else max_shift * size
+            args = (jnp.asarray(rev), jnp.asarray(axis, jnp.float32), jnp.asarray(pivot, jnp.float32),
+                    jnp.asarray(poses[:, i]), jnp.asarray(i, jnp.int32), jnp.asarray(k, jnp.int32), rests[int(i)],
+                    target(int(i)))
+            step = 2 * lim / (grid - 1)
+            am = np.linspace(-lim, lim, grid) if start is None else np.array([start, start - step, start + step])
+            ls = np.asarray(losses(jnp.asarray(am, jnp.float32), *args), np.float64)
+            n_renders += len(am)
+            j = int(np.argmin(ls))
+            best, a = float(ls[j]), float(am[j])
+            step /= 2
+            for _ in range(refine):
+                cand = np.array([a - step, a + step])
+                lc = np.asarray(losses(jnp.asarray(cand, jnp.float32), *args), np.float64)
+                n_renders += 2
+                if lc.min() < best:
+                    best, a = float(lc.min()), float(cand[int(np.argmin(lc))])
+                step /= 2
+            return best, a
+
+        def all_frames(h):
+            """[(loss, amount)] of hypothesis h in each displaced frame, in time order; a frame right after another
+            starts from that one's amount (a part moves little from one frame to the next); the fitted joint
+            starts from its own amounts."""
+            out = []
+            for n, i in enumerate(frames):
+                if h == 0 and fitted is not None:
+                    out.append(frame_best(hyps[0], i, fitted_amount[i]))
+                    continue
+                warm = warm_start and n > 0 and frames[n - 1] == i - 1
+                out.append(frame_best(hyps[h], i, out[-1][1] if warm else None))
+            return out
+
+        moved = np.einsum("tij,mj->tmi", poses[k, frames, :3, :3].astype(np.float64), pts) + poses[k, frames, None, :3, 3]
+        mag = np.max(np.linalg.norm(moved - pts[None], axis=-1), axis=1)  # [F]
+        key = frames[np.argsort(-mag)[:screen_frames]]
+        screen = np.array([sum(frame_best(h, i, fitted_amount[i] if n == 0 and fitted is not None else None)[0]
+                                   for i in key) for n, h in enumerate(hyps)])
+        top = list(np.argsort(screen)[:keep])
+        if fitted is not None and 0 not in top:
+            top.append(0)
+        scores = {}
+        for h in top:
+            res = all_frames(h)
+            scores[h] = (sum(r[0] for r in res), [r[1] for r in res])
+        given = sum(float(given_loss(jnp.asarray(poses[:, i]), jnp.asarray(i, jnp.int32), target(int(i))))
+                    for i in frames)
+        n_renders += len(frames) * (1 + 0) + len(frames)  # the rests and the given poses
+        h_best = min(scores, key=lambda h: scores[h][0])
+        score, amounts = scores[h_best]
+        kind, axis, pivot = hyps[h_best]
+        replaced = bool(score < given)
+        if replaced:
+            for i, a in zip(frames, amounts):
+                poses[k, i] = np.asarray(articulated_pose(kind == REVOLUTE, axis, pivot, a), np.float32)
+        info[k] = dict(kind=kind, axis=[float(x) for x in axis], pivot=[float(x) for x in pivot], score=float(score),
+                       score_given=float(given), replaced=replaced, frames=int(len(frames)), renders=int(n_renders),
+                       hypothesis=int(h_best), fitted_hypothesis=fitted is not None,
+                       screen=[float(x) for x in screen], scores={int(h): float(v[0]) for h, v in scores.items()})
+        amt = np.degrees(np.max(np.abs(amounts))) if kind == REVOLUTE else float(np.max(np.abs(amounts)))
+        log(f"articulation search: object {k + 1}: {len(hyps)} hypotheses over {len(frames)} displaced frames; best "
+            f"{kind} (hypothesis {h_best}{', the fitted joint' if fitted is not None and h_best == 0 else ''}), axis "
+            f"{np.round(axis, 3).tolist()}, largest {'turn' if kind == REVOLUTE else 'shift'} "
+            f"{amt:.3g}{' degrees' if kind == REVOLUTE else ''}; loss {score / len(frames):.5f} a frame against the "
+            f"given poses' {given / len(frames):.5f} -> {'replaced' if replaced else 'kept'} ({n_renders} renders, "
+            f"{time.perf_counter() - t0:.1f} s)")
+    return poses, info

@@ -201,16 +201,14 @@ class Stage2Config:
     28.34 -> 27.89 dB. It costs the demo about 7 s (12:57 against 12:50). False: off."""
     joint_search: int = 0
     """From this round of tracking on (1: every round; 0: off), after the round's joint fits each fitted object's
-    joint is searched again by the images
-    (`fgjax.pipeline.articulation.search_articulations`: 12 hinges along its principal box's edges, 3 slides
-    along its axes and the fitted joint, each scored by the blurred L1 of its best amount in every frame in which
-    the object is displaced); the best replaces the poses where it renders closer than they do. Measured at the
-    demo's settings with 2 (docs/benchmarks.md, session 33): in every search of rounds 2-3 on the default scene, the
-    close pair and under pose noise the fitted joint won (the lid's included, 28-45 degrees off its true hinge on the
-    default scene and under pose noise; the
-    close pair's drawer stayed a hinge), so it only refined the amounts; ``ari_controlled`` +0.008, +0.005, -0.004
-    and the held-out states -0.79, +0.01, -0.28 dB against the same runs without it, for about 300 s more of stage 2
-    (the default scene; its searches took 296 s).
+    joint is chosen again by the images (`fgjax.pipeline.articulation.search_articulations`: 12 hinges on the
+    edges of its principal box, 3 slides along its axes and the fitted joint, each scored by the blurred L1 of its
+    best amount in every frame in which the object is displaced); the best replaces the poses where it renders
+    closer than they do. Measured at the demo's settings with 2 (docs/benchmarks.md, session 33): in every search
+    of rounds 2-3 on the default scene, the close pair and under pose noise the fitted joint won (the lids' 28-45
+    degrees off their true hinge on the default scene and under pose noise; the close pair's drawer stayed a
+    hinge), so it only refined the amounts: ``ari_controlled`` +0.008, +0.005, -0.004 and the held-out states
+    -0.79, +0.01, -0.28 dB against the same runs without it, for about 300 s more of stage 2 on the default scene.
     From round 1 (stage 1's blurred reference) it chose wrong joints for the default scene's door and lid."""
     track_subset_margin: int = 2
     """The photometric tracker's steps draw only the changing Gaussians and the others whose tiles meet theirs,

@@ -287,7 +287,7 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
             scores[h] = (sum(r[0] for r in res), [r[1] for r in res])
         given = sum(float(given_loss(jnp.asarray(poses[:, i]), jnp.asarray(i, jnp.int32), target(int(i))))
                     for i in frames)
-        n_renders += len(frames) * (1 + 0) + len(frames)  # the rests and the given poses
+        n_renders += 2 * len(frames)  # the rests and the given poses
         h_best = min(scores, key=lambda h: scores[h][0])
         score, amounts = scores[h_best]
         kind, axis, pivot = hyps[h_best]

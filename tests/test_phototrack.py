@@ -434,6 +434,8 @@ def test_track_photometric_puts_a_part_back_at_rest_where_its_images_show_it_the
     np.testing.assert_array_equal(on[0, :3], off[0, :3])  # the fitted frames are untouched
     assert st["spans_at_rest"] == 1 and any("object 1 back at rest in frames 4-6" in m for m in logs), logs
     imgs_open = _images(g, labels, vms, kept[None])
+    logs = []
     op, _, st_open = track_photometric(g, a, labels, 1, imgs_open, vms, Ks, rest_check=True, return_stats=True,
-                                       log=lambda s: None, **kw)
+                                       log=logs.append, **kw)
+    assert any("object 1 keeps its last fitted pose in frames 4-6" in m for m in logs), logs
     assert st_open["spans_at_rest"] == 0 and all(ang(op[0, n, :3, :3]) > 10.0 for n in range(3, t))

@@ -469,6 +469,9 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
                 n_rest += 1
                 log(f"photometric tracking: object {k + 1} back at rest in frames {a + 1}-{b} (loss {kept / (b - a):.5f} "
                     f"-> {rest / (b - a):.5f} a frame)")
+            else:
+                log(f"photometric tracking: object {k + 1} keeps its last fitted pose in frames {a + 1}-{b} (loss "
+                    f"{kept / (b - a):.5f} a frame; {rest / (b - a):.5f} at rest)")
     pi = (labels >= 0).astype(np.float64)
     pi[cand] = np.asarray(jax.nn.sigmoid(lg))
     stats = dict(frames_fitted=n_fit, spans_at_rest=n_rest, steps_per_frame=sum(n for _, n in levels),

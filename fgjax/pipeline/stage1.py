@@ -363,10 +363,11 @@ def previous_frames(times: np.ndarray) -> np.ndarray:
 
 
 def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str | Path | None = None,
-                            log=print) -> np.ndarray:
+                            log=print, backward: bool = False) -> np.ndarray:
     """Observed optical flow into each training frame from its predecessor in time, on the predecessor's
     grid: [T, H, W, 2] float32, NaN for the first frame (``fgjax.data.opticalflow.estimate_flow``, cached
-    on disk under `cache_dir`)."""
+    on disk under `cache_dir`). ``backward``: the reverse, from each frame to its predecessor on the frame's
+    own grid (the round-trip check of `fgjax.pipeline.poses.forward_backward_mask`)."""
     from fgjax.data.opticalflow import estimate_flow
 
     prev = previous_frames(scene.times)
@@ -375,8 +376,10 @@ def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str 
     t0 = time.time()
     for i, j in enumerate(prev):
         if j >= 0:
-            out[i] = estimate_flow(imgs[j], imgs[i], method, cache_dir=cache_dir)
-    log(f"optical flow ({method}): {int(np.sum(prev >= 0))} pairs in {time.time() - t0:.1f} s")
+            out[i] = estimate_flow(imgs[i], imgs[j], method, cache_dir=cache_dir) if backward else estimate_flow(
+                imgs[j], imgs[i], method, cache_dir=cache_dir)
+    log(f"optical flow ({method}{', backward' if backward else ''}): {int(np.sum(prev >= 0))} pairs in "
+        f"{time.time() - t0:.1f} s")
     return out
 
 
@@ -437,8 +440,11 @@ def _bundle_adjusted(cfg: Config, scene, cache_dir, log):
 
     flows = estimate_training_flows(scene, cfg.flow.method, cache_dir=cache_dir, log=log)
     p = cfg.pose
+    back = None if p.bundle_fb_px <= 0 else estimate_training_flows(scene, cfg.flow.method, cache_dir=cache_dir,
+                                                                   log=log, backward=True)
     res = bundle_adjust(scene.viewmats, scene.Ks, flows, previous_frames(scene.times), prior_rot_deg=p.bundle_prior_deg,
-                        prior_trans=p.bundle_prior_trans, cauchy_px=p.bundle_cauchy_px, log=log)
+                        prior_trans=p.bundle_prior_trans, cauchy_px=p.bundle_cauchy_px, backward=back,
+                        fb_px=max(p.bundle_fb_px, 0.0), log=log)
     return dataclasses.replace(scene, viewmats=res.viewmats.astype(np.float32)), res.deltas.astype(np.float32)
 
 
@@ -532,6 +538,8 @@ def _check_train_config(cfg: Config) -> None:
     for k in ("bundle_prior_deg", "bundle_prior_trans", "bundle_cauchy_px"):
         if not getattr(cfg.pose, k) > 0:
             raise ConfigError(f"config key 'pose.{k}' must be > 0; got {getattr(cfg.pose, k)}")
+    if not cfg.pose.bundle_fb_px >= 0:
+        raise ConfigError(f"config key 'pose.bundle_fb_px' must be >= 0 (0: off); got {cfg.pose.bundle_fb_px}")
 
 
 def train_stage1(

@@ -499,15 +499,15 @@ def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
         return real_init(cfg, sc, key, **kw)
 
     monkeypatch.setattr(stage1, "init_gaussians", spy)
-    cfg = _cfg("pose.enabled=true", "pose.bundle=true", "pose.bundle_cauchy_px=0.5", "model.init=random")
+    cfg = _cfg("pose.enabled=true", "pose.bundle=true", "pose.bundle_cauchy_px=0.5", "pose.bundle_fb_px=0.1",
+               "model.init=random")
     state, _, _ = stage1.initial_state(cfg, scene)
     np.testing.assert_allclose(np.asarray(state.params["pose"]), deltas, atol=1e-7)
     assert seen["cauchy_px"] == 0.5 and seen["flows"] == (4, scene.height, scene.width, 2)
     # the round-trip check's backward flows (frame i -> i - 1 on frame i's grid; none into the first frame)
     assert seen["fb_px"] == 0.1 and seen["backward"].shape == (4, scene.height, scene.width, 2)
     assert np.isnan(seen["backward"][0]).all() and np.isfinite(seen["backward"][1:]).all()
-    stage1.initial_state(_cfg("pose.enabled=true", "pose.bundle=true", "pose.bundle_fb_px=0", "model.init=random"),
-                         scene)
+    stage1.initial_state(_cfg("pose.enabled=true", "pose.bundle=true", "model.init=random"), scene)  # off by default
     assert seen["backward"] is None
     with pytest.raises(C.ConfigError, match="pose.bundle_fb_px"):
         stage1._check_train_config(_cfg("pose.enabled=true", "pose.bundle=true", "pose.bundle_fb_px=-1"))

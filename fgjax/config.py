@@ -200,7 +200,7 @@ class PoseConfig:
     """Final Cauchy scale of the reprojection residuals (pixels)."""
     bundle_fb_px: float = 0.0
     """> 0: the bundle adjustment's flow tracks stop where the forward flow fails the round trip through the backward
-    flow by more than this (pixels; `fgjax.pipeline.poses.forward_backward_mask`: occlusions, flow smoothed across
+    flow by this much or more (pixels; `fgjax.data.opticalflow.forward_backward_mask`: occlusions, flow smoothed across
     depth edges); 0: off (the default). On the pose-noise scene, 0.1 px took the adjusted rotations from 0.218 to
     0.160 degree off the truth, and after stage 1 from 0.168 to 0.118, with stage 1's test views at 29.12 dB
     instead of 28.82; but stage 2 on that stage-1 run lost the door in both of its seeds (held-out states 24.15

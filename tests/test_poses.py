@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgjax.pipeline.poses import (FlowTracks, _triangulate_inverse_depth, bundle_adjust, flow_tracks,
-                                  forward_backward_mask)
+from fgjax.pipeline.poses import FlowTracks, _triangulate_inverse_depth, bundle_adjust, flow_tracks
 
 W, H = 64, 48
 K = np.array([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]])
@@ -169,40 +168,6 @@ def test_bundle_adjustment_degenerate_inputs_stay_finite():
         bundle_adjust(vms, ks, flows, prev, prior_trans=0.0)
 
 
-def test_forward_backward_mask_keeps_round_trips_and_drops_the_rest():
-    fw = np.tile(np.array([1.5, 0.25], np.float32), (10, 12, 1))
-    bw = -fw.copy()
-    bw[4:7, 5:8] += np.array([0.0, 0.6], np.float32)  # frame b's flow there does not lead back (an occlusion)
-    fw[0, 0] = np.nan
-    m = forward_backward_mask(fw, bw, 0.1)
-    assert m.shape == (10, 12) and m.dtype == bool
-    ys, xs = np.mgrid[0:10, 0:12]
-    tx, ty = xs + 0.5 + 1.5, ys + 0.5 + 0.25  # where each pixel lands in b (pixel centres at +0.5)
-    inside = (tx <= 11.5) & (ty <= 9.5)  # bilinear lookups need the match between b's pixel centres
-    # the matches whose four neighbours all lie outside the disturbed block come back within 0.1 px
-    clean = inside & ((tx < 4.5) | (tx > 8.5) | (ty < 3.5) | (ty > 7.5))
-    clean[0, 0] = False
-    assert np.all(m[clean]) and not m[0, 0] and not np.any(m[~inside])
-    hit = (tx > 5.5) & (tx < 7.5) & (ty > 4.5) & (ty < 6.5)  # all four neighbours disturbed: 0.6 px off
-    assert hit.any() and not np.any(m[hit])
-    with pytest.raises(ValueError, match="forward and backward"):
-        forward_backward_mask(fw, bw[:, :5], 0.1)
-    with pytest.raises(ValueError, match="tol_px"):
-        forward_backward_mask(fw, bw, -1.0)
-
-
-def test_forward_backward_mask_passes_exact_flows_of_a_room():
-    """The box room seen from inside has no occlusion: its exact flows make the round trip within the bilinear
-    lookup's error (the flow bends only at the walls' edges), except where the match leaves frame b."""
-    vms = _cameras(3)
-    fw, bw = _flow(vms[1], vms[2]), _flow(vms[2], vms[1])
-    m = forward_backward_mask(fw, bw, 0.05)
-    ys, xs = np.mgrid[0:H, 0:W]
-    tx, ty = xs + 0.5 + fw[..., 0], ys + 0.5 + fw[..., 1]
-    inside = (tx >= 0.5) & (ty >= 0.5) & (tx <= W - 0.5) & (ty <= H - 0.5)
-    assert m[inside].mean() > 0.97 and not np.any(m[~inside])
-
-
 def test_bundle_adjustment_with_backward_flows_drops_an_inconsistent_block():
     """As the moving-block case above, but with the backward flows, which do not carry the block's 2 px: the
     round trip drops the block's pixels, and the fit reaches the exact-flow case's accuracy, which it does
@@ -224,3 +189,5 @@ def test_bundle_adjustment_with_backward_flows_drops_an_inconsistent_block():
     assert rr1 < rrp, (rr1, rrp)  # the block bent the cameras without the round trip
     with pytest.raises(ValueError, match="backward flows"):
         bundle_adjust(noisy, ks, flows, prev, backward=back[:, :5], **kw)
+    with pytest.raises(ValueError, match="fb_px"):
+        bundle_adjust(noisy, ks, flows, prev, backward=back, fb_px=0.0, **kw)

@@ -39,7 +39,7 @@ import numpy as np
 
 from fgjax.geometry import matmul, se3_exp
 
-__all__ = ["FlowTracks", "flow_tracks", "forward_backward_mask", "bundle_adjust", "BundleResult"]
+__all__ = ["FlowTracks", "flow_tracks", "bundle_adjust", "BundleResult"]
 
 
 class FlowTracks(NamedTuple):
@@ -76,36 +76,6 @@ def sample_bilinear(field: np.ndarray, xy: np.ndarray) -> np.ndarray:
     v = (field[y0, x0] * (1 - fx) * (1 - fy) + field[y0, x1] * fx * (1 - fy)
          + field[y1, x0] * (1 - fx) * fy + field[y1, x1] * fx * fy)
     return np.where(inside[:, None], v, np.nan)
-
-
-def forward_backward_mask(forward: np.ndarray, backward: np.ndarray, tol_px: float) -> np.ndarray:
-    """Pixels of the forward flow that the backward flow undoes: [H, W] bool, true where
-    |forward(x) + backward(x + forward(x))| <= tol_px (the backward flow read bilinearly at the pixel's match).
-
-    Args:
-        forward: [H, W, 2] flow from frame a to frame b on a's grid (NaN: unknown).
-        backward: [H, W, 2] flow from b to a on b's grid (NaN: unknown).
-        tol_px: the largest round-trip error kept (pixels).
-
-    Occluded pixels, and those where the flow is smoothed across a depth edge, fail the round trip; an
-    unknown flow, or a match outside b, fails too. Pixel centres at +0.5, as `sample_bilinear`.
-    """
-    fw = np.asarray(forward, np.float64)
-    bw = np.asarray(backward, np.float64)
-    if fw.ndim != 3 or fw.shape[-1] != 2 or bw.shape != fw.shape:
-        raise ValueError(f"forward_backward_mask: forward and backward must both be [H, W, 2]; got "
-                         f"{list(fw.shape)} and {list(bw.shape)}")
-    if not tol_px >= 0:
-        raise ValueError(f"forward_backward_mask: tol_px must be >= 0; got {tol_px}")
-    h, w = fw.shape[:2]
-    ys, xs = np.mgrid[0:h, 0:w]
-    grid = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], -1)  # [H W, 2]
-    f = fw.reshape(-1, 2)
-    pos = grid + f
-    pos = np.where(np.isfinite(pos).all(-1, keepdims=True), pos, -1.0)  # an unknown flow: a match outside b
-    back = sample_bilinear(bw, pos)  # [H W, 2], NaN outside b or where unknown
-    err = np.linalg.norm(f + back, axis=-1)
-    return (err <= tol_px).reshape(h, w)  # NaN compares false
 
 
 def flow_tracks(flows: np.ndarray, prev: np.ndarray, *, length: int = 4, stride: int = 8) -> FlowTracks:
@@ -228,8 +198,9 @@ def bundle_adjust(viewmats: np.ndarray, Ks: np.ndarray, flows: np.ndarray, prev:
             units), the prior's weights.
         cauchy_px: final Cauchy scale (pixels); it starts at 4x this and halves while the fit improves.
         backward: [T, H, W, 2] optional: backward[i] is the flow from frame i to frame prev[i], on frame i's
-            grid. When given, the tracks stop where a forward flow fails the round trip by more than
-            ``fb_px`` pixels (`forward_backward_mask`): occlusions and flow smoothed across depth edges. On the
+            grid. When given, the tracks stop where a forward flow fails the round trip by ``fb_px`` pixels or more
+            (`fgjax.data.opticalflow.forward_backward_mask` with alpha 0 and beta ``fb_px``^2): occlusions and flow
+            smoothed across depth edges. On the
             pose-noise scene (0.5 degree, 1%) this took the rotations from 0.218 to 0.160 degree off the truth
             at 0.1 px (docs/benchmarks.md, session 35).
 
@@ -248,14 +219,18 @@ def bundle_adjust(viewmats: np.ndarray, Ks: np.ndarray, flows: np.ndarray, prev:
     nt = len(vm)
     flows = np.asarray(flows)
     if backward is not None:
+        from fgjax.data.opticalflow import forward_backward_mask
+
         backward = np.asarray(backward)
         if backward.shape != flows.shape:
             raise ValueError(f"bundle_adjust: backward flows must have the forward flows' shape {list(flows.shape)}, "
                              f"got {list(backward.shape)}")
+        if not fb_px > 0:
+            raise ValueError(f"bundle_adjust: fb_px must be > 0 with backward flows; got {fb_px}")
         flows = flows.copy()
         for i, j in enumerate(np.asarray(prev)):
-            if j >= 0:
-                flows[i][~forward_backward_mask(flows[i], backward[i], fb_px)] = np.nan
+            if j >= 0:  # |w_f + w_b|^2 < fb_px^2 (Sundaram et al.'s test without its relative term)
+                flows[i][~forward_backward_mask(flows[i], backward[i], alpha=0.0, beta=fb_px ** 2)] = np.nan
     tr = flow_tracks(flows, np.asarray(prev), length=length, stride=stride)
     xi = np.zeros((nt, 6))
     if len(tr.obs_track) == 0:

@@ -367,7 +367,7 @@ def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str 
     """Observed optical flow into each training frame from its predecessor in time, on the predecessor's
     grid: [T, H, W, 2] float32, NaN for the first frame (``fgjax.data.opticalflow.estimate_flow``, cached
     on disk under `cache_dir`). ``backward``: the reverse, from each frame to its predecessor on the frame's
-    own grid (the round-trip check of `fgjax.pipeline.poses.forward_backward_mask`)."""
+    own grid (the round trip of ``pose.bundle_fb_px``)."""
     from fgjax.data.opticalflow import estimate_flow
 
     prev = previous_frames(scene.times)
@@ -444,7 +444,7 @@ def _bundle_adjusted(cfg: Config, scene, cache_dir, log):
                                                                    log=log, backward=True)
     res = bundle_adjust(scene.viewmats, scene.Ks, flows, previous_frames(scene.times), prior_rot_deg=p.bundle_prior_deg,
                         prior_trans=p.bundle_prior_trans, cauchy_px=p.bundle_cauchy_px, backward=back,
-                        fb_px=max(p.bundle_fb_px, 0.0), log=log)
+                        fb_px=p.bundle_fb_px, log=log)
     return dataclasses.replace(scene, viewmats=res.viewmats.astype(np.float32)), res.deltas.astype(np.float32)
 
 

@@ -204,7 +204,8 @@ class PoseConfig:
     depth edges); 0: off (the default). On the pose-noise scene, 0.1 px took the adjusted rotations from 0.218 to
     0.160 degree off the truth, and after stage 1 from 0.168 to 0.118, with stage 1's test views at 29.12 dB
     instead of 28.82; but stage 2 on that stage-1 run lost the door in both of its seeds (held-out states 24.15
-    and 23.97 dB against 26.91), so it stays off (docs/benchmarks.md, session 35)."""
+    and 23.97 dB against 26.91 and 28.05). On a second pose-noise scene it gained a little (27.18 -> 27.47 dB), so
+    it stays off (docs/benchmarks.md, session 35)."""
 
 
 @dataclasses.dataclass(frozen=True)

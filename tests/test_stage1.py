@@ -504,6 +504,7 @@ def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
     state, _, _ = stage1.initial_state(cfg, scene)
     np.testing.assert_allclose(np.asarray(state.params["pose"]), deltas, atol=1e-7)
     assert seen["cauchy_px"] == 0.5 and seen["flows"] == (4, scene.height, scene.width, 2)
+    np.testing.assert_allclose(placed["viewmats"], stage1.refined_viewmats(state.params, scene.viewmats), atol=1e-5)
     # the round-trip check's backward flows (frame i -> i - 1 on frame i's grid; none into the first frame)
     assert seen["fb_px"] == 0.1 and seen["backward"].shape == (4, scene.height, scene.width, 2)
     assert np.isnan(seen["backward"][0]).all() and np.isfinite(seen["backward"][1:]).all()
@@ -511,4 +512,3 @@ def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
     assert seen["backward"] is None
     with pytest.raises(C.ConfigError, match="pose.bundle_fb_px"):
         stage1._check_train_config(_cfg("pose.enabled=true", "pose.bundle=true", "pose.bundle_fb_px=-1"))
-    np.testing.assert_allclose(placed["viewmats"], stage1.refined_viewmats(state.params, scene.viewmats), atol=1e-5)

@@ -200,9 +200,8 @@ def bundle_adjust(viewmats: np.ndarray, Ks: np.ndarray, flows: np.ndarray, prev:
         backward: [T, H, W, 2] optional: backward[i] is the flow from frame i to frame prev[i], on frame i's
             grid. When given, the tracks stop where a forward flow fails the round trip by ``fb_px`` pixels or more
             (`fgjax.data.opticalflow.forward_backward_mask` with alpha 0 and beta ``fb_px``^2): occlusions and flow
-            smoothed across depth edges. On the
-            pose-noise scene (0.5 degree, 1%) this took the rotations from 0.218 to 0.160 degree off the truth
-            at 0.1 px (docs/benchmarks.md, session 35).
+            smoothed across depth edges. On the pose-noise scene (0.5 degree, 1%) this took the rotations from
+            0.218 to 0.160 degree off the truth at 0.1 px (docs/benchmarks.md, session 35).
 
     Returns:
         `BundleResult`; with no usable track the written poses come back unchanged.

@@ -376,8 +376,8 @@ def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str 
     t0 = time.time()
     for i, j in enumerate(prev):
         if j >= 0:
-            out[i] = estimate_flow(imgs[i], imgs[j], method, cache_dir=cache_dir) if backward else estimate_flow(
-                imgs[j], imgs[i], method, cache_dir=cache_dir)
+            a, b = (i, j) if backward else (j, i)  # the flow from frame a to frame b, on a's grid
+            out[i] = estimate_flow(imgs[a], imgs[b], method, cache_dir=cache_dir)
     log(f"optical flow ({method}{', backward' if backward else ''}): {int(np.sum(prev >= 0))} pairs in "
         f"{time.time() - t0:.1f} s")
     return out

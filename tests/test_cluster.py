@@ -609,3 +609,77 @@ def test_drop_isolated_drops_the_members_far_from_the_rest_of_their_cluster():
         kw = {"points": pts, "labels": lab, "factor": 2.5, "alive": alive, **bad}
         with pytest.raises(ValueError, match=msg):
             drop_isolated(**kw)
+
+
+def _lid_scene(seed=0, lid_rgb=(0.9, 0.75, 0.15), box_rgb=(0.3, 0.38, 0.25)):
+    """A lid-like part (a 0.36 x 0.26 plate, spacing 0.01) on a box whose walls' tops lie under its edges, with
+    the labels that motion cues leave: the plate's strip along its hinge (y > 0.09) unlabelled, the walls' top
+    rows (within 0.02 below the plate) labelled with it. Colours: each set's own, with a checker and noise."""
+    rng = np.random.default_rng(seed)
+    gx, gy = np.meshgrid(np.arange(-0.18, 0.1801, 0.01), np.arange(-0.13, 0.1301, 0.01), indexing="ij")
+    plate = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, 0.22)]
+    walls = []
+    for z in np.arange(0.0, 0.2101, 0.01):
+        for x in np.arange(-0.18, 0.1801, 0.01):
+            walls += [[x, -0.13, z], [x, 0.13, z]]
+        for y in np.arange(-0.12, 0.1201, 0.01):
+            walls += [[-0.18, y, z], [0.18, y, z]]
+    walls = np.array(walls)
+    pts = np.concatenate([plate, walls])
+    truth = np.r_[np.zeros(len(plate), int), np.full(len(walls), -1)]
+    checker = ((np.floor(pts[:, 0] / 0.05) + np.floor(pts[:, 1] / 0.05) + np.floor(pts[:, 2] / 0.05)) % 2)[:, None]
+    base = np.where(truth[:, None] == 0, lid_rgb, box_rgb)
+    col = np.clip(base * (0.85 + 0.3 * checker) + rng.normal(0, 0.03, pts.shape), 0, 1)
+    lab = truth.copy()
+    lab[(truth == 0) & (pts[:, 1] > 0.09)] = -1  # the hinge strip
+    lab[(truth == -1) & (pts[:, 2] >= 0.19)] = 0  # the walls' tops
+    return pts, col, lab, truth
+
+
+def test_refine_by_colour_mends_a_lids_outline_and_leaves_an_alike_part_alone():
+    """`refine_by_colour` on `_lid_scene`: the hinge strip (148 Gaussians) joins and the walls' tops (372) leave,
+    every one, and nothing else changes; the report counts them (without ``colour_floor`` a few odd colours of the
+    plate leave too). A part coloured like its box is left as it was
+    (its separation is reported below the cut); so is a part with too few members, or one whose round would change
+    more than ``max_change`` of it. Gaussians that are not usable keep their labels. Bad inputs raise."""
+    pts, col, lab, truth = _lid_scene()
+    assert np.sum((truth == 0) & (lab == -1)) == 148 and np.sum((truth == -1) & (lab == 0)) == 372
+    out, rep = C.refine_by_colour(pts, col, lab, radius=0.08)
+    np.testing.assert_array_equal(out, truth)
+    assert rep[0]["joined"] == 148 and rep[0]["left"] == 372 and rep[0]["skipped"] is None
+    # without the colour floor, mixture components fit a few of the plate's brightest colours, which then leave
+    out_nf, _ = C.refine_by_colour(pts, col, lab, radius=0.08, colour_floor=1e-6)
+    assert np.sum(out_nf != truth) >= 1
+    assert 0.65 <= rep[0]["separation"] <= 1.0
+    # not usable: keeps its label (one strip Gaussian, one wall top)
+    usable = np.ones(len(pts), bool)
+    strip, top = np.flatnonzero((truth == 0) & (lab == -1))[0], np.flatnonzero((truth == -1) & (lab == 0))[0]
+    usable[[strip, top]] = False
+    out_u, _ = C.refine_by_colour(pts, col, lab, usable, radius=0.08)
+    assert out_u[strip] == -1 and out_u[top] == 0 and out[top] == -1
+    # a part coloured like its box: nothing changes, and the report says why
+    pts2, col2, lab2, _ = _lid_scene(lid_rgb=(0.3, 0.38, 0.25))
+    out2, rep2 = C.refine_by_colour(pts2, col2, lab2, radius=0.08)
+    np.testing.assert_array_equal(out2, lab2)
+    assert rep2[0]["separation"] < 0.65 and "colours apart" in rep2[0]["skipped"]
+    assert rep2[0]["joined"] == rep2[0]["left"] == 0
+    # too few members; too large a change
+    few = np.where(np.arange(len(lab)) < 10, lab, -1)
+    out3, rep3 = C.refine_by_colour(pts, col, few, radius=0.08)
+    np.testing.assert_array_equal(out3, few)
+    assert "usable members" in rep3[0]["skipped"]
+    out4, rep4 = C.refine_by_colour(pts, col, lab, radius=0.08, max_change=0.1)
+    np.testing.assert_array_equal(out4, lab)
+    assert "would change" in rep4[0]["skipped"]
+    # no clusters: nothing to do
+    out5, rep5 = C.refine_by_colour(pts, col, np.full(len(lab), -1), radius=0.08)
+    assert rep5 == [] and np.all(out5 == -1)
+    for bad, msg in ((dict(colours=col[:-1]), "colours"), (dict(colours=np.where(pts == pts[3], np.nan, col)), "colours"),
+                     (dict(labels=lab[:-1]), "labels"), (dict(usable=usable[:-1]), "usable"),
+                     (dict(radius=0.0), "radius"), (dict(radius=float("nan")), "radius"),
+                     (dict(n_components=0), "n_components"), (dict(min_separation=1.5), "min_separation"),
+                     (dict(colour_floor=0.0), "colour_floor"),
+                     (dict(points=np.where(np.arange(len(pts))[:, None] == 3, np.inf, pts)), "non-finite")):
+        kw = {"points": pts, "colours": col, "labels": lab, "usable": usable, "radius": 0.08, **bad}
+        with pytest.raises(ValueError, match=msg):
+            C.refine_by_colour(**kw)

@@ -445,7 +445,7 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                               track_rounds=2, seed=3, hull_fill=False, joint_search=2,
                               hinge_fill=False, isolated_factor=0.0,  # (their re-fit: test_hull_and_hinge_...)
-                              through_prune=0.0,
+                              through_prune=0.0, colour_radius=0.0,
                               ghost_radius=0.0)  # (its fade makes a new start: test_stage2_with_photometric_...)
     res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
     assert [c[0] for c in calls] == ["track", "refit", "track", "refit"], [c[0] for c in calls]
@@ -497,7 +497,7 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
         logs = []
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                                   track_rounds=4, track_converged_deg=limit, hull_fill=False,
-                                  hinge_fill=False, isolated_factor=0.0, through_prune=0.0)
+                                  hinge_fill=False, isolated_factor=0.0, through_prune=0.0, colour_radius=0.0)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
         tracks = [c for c in calls if c[0] == "track"]
         assert [c[0] for c in calls] == ["track", "refit"] * want, [c[0] for c in calls]
@@ -513,9 +513,9 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
 
 
 def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tmp_path, monkeypatch):
-    """``hull_fill`` then ``hinge_fill`` then ``isolated_factor``: after the last round's re-fit the hulls are filled
-    once, then the hinges (given the hull's labels and the last round's poses), then the isolated members are
-    dropped (given the filled labels), and ``hull_refit_steps`` steps of re-fit without relabelling follow under
+    """``hull_fill`` then ``hinge_fill`` then ``isolated_factor`` then ``colour_radius``: after the last round's re-fit
+    the hulls are filled once, then the hinges (given the hull's labels and the last round's poses), then the
+    isolated members are dropped (given the filled labels), then the outlines relabelled by colour, and ``hull_refit_steps`` steps of re-fit without relabelling follow under
     the final labels; their scene and those labels are the ones kept, and stage2.json records what joined and
     left. ``hull_refit_steps=0``: the fills alone; any one alone; all off: none of them nor the extra re-fit. The tracking, re-fit and fills are recorders (the real fills: tests/test_cluster.py; the
     real re-fit: the tests above)."""
@@ -524,17 +524,18 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
     import jax
 
     rounds = ["track", "refit", "track", "refit"]
-    for hull, hinge, iso, thr, steps, want in (
-            (True, True, False, False, 7, rounds + ["fill", "hinge", "refit"]),
-            (True, True, True, False, 7, rounds + ["fill", "hinge", "iso", "refit"]),
-            (True, True, True, True, 7, rounds + ["fill", "hinge", "iso", "thr", "refit"]),
-            (True, True, False, False, 0, rounds + ["fill", "hinge"]),
-            (True, False, False, False, 7, rounds + ["fill", "refit"]),
-            (False, True, False, False, 7, rounds + ["hinge", "refit"]),
-            (False, False, True, False, 7, rounds + ["iso", "refit"]),
-            (False, False, False, True, 7, rounds + ["thr", "refit"]),
-            (False, False, False, False, 7, rounds)):
-        dst = tmp_path / f"{hull}{hinge}{iso}{thr}{steps}"
+    for hull, hinge, iso, col, thr, steps, want in (
+            (True, True, False, False, False, 7, rounds + ["fill", "hinge", "refit"]),
+            (True, True, True, False, False, 7, rounds + ["fill", "hinge", "iso", "refit"]),
+            (True, True, True, True, True, 7, rounds + ["fill", "hinge", "iso", "col", "thr", "refit"]),
+            (True, True, False, False, False, 0, rounds + ["fill", "hinge"]),
+            (True, False, False, False, False, 7, rounds + ["fill", "refit"]),
+            (False, True, False, False, False, 7, rounds + ["hinge", "refit"]),
+            (False, False, True, False, False, 7, rounds + ["iso", "refit"]),
+            (False, False, False, True, False, 7, rounds + ["col", "refit"]),
+            (False, False, False, False, True, 7, rounds + ["thr", "refit"]),
+            (False, False, False, False, False, 7, rounds)):
+        dst = tmp_path / f"{hull}{hinge}{iso}{col}{thr}{steps}"
         shutil.copytree(tiny[0], dst)
         calls = []
 
@@ -572,6 +573,15 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
             new[np.flatnonzero(new == 0)[:1]] = -1  # one member of cluster 0 leaves
             return new, [1] + [0] * int(new.max())
 
+        def fake_col(labels, gs, alive, cfg, log=print):
+            assert (cfg.colour_radius, cfg.colour_components, cfg.colour_separation) == (0.07, 3, 0.6)
+            calls.append(("col", np.asarray(labels).copy()))
+            new = np.asarray(labels).copy()
+            new[np.flatnonzero(new == 0)[-1:]] = -1  # one member of cluster 0 leaves ...
+            new[np.flatnonzero(new < 0)[-4:-1]] = 0  # ... and three static Gaussians join it (not the last)
+            k = int(new.max()) + 1
+            return new, [{"joined": 3 if c == 0 else 0, "left": 1 if c == 0 else 0} for c in range(k)]
+
         def fake_thr(gs, labels, poses, run, scene, order, max_ratio, log=print):
             assert max_ratio == 0.4
             calls.append(("thr", np.asarray(labels).copy(), np.asarray(poses).copy()))
@@ -585,17 +595,20 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
         monkeypatch.setattr(stage2, "_fill_hulls", fake_fill)
         monkeypatch.setattr(stage2, "_fill_hinges", fake_hinge)
         monkeypatch.setattr(stage2, "_drop_isolated", fake_iso)
+        monkeypatch.setattr(stage2, "_refine_by_colour", fake_col)
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, relabel_steps=3,
                                   track_photo=5, track_rounds=2, track_converged_deg=0.0, hull_fill=hull,
                                   hull_opacity=0.6, hull_max_growth=0.25, hull_refit_steps=steps, hinge_fill=hinge,
                                   hinge_radius=0.3, hinge_reach=0.1, hinge_min_deg=25.0,
-                                  isolated_factor=1.5 if iso else 0.0, through_prune=0.4 if thr else 0.0)
+                                  isolated_factor=1.5 if iso else 0.0, through_prune=0.4 if thr else 0.0,
+                                  colour_radius=0.07 if col else 0.0, colour_components=3, colour_separation=0.6)
         res = stage2.run_stage2(dst, tiny[1], cfg, log=lambda m: None)
         if res.num_objects == 0:
             pytest.skip("no clusters in the tiny run")
         assert [c[0] for c in calls] == want, (hull, hinge, steps, [c[0] for c in calls])
         before = calls[3][1]  # the labels the last round's re-fit was given
-        assert int(np.sum(res.labels >= 0)) == int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge) - int(iso)
+        assert int(np.sum(res.labels >= 0)) == (int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge) - int(iso)
+                                                + 2 * int(col))
         if hinge:  # the hinges see the hull's labels and the last round's poses
             (fill_in,) = [c for c in calls if c[0] == "hinge"]
             assert int(np.sum(fill_in[1] >= 0)) == int(np.sum(before >= 0)) + int(hull)
@@ -603,9 +616,18 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
         if iso:  # the drop sees the fills' labels; the one dropped starts the last re-fit faded, as the ghosts do
             (iso_in,) = [c for c in calls if c[0] == "iso"]
             assert int(np.sum(iso_in[1] >= 0)) == int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge)
-            (gone,) = np.flatnonzero((iso_in[1] >= 0) & (res.labels < 0))
+            gone = np.flatnonzero(iso_in[1] == 0)[0]  # the member fake_iso drops
+            assert res.labels[gone] < 0
             cap = np.log(0.05 / 0.95)
-            assert calls[-3 if thr else -2][0] == "iso" and calls[-1][0] == "refit" and calls[-1][4][gone] <= cap + 1e-5
+            assert calls[-2 - int(thr) - int(col)][0] == "iso" and calls[-1][0] == "refit"
+            assert calls[-1][4][gone] <= cap + 1e-5
+        if col:  # colour sees the labels after the drop; the member that left starts the last re-fit faded too
+            (col_in,) = [c for c in calls if c[0] == "col"]
+            assert int(np.sum(col_in[1] >= 0)) == (int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge)
+                                                   - int(iso))
+            left = np.flatnonzero(col_in[1] == 0)[-1]  # the member fake_col sends away
+            assert res.labels[left] < 0
+            assert calls[-1][0] == "refit" and calls[-1][4][left] <= np.log(0.05 / 0.95) + 1e-5
         if thr:  # the prune sees the final labels and the last round's poses; what it pruned starts the re-fit so
             (thr_in,) = [c for c in calls if c[0] == "thr"]
             np.testing.assert_array_equal(thr_in[1], res.labels)
@@ -632,6 +654,9 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
         if iso:
             assert meta["isolated_dropped"][0] == 1
         assert meta.get("through_pruned") == (1 if thr else None)
+        assert ("colour_joined" in meta) == ("colour_left" in meta) == col
+        if col:
+            assert meta["colour_joined"][0] == 3 and meta["colour_left"][0] == 1
 
 
 def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quiet():
@@ -654,6 +679,48 @@ def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quie
         warnings.simplefilter("error")
         out = stage2._fill_hulls(labels, g, alive, 0.7, log=lambda m: None)
     np.testing.assert_array_equal(out, np.r_[np.zeros(10, int), 0, -1, -1])  # only the point inside the cube joins
+
+
+def test_refine_by_colour_takes_the_dc_colours_of_the_alive_visible_gaussians(monkeypatch):
+    """`stage2._refine_by_colour` hands `fgjax.cluster.refine_by_colour` the centres, the RGB of the SH DC term
+    (C0 sh0 + 0.5), the alive Gaussians with opacity >= 0.1 as usable (a faint one, logit -800, and a dead one
+    are not), and the config's radius, components, separation and seed; it returns the labels and report and
+    logs what joined and left and why a part was left alone."""
+    import warnings
+
+    from fgjax import cluster
+    from fgjax.gaussians import SH_C0, Gaussians
+
+    n = 5
+    means = np.arange(3 * n, dtype=np.float64).reshape(n, 3)
+    sh = np.zeros((n, 4, 3))
+    sh[:, 0] = np.linspace(-1.0, 1.0, 3 * n).reshape(n, 3)
+    sh[:, 1:] = 9.0  # higher orders play no part
+    logits = np.array([5.0, -800.0, 0.0, -2.0, 5.0])  # opacities ~1, 0, 0.5, 0.12, ~1 (the last one dead)
+    g = Gaussians(means, np.zeros((n, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), logits, sh)
+    alive = np.array([True, True, True, True, False])
+    labels = np.array([0, 0, -1, 1, -1])
+    seen = {}
+
+    def fake(points, colours, lab, usable, **kw):
+        seen.update(points=points, colours=colours, labels=lab, usable=usable, **kw)
+        return np.array([0, -1, 0, 1, -1]), [{"joined": 1, "left": 1, "separation": 0.9, "skipped": None},
+                                              {"joined": 0, "left": 0, "separation": 0.5, "skipped": "colours apart"}]
+
+    monkeypatch.setattr(cluster, "refine_by_colour", fake)
+    logs = []
+    cfg = stage2.Stage2Config(colour_radius=0.07, colour_components=3, colour_separation=0.6, seed=5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out, rep = stage2._refine_by_colour(labels, g, alive, cfg, log=logs.append)
+    np.testing.assert_array_equal(out, [0, -1, 0, 1, -1])
+    assert rep[1]["skipped"] == "colours apart"
+    np.testing.assert_allclose(seen["points"], means)
+    np.testing.assert_allclose(seen["colours"], sh[:, 0] * SH_C0 + 0.5)
+    np.testing.assert_array_equal(seen["usable"], [True, False, True, True, False])
+    np.testing.assert_array_equal(seen["labels"], labels)
+    assert (seen["radius"], seen["n_components"], seen["min_separation"], seen["seed"]) == (0.07, 3, 0.6, 5)
+    assert len(logs) == 1 and "joined [1, 0], left [1, 0]" in logs[0] and "object 2 stopped: colours apart" in logs[0]
 
 
 def test_fill_hinges_takes_the_hinge_from_the_poses_and_the_core_from_the_alive_opaque_members():
@@ -844,7 +911,10 @@ def test_validate_config_names_the_field():
                     ({"isolated_factor": float("nan")}, "isolated_factor"), ({"through_prune": -0.1}, "through_prune"),
                     ({"through_prune": 1.5}, "through_prune"), ({"through_prune": float("nan")}, "through_prune"),
                     ({"joint_search": -1}, "joint_search"), ({"joint_search": True}, "joint_search"),
-                    ({"joint_search": 1.5}, "joint_search")):
+                    ({"joint_search": 1.5}, "joint_search"), ({"colour_radius": -0.1}, "colour_radius"),
+                    ({"colour_radius": float("nan")}, "colour_radius"), ({"colour_components": 0}, "colour_components"),
+                    ({"colour_components": True}, "colour_components"), ({"colour_separation": 1.5}, "colour_separation"),
+                    ({"colour_separation": float("nan")}, "colour_separation")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

@@ -318,6 +318,22 @@ class Stage2Config:
     five and -0.033 on the close pair's seed 0, the held-out states -0.16 dB on average (-0.66 to +0.89); with the
     fade, on four, +0.007 (-0.023 to +0.025) and -0.09 dB (-0.63 to +0.93; the demo's run 0.873 -> 0.879 and
     28.16 -> 29.09 dB)."""
+    colour_radius: float = 0.08
+    """After the fills and `isolated_factor`, before `through_prune`: each part's outline relabelled by colour
+    (`fgjax.cluster.refine_by_colour`, GrabCut's colour mixtures on the re-fitted Gaussians' DC colours): members
+    coloured like the static Gaussians within this distance of the part (scene units) become static, and those
+    coloured like the part join it. The motion cues leave the strip along a lid's hinge static and join the box
+    under it; where a part differs in colour from its surroundings, its colours tell them apart. The members that
+    leave start the re-fit faded like `isolated_factor`'s. 0: off. Measured (docs/benchmarks.md, session 36)."""
+    colour_rounds: bool = False
+    """With ``colour_radius`` > 0: the outlines are relabelled by colour after each round's re-fit too, so that the
+    next round tracks the parts without the Gaussians around them (a lid's box). Measured (session 36)."""
+    colour_components: int = 4
+    """`colour_radius`: Gaussian-mixture components of each colour model."""
+    colour_separation: float = 0.65
+    """`colour_radius` leaves a part alone whose two colour models tell its members from its surroundings with a
+    balanced accuracy below this (a part coloured like what it hangs on). Both sets still hold the errors being
+    mended, so a part that does differ scores 0.72-0.97 on the synthetic scenes (session 36)."""
     through_prune: float = 0.5
     """After the fills and `isolated_factor`, before their re-fit: the static Gaussians with more than this share of
     their painted weight over the training frames where the parts' members cover the pixel (`seen_through`, the
@@ -328,8 +344,8 @@ class Stage2Config:
     (default scene, pose noise, close pair seeds 0 and 1), held-out states +0.33 / 0.00 / +0.01 / -0.22 dB; 255-262
     Gaussians pruned, 12-17 s."""
     hull_refit_steps: int = 100
-    """Steps of `refit_gaussians` (no relabelling) after `hull_fill`, `hinge_fill`, `isolated_factor` and
-    `through_prune`: the Gaussians that joined were re-fitted as static, those dropped as members; 0: none."""
+    """Steps of `refit_gaussians` (no relabelling) after `hull_fill`, `hinge_fill`, `isolated_factor`,
+    `colour_radius` and `through_prune`: the Gaussians that joined were re-fitted as static, those dropped as members; 0: none."""
     refit_lr_scale: float = 1.0
     """Every learning rate of `refit_gaussians` (stage 1's optimiser groups and schedules) times this. Each
     re-fit restarts Adam at stage 1's first learning rates, which might blur what stage 1 had settled; measured at
@@ -911,6 +927,26 @@ def _drop_isolated(labels: np.ndarray, gs: Gaussians, alive, factor: float, log=
     return new, left
 
 
+_COLOUR_MIN_OPACITY = 0.1  # `_refine_by_colour`: fainter Gaussians' colours do not count (nor change label)
+
+
+def _refine_by_colour(labels: np.ndarray, gs: Gaussians, alive, cfg: Stage2Config, log=print) -> tuple[np.ndarray, list]:
+    """`Stage2Config.colour_radius`: `fgjax.cluster.refine_by_colour` on the reference scene ``gs`` (centres and DC
+    colours of the alive Gaussians with opacity >= 0.1). Returns (labels [N], the per-cluster report) and logs it."""
+    from fgjax.gaussians import SH_C0
+
+    _, usable = _opaque(gs, alive, _COLOUR_MIN_OPACITY)
+    rgb = np.asarray(gs.sh, np.float64)[:, 0, :] * SH_C0 + 0.5  # [N, 3]
+    new, report = cluster.refine_by_colour(np.asarray(gs.means, np.float64), np.nan_to_num(rgb), labels, usable,
+                                           radius=cfg.colour_radius, n_components=cfg.colour_components,
+                                           min_separation=cfg.colour_separation, seed=cfg.seed)
+    log(f"stage 2: outlines by colour (objects 1, 2, ...): joined {[r['joined'] for r in report]}, left "
+        f"{[r['left'] for r in report]}, colours apart by "
+        f"{[None if r['separation'] is None else round(r['separation'], 2) for r in report]}"
+        + "".join(f"; object {k + 1} stopped: {r['skipped']}" for k, r in enumerate(report) if r["skipped"]))
+    return new, report
+
+
 def _opaque(gs: Gaussians, alive, min_opacity: float) -> tuple[np.ndarray, np.ndarray]:
     """(alive [N] bool, core [N] bool: alive with opacity >= ``min_opacity``) of ``gs``: the fills' core (labels
     select the members). The sigmoid is scipy's expit, without exp's overflow at pruned logits."""
@@ -1467,6 +1503,13 @@ def validate_config(cfg: Stage2Config) -> None:
         raise ValueError(f"Stage2Config.refit_lr_scale must be finite and > 0, got {cfg.refit_lr_scale!r}")
     if not (cfg.isolated_factor == 0 or cfg.isolated_factor >= 1):
         raise ValueError(f"Stage2Config.isolated_factor must be 0 (off) or >= 1, got {cfg.isolated_factor!r}")
+    if not (np.isfinite(cfg.colour_radius) and cfg.colour_radius >= 0):
+        raise ValueError(f"Stage2Config.colour_radius must be finite and >= 0 (0: off), got {cfg.colour_radius!r}")
+    if not (isinstance(cfg.colour_components, (int, np.integer)) and not isinstance(cfg.colour_components, bool)
+            and cfg.colour_components >= 1):
+        raise ValueError(f"Stage2Config.colour_components must be an integer >= 1, got {cfg.colour_components!r}")
+    if not 0 <= cfg.colour_separation <= 1:  # NaN too
+        raise ValueError(f"Stage2Config.colour_separation must be in [0, 1], got {cfg.colour_separation!r}")
     if not (np.isfinite(cfg.through_prune) and 0 <= cfg.through_prune <= 1):
         raise ValueError(f"Stage2Config.through_prune must be 0 (off) or in (0, 1], got {cfg.through_prune!r}")
     if cfg.hull_refit_steps < 0:
@@ -1568,6 +1611,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                 refit, labels = refit_gaussians(run, scene, order, labels, poses, cfg.refit_steps, seed=cfg.seed + r,
                                                 relabel_steps=cfg.relabel_steps, relabel_radius=cfg.relabel_radius,
                                                 init=refit, lr_scale=cfg.refit_lr_scale, log=log)
+                if cfg.colour_rounds and cfg.colour_radius > 0 and r < rounds - 1:  # the next round tracks these
+                    labels, _ = _refine_by_colour(labels, refit, run.state.densify.alive, cfg, log)
             filled = labels
             if cfg.hull_fill:
                 filled = _fill_hulls(filled, refit, run.state.densify.alive, cfg.hull_opacity, cfg.hull_max_growth,
@@ -1584,11 +1629,20 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                 if cfg.ghost_radius > 0:  # as the ghosts: the re-fit brings back those the static frames need
                     refit, faded = _cap_opacity(refit, (before >= 0) & (filled < 0), cfg.ghost_opacity)
                     log(f"stage 2: {int(faded.sum())} of them faded to opacity {cfg.ghost_opacity:g} before the re-fit")
+            if cfg.colour_radius > 0:
+                before = filled
+                filled, rep = _refine_by_colour(before, refit, run.state.densify.alive, cfg, log)
+                fills["colour_joined"] = [r["joined"] for r in rep]
+                fills["colour_left"] = [r["left"] for r in rep]
+                if cfg.ghost_radius > 0:  # as isolated_factor's
+                    refit, faded = _cap_opacity(refit, (before >= 0) & (filled < 0), cfg.ghost_opacity)
+                    log(f"stage 2: {int(faded.sum())} of those that left faded to opacity {cfg.ghost_opacity:g} "
+                        f"before the re-fit")
             if cfg.through_prune > 0:
                 refit, fills["through_pruned"] = _prune_seen_through(refit, filled, poses, run, scene, order,
                                                                      cfg.through_prune, log)
-            if (cfg.hull_fill or cfg.hinge_fill or cfg.isolated_factor > 0 or cfg.through_prune > 0) \
-                    and cfg.hull_refit_steps > 0:
+            if (cfg.hull_fill or cfg.hinge_fill or cfg.isolated_factor > 0 or cfg.colour_radius > 0
+                    or cfg.through_prune > 0) and cfg.hull_refit_steps > 0:
                 refit, _ = refit_gaussians(run, scene, order, filled, poses, cfg.hull_refit_steps,
                                            seed=cfg.seed + rounds, init=refit, lr_scale=cfg.refit_lr_scale, log=log)
             labels = filled

@@ -451,7 +451,7 @@ def drop_isolated(
 def refine_by_colour(
     points: Float[np.ndarray, "M 3"], colours: Float[np.ndarray, "M C"], labels: Int[np.ndarray, " M"],
     usable: Bool[np.ndarray, " M"] | None = None, *, radius: float, n_components: int = 4, smooth_k: int = 8,
-    rounds: int = 2, min_separation: float = 0.75, max_change: float = 0.5, colour_floor: float = 1e-4,
+    rounds: int = 2, min_separation: float = 0.65, max_change: float = 0.5, colour_floor: float = 1e-4,
     seed: int = 0,
 ) -> tuple[Int[np.ndarray, " M"], list[dict]]:
     """Each cluster's outline relabelled by colour, as GrabCut (Rother et al. 2004) does for an image mask.
@@ -523,7 +523,8 @@ def refine_by_colour(
             d, _ = cKDTree(pts[fg]).query(pts, k=1)  # [M]
             bg = (out == -1) & ok & (d <= radius)
             if bg.sum() < min_size:
-                rep["skipped"] = f"{int(bg.sum())} usable unlabelled Gaussians within {radius:g} (fewer than {min_size})"
+                rep["skipped"] = (f"{int(bg.sum())} usable unlabelled Gaussians within {radius:g} "
+                                  f"(fewer than {min_size})")
                 break
             gm_fg = GaussianMixture(n_components, reg_covar=colour_floor, random_state=seed).fit(col[fg])
             gm_bg = GaussianMixture(n_components, reg_covar=colour_floor, random_state=seed).fit(col[bg])

@@ -674,7 +674,8 @@ def test_refine_by_colour_mends_a_lids_outline_and_leaves_an_alike_part_alone():
     # no clusters: nothing to do
     out5, rep5 = C.refine_by_colour(pts, col, np.full(len(lab), -1), radius=0.08)
     assert rep5 == [] and np.all(out5 == -1)
-    for bad, msg in ((dict(colours=col[:-1]), "colours"), (dict(colours=np.where(pts == pts[3], np.nan, col)), "colours"),
+    for bad, msg in ((dict(colours=col[:-1]), "colours"),
+                     (dict(colours=np.where(pts == pts[3], np.nan, col)), "colours"),
                      (dict(labels=lab[:-1]), "labels"), (dict(usable=usable[:-1]), "usable"),
                      (dict(radius=0.0), "radius"), (dict(radius=float("nan")), "radius"),
                      (dict(n_components=0), "n_components"), (dict(min_separation=1.5), "min_separation"),

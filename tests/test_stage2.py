@@ -515,10 +515,12 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
 def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tmp_path, monkeypatch):
     """``hull_fill`` then ``hinge_fill`` then ``isolated_factor`` then ``colour_radius``: after the last round's re-fit
     the hulls are filled once, then the hinges (given the hull's labels and the last round's poses), then the
-    isolated members are dropped (given the filled labels), then the outlines relabelled by colour, and ``hull_refit_steps`` steps of re-fit without relabelling follow under
-    the final labels; their scene and those labels are the ones kept, and stage2.json records what joined and
-    left. ``hull_refit_steps=0``: the fills alone; any one alone; all off: none of them nor the extra re-fit. The tracking, re-fit and fills are recorders (the real fills: tests/test_cluster.py; the
-    real re-fit: the tests above)."""
+    isolated members are dropped (given the filled labels), then the outlines relabelled by colour (the members that
+    leave start the re-fit faded, as the isolated ones do), and ``hull_refit_steps`` steps of re-fit without
+    relabelling follow under the final labels; their scene and those labels are the ones kept, and stage2.json
+    records what joined and left. ``hull_refit_steps=0``: the fills alone; any one alone; all off: none of them nor
+    the extra re-fit. The tracking, re-fit and fills are recorders (the real fills: tests/test_cluster.py; the real
+    re-fit: the tests above)."""
     import shutil
 
     import jax
@@ -913,7 +915,8 @@ def test_validate_config_names_the_field():
                     ({"joint_search": -1}, "joint_search"), ({"joint_search": True}, "joint_search"),
                     ({"joint_search": 1.5}, "joint_search"), ({"colour_radius": -0.1}, "colour_radius"),
                     ({"colour_radius": float("nan")}, "colour_radius"), ({"colour_components": 0}, "colour_components"),
-                    ({"colour_components": True}, "colour_components"), ({"colour_separation": 1.5}, "colour_separation"),
+                    ({"colour_components": True}, "colour_components"),
+                    ({"colour_separation": 1.5}, "colour_separation"),
                     ({"colour_separation": float("nan")}, "colour_separation")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))

@@ -995,6 +995,18 @@ def _cap_opacity(gs: Gaussians, mask, opacity: float) -> tuple[Gaussians, np.nda
     return Gaussians(gs.means, gs.log_scales, gs.quats, np.where(faded, np.asarray(cap, o.dtype), o), gs.sh), faded
 
 
+def _fade_dropped(gs: Gaussians, before: np.ndarray, after: np.ndarray, cfg: Stage2Config, what: str,
+                  log=print) -> Gaussians:
+    """With ``cfg.ghost_radius`` > 0, as the ghosts: the members of ``before`` [N] that are static in ``after`` [N]
+    start the last re-fit with their opacity capped at ``cfg.ghost_opacity`` (the re-fit brings back those the
+    static frames need); logs how many, "``what`` faded ..."."""
+    if cfg.ghost_radius <= 0:
+        return gs
+    gs, faded = _cap_opacity(gs, (before >= 0) & (after < 0), cfg.ghost_opacity)
+    log(f"stage 2: {int(faded.sum())} {what} faded to opacity {cfg.ghost_opacity:g} before the re-fit")
+    return gs
+
+
 _PRUNED_OPACITY = 1e-6  # the opacity `_prune_seen_through` sets
 
 
@@ -1632,18 +1644,13 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                 before = filled
                 filled, fills["isolated_dropped"] = _drop_isolated(before, refit, run.state.densify.alive,
                                                                    cfg.isolated_factor, log)
-                if cfg.ghost_radius > 0:  # as the ghosts: the re-fit brings back those the static frames need
-                    refit, faded = _cap_opacity(refit, (before >= 0) & (filled < 0), cfg.ghost_opacity)
-                    log(f"stage 2: {int(faded.sum())} of them faded to opacity {cfg.ghost_opacity:g} before the re-fit")
+                refit = _fade_dropped(refit, before, filled, cfg, "of them", log)
             if cfg.colour_radius > 0:
                 before = filled
                 filled, rep = _refine_by_colour(before, refit, run.state.densify.alive, cfg, log)
                 fills["colour_joined"] = [r["joined"] for r in rep]
                 fills["colour_left"] = [r["left"] for r in rep]
-                if cfg.ghost_radius > 0:  # as isolated_factor's
-                    refit, faded = _cap_opacity(refit, (before >= 0) & (filled < 0), cfg.ghost_opacity)
-                    log(f"stage 2: {int(faded.sum())} of those that left faded to opacity {cfg.ghost_opacity:g} "
-                        f"before the re-fit")
+                refit = _fade_dropped(refit, before, filled, cfg, "of those that left", log)
             if cfg.through_prune > 0:
                 refit, fills["through_pruned"] = _prune_seen_through(refit, filled, poses, run, scene, order,
                                                                      cfg.through_prune, log)

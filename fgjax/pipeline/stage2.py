@@ -325,9 +325,9 @@ class Stage2Config:
     coloured like the part join it. The motion cues leave the strip along a lid's hinge static and join the box
     under it; where a part differs in colour from its surroundings, its colours tell them apart. The members that
     leave start the re-fit faded like `isolated_factor`'s. 0: off. Measured at the demo's settings (docs/benchmarks.md,
-    session 36), ``ari_controlled`` and held-out states against the same runs without it: 0.888 -> 0.931 and 29.42
-    -> 28.67 dB on the default scene, 0.839 -> 0.916 and 26.91 -> 26.94 under pose noise, 0.862 -> 0.894 and
-    27.78 -> 28.32 on the close pair."""
+    session 36), ``ari_controlled`` and held-out states against the same runs without it: 0.888 -> 0.928 and 29.42
+    -> 28.44 dB on the default scene (`fgjax demo`), 0.839 -> 0.909 and 26.91 -> 27.08 under pose noise, 0.862 ->
+    0.894 and 27.78 -> 28.32 / 0.898 -> 0.932 and 28.88 -> 29.99 on the close pair (seeds 0 / 1)."""
     colour_rounds: bool = False
     """With ``colour_radius`` > 0: the outlines are relabelled by colour after each round's re-fit too, so that the
     next round tracks the parts without the Gaussians around them (a lid's box). Measured (session 36): 0.929 / 28.86

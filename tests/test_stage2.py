@@ -410,6 +410,57 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert any("track_rounds=2 has no effect" in m for m in logs), logs
 
 
+def test_colour_rounds_relabel_by_colour_between_the_rounds(tiny, tmp_path, monkeypatch):
+    """``colour_rounds``: after each round's re-fit but the last, the outlines are relabelled by colour on that
+    re-fit, and the next round tracks those labels; the fills' colour step runs once more at the end. Off (the
+    default): only that last one. Tracking, re-fit and the colour step are recorders."""
+    import shutil
+
+    import jax
+
+    for on in (True, False):
+        dst = tmp_path / f"run{on}"
+        shutil.copytree(tiny[0], dst)
+        calls = []
+
+        def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
+                       prev_joints=None, search=False):
+            calls.append(("track", np.asarray(labels).copy()))
+            poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
+            return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": [[1.0, 0, 0]] * k}
+
+        def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
+                       init=None, lr_scale=1.0, log=print):
+            out = jax.tree_util.tree_map(lambda a: a + 0, init)
+            calls.append(("refit", out))
+            return out, labels
+
+        def fake_col(labels, gs, alive, cfg, log=print):
+            calls.append(("col", gs))
+            new = np.asarray(labels).copy()
+            new[np.flatnonzero(new < 0)[:1]] = 0  # one static Gaussian joins cluster 0
+            return new, [{"joined": 0, "left": 0}] * (int(new.max()) + 1)
+
+        monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
+        monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
+        monkeypatch.setattr(stage2, "_refine_by_colour", fake_col)
+        cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
+                                  track_rounds=2, track_converged_deg=0.0, hull_fill=False, hinge_fill=False,
+                                  isolated_factor=0.0, through_prune=0.0, ghost_radius=0.0, colour_rounds=on,
+                                  hull_refit_steps=0)
+        res = stage2.run_stage2(dst, tiny[1], cfg, log=lambda m: None)
+        if res.num_objects == 0:
+            pytest.skip("no clusters in the tiny run")
+        kinds = [c[0] for c in calls]
+        if on:
+            assert kinds == ["track", "refit", "col", "track", "refit", "col"], kinds
+            assert calls[2][1] is calls[1][1]  # on round 1's re-fit
+            assert int(np.sum(calls[3][1] >= 0)) == int(np.sum(calls[0][1] >= 0)) + 1  # round 2 tracks its labels
+        else:
+            assert kinds == ["track", "refit", "track", "refit", "col"], kinds
+        assert int(np.sum(res.labels >= 0)) == int(np.sum(calls[0][1] >= 0)) + (2 if on else 1)
+
+
 def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatch):
     """``track_rounds=2``: round 2 tracks again rendering round 1's re-fit and starting from round 1's poses,
     and its re-fit continues from round 1's (with the next seed); the last re-fit is the one kept. With

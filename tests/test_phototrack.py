@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_track import H, K, W, _hinge_scene
+from test_track import H, K, W, _hinge_scene, _pose
 
 from fgjax import geometry
 from fgjax.gaussians import Gaussians
@@ -21,6 +21,7 @@ from fgjax.pipeline.phototrack import (
     pose_delta,
     rects_meeting,
     rest_spans,
+    settle_at_rest,
     subset_bucket,
     tile_region,
     track_photometric,
@@ -439,3 +440,64 @@ def test_track_photometric_puts_a_part_back_at_rest_where_its_images_show_it_the
                                        log=logs.append, **kw)
     assert any("object 1 keeps its last fitted pose in frames 4-6" in m for m in logs), logs
     assert st_open["spans_at_rest"] == 0 and all(ang(op[0, n, :3, :3]) > 10.0 for n in range(3, t))
+
+
+def _hinge_at(angle: float) -> np.ndarray:
+    """[4, 4]: `_hinge_scene`'s part turned by ``angle`` (rad) about its hinge."""
+    piv = np.array([-0.3, 0.0, 0.0])
+    p = _pose([0.0, 0.0, angle], [0.0, 0.0, 0.0])
+    p[:3, 3] = piv - p[:3, :3] @ piv
+    return p
+
+
+def test_settle_at_rest_puts_a_part_fitted_past_rest_back_and_keeps_what_the_images_show():
+    """A part opens in frames 1-2, closes in frame 3 and rests after. The poses given were fitted past rest in frame 3
+    (turned the other way, -0.12 rad) and kept there in frames 4-6, which were not fitted: the span and frame 3 go
+    to rest, frames 1-2 (open in the images) keep their poses. Where the images show the part staying at frame 3's
+    pose, nothing changes; where they show it at rest only from frame 4, frame 3 keeps its pose and the span
+    settles."""
+    t = 7
+    g, labels, vms, _ = _coloured_hinge(t, 0.12)
+    Ks = np.stack([K] * t)
+    alive = np.ones(len(labels), bool)
+    moving = np.array([[True, True, True, False, False, False]])
+    given = np.stack([_hinge_at(a) for a in (0.0, 0.12, 0.24, -0.12, -0.12, -0.12, -0.12)])[None]
+    kw = dict(sh_degree=0, background=np.zeros(3))
+
+    def settle(truth_angles):
+        truth = np.stack([_hinge_at(a) for a in truth_angles])[None]
+        logs = []
+        out, spans = settle_at_rest(g, alive, labels, 1, _images(g, labels, vms, truth), vms, Ks, given, moving,
+                                    log=logs.append, **kw)
+        return out, spans, logs
+
+    out, spans, logs = settle((0.0, 0.12, 0.24, 0.0, 0.0, 0.0, 0.0))
+    assert spans == [(0, 3, 7)] and any("object 1 settled at rest in frames 4-7" in m for m in logs), logs
+    np.testing.assert_array_equal(out[0, 3:], np.tile(np.eye(4, dtype=np.float32), (4, 1, 1)))
+    np.testing.assert_array_equal(out[0, :3], given[0, :3].astype(np.float32))
+    out, spans, logs = settle((0.0, 0.12, 0.24, -0.12, -0.12, -0.12, -0.12))
+    assert spans == [] and len(logs) == 1 and "0 of 1 still span(s) settled" in logs[0], logs
+    np.testing.assert_array_equal(out, given.astype(np.float32))
+    out, spans, _ = settle((0.0, 0.12, 0.24, -0.12, 0.0, 0.0, 0.0))
+    assert spans == [(0, 4, 7)]
+    np.testing.assert_array_equal(out[0, :4], given[0, :4].astype(np.float32))
+    np.testing.assert_array_equal(out[0, 4:], np.tile(np.eye(4, dtype=np.float32), (3, 1, 1)))
+
+
+def test_settle_at_rest_checks_its_shapes_and_passes_empty_inputs_through():
+    t = 4
+    g, labels, vms, _ = _coloured_hinge(t, 0.12)
+    imgs = np.zeros((t, H, W, 3), np.float32)
+    Ks = np.stack([K] * t)
+    alive = np.ones(len(labels), bool)
+    kw = dict(sh_degree=0, background=np.zeros(3), log=lambda m: None)
+    with pytest.raises(ValueError, match="poses must be"):
+        settle_at_rest(g, alive, labels, 1, imgs, vms, Ks, np.tile(np.eye(4), (1, t - 1, 1, 1)),
+                       np.ones((1, t - 2), bool), **kw)
+    with pytest.raises(ValueError, match="moving must be"):
+        settle_at_rest(g, alive, labels, 1, imgs, vms, Ks, np.tile(np.eye(4), (1, t, 1, 1)),
+                       np.ones((1, t - 2), bool), **kw)
+    none = np.zeros((0, t, 4, 4))
+    out, spans = settle_at_rest(g, alive, -np.ones_like(labels), 0, imgs, vms, Ks, none, np.zeros((0, t - 1), bool),
+                                **kw)
+    assert out.shape == (0, t, 4, 4) and spans == []

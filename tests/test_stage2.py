@@ -564,12 +564,13 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
 
 
 def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tmp_path, monkeypatch):
-    """``hull_fill`` then ``hinge_fill`` then ``isolated_factor`` then ``colour_radius``: after the last round's re-fit
-    the hulls are filled once, then the hinges (given the hull's labels and the last round's poses), then the
-    isolated members are dropped (given the filled labels), then the outlines relabelled by colour (the members that
-    leave start the re-fit faded, as the isolated ones do), and ``hull_refit_steps`` steps of re-fit without
-    relabelling follow under the final labels; their scene and those labels are the ones kept, and stage2.json
-    records what joined and left. ``hull_refit_steps=0``: the fills alone; any one alone; all off: none of them nor
+    """``hull_fill`` then ``hinge_fill`` then ``isolated_factor`` then ``colour_radius`` then ``settle_rest``: after
+    the last round's re-fit the hulls are filled once, then the hinges (given the hull's labels and the last round's
+    poses), then the isolated members are dropped (given the filled labels), then the outlines relabelled by colour
+    (the members that leave start the re-fit faded, as the isolated ones do), then the still spans settled (on stage
+    1's scene with the final labels; the seen-through prune and the re-fit get its poses), and ``hull_refit_steps``
+    steps of re-fit without relabelling follow under the final labels; their scene and those labels are the ones
+    kept, and stage2.json records what joined, left and settled. ``hull_refit_steps=0``: the fills alone; any one alone; all off: none of them nor
     the extra re-fit. The tracking, re-fit and fills are recorders (the real fills: tests/test_cluster.py; the real
     re-fit: the tests above)."""
     import shutil
@@ -577,18 +578,19 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
     import jax
 
     rounds = ["track", "refit", "track", "refit"]
-    for hull, hinge, iso, col, thr, steps, want in (
-            (True, True, False, False, False, 7, rounds + ["fill", "hinge", "refit"]),
-            (True, True, True, False, False, 7, rounds + ["fill", "hinge", "iso", "refit"]),
-            (True, True, True, True, True, 7, rounds + ["fill", "hinge", "iso", "col", "thr", "refit"]),
-            (True, True, False, False, False, 0, rounds + ["fill", "hinge"]),
-            (True, False, False, False, False, 7, rounds + ["fill", "refit"]),
-            (False, True, False, False, False, 7, rounds + ["hinge", "refit"]),
-            (False, False, True, False, False, 7, rounds + ["iso", "refit"]),
-            (False, False, False, True, False, 7, rounds + ["col", "refit"]),
-            (False, False, False, False, True, 7, rounds + ["thr", "refit"]),
-            (False, False, False, False, False, 7, rounds)):
-        dst = tmp_path / f"{hull}{hinge}{iso}{col}{thr}{steps}"
+    for hull, hinge, iso, col, st, thr, steps, want in (
+            (True, True, False, False, False, False, 7, rounds + ["fill", "hinge", "refit"]),
+            (True, True, True, False, False, False, 7, rounds + ["fill", "hinge", "iso", "refit"]),
+            (True, True, True, True, True, True, 7, rounds + ["fill", "hinge", "iso", "col", "settle", "thr", "refit"]),
+            (True, True, False, False, False, False, 0, rounds + ["fill", "hinge"]),
+            (True, False, False, False, False, False, 7, rounds + ["fill", "refit"]),
+            (False, True, False, False, False, False, 7, rounds + ["hinge", "refit"]),
+            (False, False, True, False, False, False, 7, rounds + ["iso", "refit"]),
+            (False, False, False, True, False, False, 7, rounds + ["col", "refit"]),
+            (False, False, False, False, True, False, 7, rounds + ["settle", "refit"]),
+            (False, False, False, False, False, True, 7, rounds + ["thr", "refit"]),
+            (False, False, False, False, False, False, 7, rounds)):
+        dst = tmp_path / f"{hull}{hinge}{iso}{col}{st}{thr}{steps}"
         shutil.copytree(tiny[0], dst)
         calls = []
 
@@ -602,7 +604,8 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
 
         def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
                        init=None, lr_scale=1.0, log=print):
-            calls.append(("refit", np.asarray(labels).copy(), steps, relabel_steps, np.asarray(init.opacity_logits)))
+            calls.append(("refit", np.asarray(labels).copy(), steps, relabel_steps, np.asarray(init.opacity_logits),
+                          np.asarray(poses).copy()))
             return jax.tree_util.tree_map(lambda a: a + 1, init), labels  # each re-fit shifts every leaf by 1
 
         def fake_fill(labels, gs, alive, min_opacity, max_growth, log=print):
@@ -635,6 +638,15 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
             k = int(new.max()) + 1
             return new, [{"joined": 3 if c == 0 else 0, "left": 1 if c == 0 else 0} for c in range(k)]
 
+        def fake_settle(run, scene, order, ref, labels, poses, moving, log=print):
+            calls.append(("settle", np.asarray(labels).copy(), np.asarray(poses).copy()))
+            assert np.asarray(moving).shape == (poses.shape[0], len(order) - 1)
+            np.testing.assert_array_equal(np.asarray(ref.opacity_logits),  # stage 1's scene, not a re-fit's
+                                          np.asarray(run.state.params["gaussians"].opacity_logits))
+            poses = np.asarray(poses).copy()
+            poses[..., 0, 3] = 0.05  # told apart from the tracks' shifts
+            return poses, [(0, 1, 2)]
+
         def fake_thr(gs, labels, poses, run, scene, order, max_ratio, log=print):
             assert max_ratio == 0.4
             calls.append(("thr", np.asarray(labels).copy(), np.asarray(poses).copy()))
@@ -649,8 +661,9 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
         monkeypatch.setattr(stage2, "_fill_hinges", fake_hinge)
         monkeypatch.setattr(stage2, "_drop_isolated", fake_iso)
         monkeypatch.setattr(stage2, "_refine_by_colour", fake_col)
+        monkeypatch.setattr(stage2, "_settle", fake_settle)
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, relabel_steps=3,
-                                  track_photo=5, track_rounds=2, track_converged_deg=0.0, hull_fill=hull,
+                                  track_photo=5, track_rounds=2, track_converged_deg=0.0, settle_rest=st, hull_fill=hull,
                                   hull_opacity=0.6, hull_max_growth=0.25, hull_refit_steps=steps, hinge_fill=hinge,
                                   hinge_radius=0.3, hinge_reach=0.1, hinge_min_deg=25.0,
                                   isolated_factor=1.5 if iso else 0.0, through_prune=0.4 if thr else 0.0,
@@ -672,7 +685,7 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
             gone = np.flatnonzero(iso_in[1] == 0)[0]  # the member fake_iso drops
             assert res.labels[gone] < 0
             cap = np.log(0.05 / 0.95)
-            assert calls[-2 - int(thr) - int(col)][0] == "iso" and calls[-1][0] == "refit"
+            assert calls[-2 - int(thr) - int(st) - int(col)][0] == "iso" and calls[-1][0] == "refit"
             assert calls[-1][4][gone] <= cap + 1e-5
         if col:  # colour sees the labels after the drop; the member that left starts the last re-fit faded too
             (col_in,) = [c for c in calls if c[0] == "col"]
@@ -684,9 +697,14 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
         if thr:  # the prune sees the final labels and the last round's poses; what it pruned starts the re-fit so
             (thr_in,) = [c for c in calls if c[0] == "thr"]
             np.testing.assert_array_equal(thr_in[1], res.labels)
-            np.testing.assert_allclose(thr_in[2][..., 0, 3], 0.03)
+            np.testing.assert_allclose(thr_in[2][..., 0, 3], 0.05 if st else 0.03)
             gone = np.flatnonzero(res.labels < 0)[-1]
             assert calls[-1][0] == "refit" and calls[-1][4][gone] == pytest.approx(-13.8)
+        if st:  # the settling sees the final labels and the last round's poses; the re-fit follows even alone
+            (st_in,) = [c for c in calls if c[0] == "settle"]
+            np.testing.assert_array_equal(st_in[1], res.labels)
+            np.testing.assert_allclose(st_in[2][..., 0, 3], 0.03)
+            np.testing.assert_allclose(calls[-1][5][..., 0, 3], 0.05)  # the last re-fit: the settled poses
         refits = [c for c in calls if c[0] == "refit"]
         assert [c[2:4] for c in refits[:2]] == [(4, 3), (4, 3)]
         ref0 = stage2._reference_scene(stage2.load_stage2(dst, require_stage2=False), 0.0)
@@ -710,6 +728,7 @@ def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tm
         assert ("colour_joined" in meta) == ("colour_left" in meta) == col
         if col:
             assert meta["colour_joined"][0] == 3 and meta["colour_left"][0] == 1
+        assert meta.get("settled") == ([[0, 1, 2]] if st else None)
 
 
 def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quiet():

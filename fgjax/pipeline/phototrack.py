@@ -51,7 +51,7 @@ from fgjax.render.project import project_gaussians
 from fgjax.render.tiles import tile_ranges
 
 __all__ = ["blur", "blur_kernel", "blur_with", "pose_delta", "relabel_candidates", "mixed_opacity_logits", "mixed_copies", "soft_members",
-           "tile_region", "rects_meeting", "subset_bucket", "rest_spans", "track_photometric", "joint_poses", "converged_joints"]
+           "tile_region", "rects_meeting", "subset_bucket", "rest_spans", "settle_at_rest", "track_photometric", "joint_poses", "converged_joints"]
 
 
 def blur_kernel(sigma: float, radius: int | None = None) -> np.ndarray:
@@ -207,6 +207,92 @@ def rest_spans(moving, poses, fixed=None, *, tol_deg: float = 0.1, tol_shift: fl
                 out.append((int(k), n, b))
             n = b
     return out
+
+
+def settle_at_rest(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, poses, moving, *,
+                   sh_degree: int, background, capacity: int | None = None, tile_size: int = 8, sigma: float = 0.7,
+                   log=print) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
+    """Each object's still spans put back at rest where the images say so, judged with hard labels on a given scene.
+
+    `track_photometric`'s ``rest_check`` decides with the labels and the scene it tracks with. Its first
+    round has discovery's labels, whose false members (the static surfaces around a part) can make a pose
+    inside the part's cabinet render closer than rest; the later rounds render a scene re-fitted under that
+    pose. Here, with labels cleaned since (hull fill, colour) and a scene fitted without the poses (stage 1's),
+    for each still span (k, a, b) of `rest_spans`:
+
+    1. the frames just before it, which were fitted, join it one by one going back, as long as the object at
+       rest renders closer to that frame than at its pose there and its pose is off the identity (a part
+       that closes is often fitted past rest in its last frames);
+    2. the whole span goes to rest where that renders closer over it.
+
+    The loss is the mean absolute difference of the render and the image, both blurred by ``sigma`` pixels,
+    over the whole frame, with every other object at its pose. Poses stay on each object's joint: the identity
+    is amount 0.
+
+    Args:
+        gaussians: the scene (raw parameters) the poses move; alive [N] bool; labels [N] in -1..K-1.
+        images: [T, H, W, 3]; viewmats, Ks: [T, 4, 4], [T, 3, 3] (time order, as ``poses`` [K, T, 4, 4]).
+        moving: [K, T-1] bool, the pairs in which each object was fitted.
+
+    Returns:
+        (poses [K, T, 4, 4], the spans (k, a, b) put at rest: frames a..b-1 of object k).
+    """
+    from fgjax.pipeline.stage1 import render_params
+
+    poses = np.asarray(poses, np.float32).copy()
+    labels = np.asarray(labels, np.int64)
+    t_all = poses.shape[1] if poses.ndim == 4 else 0
+    if poses.shape != (num_objects, t_all, 4, 4) or len(images) != t_all:
+        raise ValueError(f"settle_at_rest: poses must be [K, T, 4, 4] with K = {num_objects} and T = {len(images)} "
+                         f"frames, got {list(poses.shape)}")
+    if num_objects == 0 or t_all < 3:
+        return poses, []
+    g = jax.tree_util.tree_map(jnp.asarray, gaussians)
+    lab_j, alive_j = jnp.asarray(labels, jnp.int32), jnp.asarray(alive, bool)
+    vms, Kj = jnp.asarray(viewmats, jnp.float32), jnp.asarray(Ks, jnp.float32)
+    bg = jnp.asarray(background, jnp.float32)
+    width, height = int(images.shape[2]), int(images.shape[1])
+    kern = jnp.asarray(blur_kernel(float(sigma)), jnp.float32)
+    images = jnp.asarray(images, jnp.float32)
+
+    @jax.jit
+    def frame_loss(P, i):  # P [K, 4, 4]
+        m, q = transform_gaussians(g.means, g.quats, lab_j, P)
+        img, _, info, _ = render_params({"gaussians": Gaussians(m, g.log_scales, q, g.opacity_logits, g.sh)}, alive_j,
+                                        vms[i], Kj[i], 0.0, spec=None, sh_degree=sh_degree, width=width,
+                                        height=height, background=bg, capacity=capacity, tile_size=tile_size)
+        loss = jnp.mean(jnp.abs(blur_with(img, kern) - blur_with(images[i], kern)))
+        return jnp.where(jnp.isfinite(loss) & ~info["overflow"], loss, jnp.inf)
+
+    def loss(P, n) -> float:
+        return float(frame_loss(jnp.asarray(P[:, n]), jnp.asarray(n, jnp.int32)))
+
+    eye = np.eye(4, dtype=np.float32)
+    settled = []
+    t_start = time.perf_counter()
+    spans = rest_spans(moving, poses)
+    for k, a, b in spans:
+        at_rest = poses.copy()
+        while a > 1:  # 1. the fitted frames just before the span
+            n = a - 1
+            if np.allclose(poses[k, n], eye, atol=1e-6):
+                break
+            trial = at_rest.copy()
+            trial[k, n] = eye
+            if not loss(trial, n) < loss(poses, n):  # nan never wins
+                break
+            at_rest, a = trial, n
+        at_rest[k, a:b] = eye
+        kept = sum(loss(poses, n) for n in range(a, b))
+        rest = sum(loss(at_rest, n) for n in range(a, b))
+        if rest < kept:
+            poses = at_rest
+            settled.append((int(k), int(a), int(b)))
+            log(f"stage 2: object {k + 1} settled at rest in frames {a + 1}-{b} (loss {kept / (b - a):.5f} -> "
+                f"{rest / (b - a):.5f} a frame)")
+    if spans:
+        log(f"stage 2: {len(settled)} of {len(spans)} still span(s) settled at rest ({time.perf_counter() - t_start:.1f} s)")
+    return poses, settled
 
 
 def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, *, moving=None,

@@ -338,6 +338,13 @@ class Stage2Config:
     """`colour_radius` leaves a part alone whose two colour models tell its members from its surroundings with a
     balanced accuracy below this (a part coloured like what it hangs on). Both sets still hold the errors being
     mended, so a part that does differ scores 0.72-0.97 on the synthetic scenes (session 36)."""
+    settle_rest: bool = True
+    """With ``track_rest`` and ``track_active``, after the outlines are relabelled by colour: each object's still
+    spans are put back at rest where that renders closer, judged again with the final labels on stage 1's scene
+    (`fgjax.pipeline.phototrack.settle_at_rest`), the fitted frames just before a span included where each renders
+    closer at rest. The tracker's own check judges with discovery's labels, or on a scene re-fitted under the pose
+    it checks. The close pair's drawer (seed 0) was fitted past rest as it closed and kept 0.18 inside its cabinet
+    for the 20 frames after. False: off."""
     through_prune: float = 0.5
     """After the fills and `isolated_factor`, before their re-fit: the static Gaussians with more than this share of
     their painted weight over the training frames where the parts' members cover the pixel (`seen_through`, the
@@ -951,6 +958,18 @@ def _refine_by_colour(labels: np.ndarray, gs: Gaussians, alive, cfg: Stage2Confi
         f"{[None if r['separation'] is None else round(r['separation'], 2) for r in report]}"
         + "".join(f"; object {k + 1} stopped: {r['skipped']}" for k, r in enumerate(report) if r["skipped"]))
     return new, report
+
+
+def _settle(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, poses: np.ndarray, moving,
+            log=print) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
+    """`Stage2Config.settle_rest`: `fgjax.pipeline.phototrack.settle_at_rest` on the scene ``ref`` (stage 1's)
+    with ``labels`` [N], the training frames in time order (`order`)."""
+    from fgjax.pipeline.phototrack import settle_at_rest
+
+    return settle_at_rest(ref, run.state.densify.alive, labels, int(poses.shape[0]), scene.images[order],
+                          scene.viewmats[order], scene.Ks[order], poses, moving, sh_degree=run.cfg.model.sh_degree,
+                          background=run.cfg.model.background, capacity=_render_capacity(run),
+                          tile_size=run.cfg.train.tile_size, log=log)
 
 
 def _opaque(gs: Gaussians, alive, min_opacity: float) -> tuple[np.ndarray, np.ndarray]:
@@ -1651,11 +1670,14 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
                 fills["colour_joined"] = [r["joined"] for r in rep]
                 fills["colour_left"] = [r["left"] for r in rep]
                 refit = _fade_dropped(refit, before, filled, cfg, "of those that left", log)
+            if cfg.settle_rest and cfg.track_rest and moving is not None and cfg.track_photo > 0:
+                poses, settled = _settle(run, scene, order, reference, filled, poses, moving, log)
+                fills["settled"] = [list(x) for x in settled]
             if cfg.through_prune > 0:
                 refit, fills["through_pruned"] = _prune_seen_through(refit, filled, poses, run, scene, order,
                                                                      cfg.through_prune, log)
             if (cfg.hull_fill or cfg.hinge_fill or cfg.isolated_factor > 0 or cfg.colour_radius > 0
-                    or cfg.through_prune > 0) and cfg.hull_refit_steps > 0:
+                    or cfg.through_prune > 0 or fills.get("settled")) and cfg.hull_refit_steps > 0:
                 refit, _ = refit_gaussians(run, scene, order, filled, poses, cfg.hull_refit_steps,
                                            seed=cfg.seed + rounds, init=refit, lr_scale=cfg.refit_lr_scale, log=log)
             labels = filled

@@ -344,7 +344,10 @@ class Stage2Config:
     (`fgjax.pipeline.phototrack.settle_at_rest`), the fitted frames just before a span included where each renders
     closer at rest. The tracker's own check judges with discovery's labels, or on a scene re-fitted under the pose
     it checks. The close pair's drawer (seed 0) was fitted past rest as it closed and kept 0.18 inside its cabinet
-    for the 20 frames after. False: off."""
+    for the 20 frames after. Measured at the demo's settings against the same runs without it (docs/benchmarks.md,
+    session 37): ``ari_controlled`` 0.894 -> 0.929 on that run (the held-out states 28.32 -> 28.35 dB); elsewhere a
+    lid's last frames settle, which moves the held-out states by -0.37 to +0.19 dB (the demo 28.67 -> 28.86), or
+    nothing does. It costs about 4 s. False: off."""
     through_prune: float = 0.5
     """After the fills and `isolated_factor`, before their re-fit: the static Gaussians with more than this share of
     their painted weight over the training frames where the parts' members cover the pixel (`seen_through`, the

@@ -209,6 +209,34 @@ def rest_spans(moving, poses, fixed=None, *, tol_deg: float = 0.1, tol_shift: fl
     return out
 
 
+def _spans_to_rest(poses: np.ndarray, spans, loss, *, extend: bool = False) -> tuple[np.ndarray, list]:
+    """Each still span (k, a, b) of `rest_spans`, in turn, put at rest (the identity) where that renders closer over
+    it: the sum of ``loss(P, n)`` (frame n's loss with poses P [K, T, 4, 4]; nan never wins) over frames a..b-1.
+    ``extend``: first the frames just before the span join it one by one going back, as long as the object's pose
+    there is off the identity and at rest renders closer to that frame. Returns (poses, [(k, a, b, kept, rest)] for
+    each span, a its first frame after extending; it went to rest where rest < kept)."""
+    eye = np.eye(4, dtype=poses.dtype)
+    tried = []
+    for k, a, b in spans:
+        at_rest = poses.copy()
+        while extend and a > 1:
+            n = a - 1
+            if np.allclose(poses[k, n], eye, atol=1e-6):
+                break
+            trial = at_rest.copy()
+            trial[k, n] = eye
+            if not loss(trial, n) < loss(poses, n):
+                break
+            at_rest, a = trial, n
+        at_rest[k, a:b] = eye
+        kept = sum(loss(poses, n) for n in range(a, b))
+        rest = sum(loss(at_rest, n) for n in range(a, b))
+        if rest < kept:
+            poses = at_rest
+        tried.append((int(k), int(a), int(b), kept, rest))
+    return poses, tried
+
+
 def settle_at_rest(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, poses, moving, *,
                    sh_degree: int, background, capacity: int | None = None, tile_size: int = 8, sigma: float = 0.7,
                    log=print) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
@@ -267,27 +295,12 @@ def settle_at_rest(gaussians: Gaussians, alive, labels, num_objects: int, images
     def loss(P, n) -> float:
         return float(frame_loss(jnp.asarray(P[:, n]), jnp.asarray(n, jnp.int32)))
 
-    eye = np.eye(4, dtype=np.float32)
-    settled = []
     t_start = time.perf_counter()
     spans = rest_spans(moving, poses)
-    for k, a, b in spans:
-        at_rest = poses.copy()
-        while a > 1:  # 1. the fitted frames just before the span
-            n = a - 1
-            if np.allclose(poses[k, n], eye, atol=1e-6):
-                break
-            trial = at_rest.copy()
-            trial[k, n] = eye
-            if not loss(trial, n) < loss(poses, n):  # nan never wins
-                break
-            at_rest, a = trial, n
-        at_rest[k, a:b] = eye
-        kept = sum(loss(poses, n) for n in range(a, b))
-        rest = sum(loss(at_rest, n) for n in range(a, b))
+    poses, tried = _spans_to_rest(poses, spans, loss, extend=True)
+    settled = [(k, a, b) for k, a, b, kept, rest in tried if rest < kept]
+    for k, a, b, kept, rest in tried:
         if rest < kept:
-            poses = at_rest
-            settled.append((int(k), int(a), int(b)))
             log(f"stage 2: object {k + 1} settled at rest in frames {a + 1}-{b} (loss {kept / (b - a):.5f} -> "
                 f"{rest / (b - a):.5f} a frame)")
     if spans:
@@ -545,13 +558,10 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
                                          capacity=capacity, tile_size=tile_size)
             return jnp.mean(jnp.abs(blur_with(img, kernels[-1]) - targets[-1, i]))
 
-        for k, a, b in rest_spans(mov, poses, fixed):
-            at_rest = poses.copy()
-            at_rest[k, a:b] = eye
-            kept = sum(float(frame_loss(jnp.asarray(poses[:, n]), lg, jnp.asarray(n, jnp.int32))) for n in range(a, b))
-            rest = sum(float(frame_loss(jnp.asarray(at_rest[:, n]), lg, jnp.asarray(n, jnp.int32))) for n in range(a, b))
-            if rest < kept:  # nan never wins
-                poses = at_rest
+        poses, tried = _spans_to_rest(poses, rest_spans(mov, poses, fixed), lambda P, n: float(
+            frame_loss(jnp.asarray(P[:, n]), lg, jnp.asarray(n, jnp.int32))))
+        for k, a, b, kept, rest in tried:
+            if rest < kept:
                 n_rest += 1
                 log(f"photometric tracking: object {k + 1} back at rest in frames {a + 1}-{b} (loss {kept / (b - a):.5f} "
                     f"-> {rest / (b - a):.5f} a frame)")

@@ -211,28 +211,33 @@ def rest_spans(moving, poses, fixed=None, *, tol_deg: float = 0.1, tol_shift: fl
 
 def _spans_to_rest(poses: np.ndarray, spans, loss, *, extend: bool = False) -> tuple[np.ndarray, list]:
     """Each still span (k, a, b) of `rest_spans`, in turn, put at rest (the identity) where that renders closer over
-    it: the sum of ``loss(P, n)`` (frame n's loss with poses P [K, T, 4, 4]; nan never wins) over frames a..b-1.
-    ``extend``: first the frames just before the span join it one by one going back, as long as the object's pose
-    there is off the identity and at rest renders closer to that frame. Returns (poses, [(k, a, b, kept, rest)] for
-    each span, a its first frame after extending; it went to rest where rest < kept)."""
+    it: the sum of ``loss(P, n)`` (frame n's loss with the poses P [K, 4, 4] of that frame; nan never wins) over
+    frames a..b-1. ``extend``: first the frames just before the span join it one by one going back, as long as the
+    object's pose there is off the identity and at rest renders closer to that frame. Each frame is rendered once
+    as posed and once at rest. Returns (poses, [(k, a, b, kept, rest)] for each span, a its first frame after
+    extending; it went to rest where rest < kept)."""
     eye = np.eye(4, dtype=poses.dtype)
     tried = []
     for k, a, b in spans:
-        at_rest = poses.copy()
-        while extend and a > 1:
-            n = a - 1
-            if np.allclose(poses[k, n], eye, atol=1e-6):
+        def both(n):  # (frame n's loss as posed, with object k at rest)
+            at_rest = poses[:, n].copy()
+            at_rest[k] = eye
+            return loss(poses[:, n], n), loss(at_rest, n)
+
+        pairs = {}
+        while extend and a > 1 and not np.allclose(poses[k, a - 1], eye, atol=1e-6):
+            pairs[a - 1] = both(a - 1)
+            if not pairs[a - 1][1] < pairs[a - 1][0]:
                 break
-            trial = at_rest.copy()
-            trial[k, n] = eye
-            if not loss(trial, n) < loss(poses, n):
-                break
-            at_rest, a = trial, n
-        at_rest[k, a:b] = eye
-        kept = sum(loss(poses, n) for n in range(a, b))
-        rest = sum(loss(at_rest, n) for n in range(a, b))
+            a -= 1
+        for n in range(a, b):
+            if n not in pairs:
+                pairs[n] = both(n)
+        kept = sum(pairs[n][0] for n in range(a, b))
+        rest = sum(pairs[n][1] for n in range(a, b))
         if rest < kept:
-            poses = at_rest
+            poses = poses.copy()
+            poses[k, a:b] = eye
         tried.append((int(k), int(a), int(b), kept, rest))
     return poses, tried
 
@@ -292,8 +297,8 @@ def settle_at_rest(gaussians: Gaussians, alive, labels, num_objects: int, images
         loss = jnp.mean(jnp.abs(blur_with(img, kern) - blur_with(images[i], kern)))
         return jnp.where(jnp.isfinite(loss) & ~info["overflow"], loss, jnp.inf)
 
-    def loss(P, n) -> float:
-        return float(frame_loss(jnp.asarray(P[:, n]), jnp.asarray(n, jnp.int32)))
+    def loss(P, n) -> float:  # P [K, 4, 4]: frame n's poses
+        return float(frame_loss(jnp.asarray(P), jnp.asarray(n, jnp.int32)))
 
     t_start = time.perf_counter()
     spans = rest_spans(moving, poses)
@@ -559,7 +564,7 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
             return jnp.mean(jnp.abs(blur_with(img, kernels[-1]) - targets[-1, i]))
 
         poses, tried = _spans_to_rest(poses, rest_spans(mov, poses, fixed), lambda P, n: float(
-            frame_loss(jnp.asarray(P[:, n]), lg, jnp.asarray(n, jnp.int32))))
+            frame_loss(jnp.asarray(P), lg, jnp.asarray(n, jnp.int32))))
         for k, a, b, kept, rest in tried:
             if rest < kept:
                 n_rest += 1

@@ -339,10 +339,10 @@ class Stage2Config:
     balanced accuracy below this (a part coloured like what it hangs on). Both sets still hold the errors being
     mended, so a part that does differ scores 0.72-0.97 on the synthetic scenes (session 36)."""
     settle_rest: bool = True
-    """With ``track_rest`` and ``track_active``, after the outlines are relabelled by colour: each object's still
-    spans are put back at rest where that renders closer, judged again with the final labels on stage 1's scene
-    (`fgjax.pipeline.phototrack.settle_at_rest`), the fitted frames just before a span included where each renders
-    closer at rest. The tracker's own check judges with discovery's labels, or on a scene re-fitted under the pose
+    """With the photometric tracking, ``track_rest`` and ``track_active``, after the outlines are relabelled by
+    colour: each object's still spans are put back at rest where that renders closer, judged again with the final
+    labels on stage 1's scene (`fgjax.pipeline.phototrack.settle_at_rest`), the fitted frames just before a span
+    included where each renders closer at rest. The tracker's own check judges with discovery's labels, or on a scene re-fitted under the pose
     it checks. The close pair's drawer (seed 0) was fitted past rest as it closed and kept 0.18 inside its cabinet
     for the 20 frames after. Measured at the demo's settings against the same runs without it (docs/benchmarks.md,
     session 37): ``ari_controlled`` 0.894 -> 0.929 on that run (the held-out states 28.32 -> 28.35 dB); elsewhere a

@@ -392,6 +392,10 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert meta["config"]["track_photo"] == 5
     assert len(meta["joint_kinds"]) == len(meta["joint_costs"]) == len(meta["joint_axes"]) == res.num_objects, meta
     assert all(a is None or abs(np.linalg.norm(a) - 1.0) < 1e-6 for a in meta["joint_axes"]), meta["joint_axes"]
+    # a hinge's axis offset from its part's centre (radii) is recorded, and only for hinges
+    assert len(meta["joint_hinge_offsets"]) == res.num_objects and all(
+        (r is None) == (k != "revolute") and (r is None or r >= 0)
+        for k, r in zip(meta["joint_kinds"], meta["joint_hinge_offsets"])), meta
     assert all(k in ("revolute", "prismatic") and c >= 0 for k, c in zip(meta["joint_kinds"], meta["joint_costs"]))
     assert len(meta["hull_joined"]) == len(meta["hinge_joined"]) == len(meta["hinges"]) == res.num_objects, meta
     assert all(h is None or (h["angle_deg"] >= 20 and abs(np.linalg.norm(h["axis"]) - 1) < 1e-6) for h in meta["hinges"])
@@ -850,8 +854,10 @@ def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
     monkeypatch.setattr(phototrack, "track_photometric",
                         lambda g, alive, labels, k, imgs, vms, Ks, **kw: seen.append(kw["steps"])
                         or (np.tile(np.eye(4, dtype=np.float32), (k, len(vms), 1, 1)), None))
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False:
-                        (poses, ["revolute"], [1.0]) + ((np.array([[1.0, 0.0, 0.0]]),) if return_axes else ()))
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False,
+                        return_offsets=False: (poses, ["revolute"], [1.0])
+                        + ((np.array([[1.0, 0.0, 0.0]]),) if return_axes else ())
+                        + ((np.array([0.5]),) if return_offsets else ()))
     run = SimpleNamespace(state=SimpleNamespace(densify=SimpleNamespace(alive=np.ones(4, bool))), meta={},
                           cfg=SimpleNamespace(model=SimpleNamespace(sh_degree=0, background=(0.0, 0.0, 0.0)),
                                               train=SimpleNamespace(tile_size=8)))
@@ -867,9 +873,11 @@ def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
         assert seen[-1] == want, (cfg.track_photo_next, init is None, seen)
     # a fixed object: no joint fit (no points reach it) and the earlier round's joint is kept
     pts_seen = []
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False:
-                        pts_seen.append(pts) or (poses, ["kept"], [np.nan], np.full((1, 3), np.nan)))
-    prev = {"joint_kinds": ["prismatic"], "joint_costs": [0.5], "joint_axes": [[0.0, 1.0, 0.0]]}
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False,
+                        return_offsets=False: pts_seen.append(pts)
+                        or (poses, ["kept"], [np.nan], np.full((1, 3), np.nan), np.full(1, np.nan)))
+    prev = {"joint_kinds": ["prismatic"], "joint_costs": [0.5], "joint_axes": [[0.0, 1.0, 0.0]],
+            "joint_hinge_offsets": [None]}
     _, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(track_photo=40), None,
                                           log=lambda m: None, init_poses=earlier, fixed=np.array([True]),
                                           prev_joints=prev)
@@ -878,8 +886,10 @@ def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
     # joint, its kind and axis are the ones reported (the real search: tests/test_articulation.py)
     from fgjax.pipeline import articulation
 
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False:
-                        (poses, ["revolute"], [1.0]) + ((np.array([[1.0, 0.0, 0.0]]),) if return_axes else ()))
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False,
+                        return_offsets=False: (poses, ["revolute"], [1.0])
+                        + ((np.array([[1.0, 0.0, 0.0]]),) if return_axes else ())
+                        + ((np.array([0.5]),) if return_offsets else ()))
     got = []
 
     def fake_search(g, alive, labels, k, imgs, vms, Ks, poses, *, kinds, objects, **kw):
@@ -893,7 +903,11 @@ def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
                                               None, log=lambda m: None, search=True)
     assert got == [(["revolute"], [True], None)]
     assert joints["joint_kinds"] == ["prismatic"] and joints["joint_axes"] == [[0.0, 0.0, 1.0]]
+    assert joints["joint_hinge_offsets"] == [None]  # the search's joint replaced the fitted hinge and its offset
     assert np.all(poses[:, :, 1, 3] == 0.5)
+    _, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(track_photo=40),
+                                          None, log=lambda m: None)
+    assert joints["joint_hinge_offsets"] == [0.5] and joints["joint_kinds"] == ["revolute"]
 
 
 def _selection_case(seed=0, c_missed=0):

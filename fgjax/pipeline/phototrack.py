@@ -602,7 +602,7 @@ def hinge_offset(points, axis, pivot) -> tuple[float, float]:
 
 def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_margin: float = 0.95,
                 warn_cost: float = 4.0, warn_offset: float = 2.0, warn_turn_deg: float = 5.0,
-                return_axes: bool = False, log=print):
+                return_axes: bool = False, return_offsets: bool = False, log=print):
     """Each object's poses replaced by the one articulation that best explains them.
 
     Args:
@@ -633,11 +633,14 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
     degrees about its back edge, while the doors' hinges lie 0.4-0.6 radii from their centres (docs/benchmarks.md,
     session 38).
     Returns (poses [K, T, 4, 4], kinds [K], costs [K]: the chosen joint's robust cost, nan where kept), and with
-    ``return_axes`` also axes [K, 3]: the chosen joint's unit axis (revolute) or direction (prismatic), nan where kept.
+    ``return_axes`` also axes [K, 3]: the chosen joint's unit axis (revolute) or direction (prismatic), nan where kept;
+    with ``return_offsets`` then offsets [K]: a revolute joint's `hinge_offset` ratio (the axis' distance from the
+    part's centre in its radii), nan for the others.
     """
     poses = np.asarray(poses, np.float64)
     out, kinds, costs = poses.copy(), [], np.full(len(points), np.nan)
     axes_out = np.full((len(points), 3), np.nan)
+    offsets = np.full(len(points), np.nan)
     t_all = poses.shape[1]
     vms = np.asarray(viewmats, np.float64)
     Kn = np.asarray(Ks, np.float64)
@@ -672,6 +675,7 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
             turn = float(np.degrees(np.max(np.linalg.norm(
                 np.asarray(geometry.so3_log(jnp.asarray(out[k, :, :3, :3]))), axis=-1))))
             where = f", {off:.3f} from the part's centre ({ratio:.1f} radii), turning up to {turn:.1f} degrees"
+            offsets[k] = ratio
         log(f"photometric tracking: object {k + 1}: revolute cost {cost['revolute']:.3f} (inlier RMS "
             f"{fits['revolute'][1]:.2f} px), prismatic {cost['prismatic']:.3f} ({fits['prismatic'][1]:.2f} px) -> "
             f"{kind} (axis {np.round(fits[kind][3], 3).tolist()}{where}; {time.perf_counter() - t_obj:.1f} s)")
@@ -684,7 +688,7 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
             log(f"photometric tracking: warning: object {k + 1}'s {kind} joint explains its tracked poses poorly "
                 f"(robust cost {cost[kind]:.2f} px^2 > {warn_cost:g}): its tracking has likely failed, and its "
                 f"trajectory and controlled renders will be wrong")
-    return (out, kinds, costs, axes_out) if return_axes else (out, kinds, costs)
+    return (out, kinds, costs) + ((axes_out,) if return_axes else ()) + ((offsets,) if return_offsets else ())
 
 
 def converged_joints(kinds_a, axes_a, kinds_b, axes_b, max_deg: float) -> np.ndarray:

@@ -851,8 +851,10 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
     ``init_poses``, ``cfg.track_photo_next`` where set) from the reference scene `ref` (raw parameters;
     ``init_poses`` [K, T, 4, 4]: an earlier round's poses, a further start of each frame): (poses [K, T, 4, 4],
     {"joint_kinds": [K], "joint_costs": [K] robust costs in px^2, None where kept, "joint_axes": [K] unit axes
-    [3], None where kept}). ``fixed`` [K] bool (needs ``init_poses`` and ``prev_joints``, the earlier round's
-    dict): objects neither tracked nor fitted again; they keep ``init_poses`` and their earlier joints."""
+    [3], None where kept, "joint_hinge_offsets": [K] a hinge's distance from its part's centre in the part's radii
+    (`phototrack.hinge_offset`; over 2: likely a shift fitted as a turn), None for the other joints}). ``fixed`` [K]
+    bool (needs ``init_poses`` and ``prev_joints``, the earlier round's dict): objects neither tracked nor fitted
+    again; they keep ``init_poses`` and their earlier joints."""
     from fgjax.pipeline.phototrack import joint_poses, track_photometric
 
     n = cfg.track_photo_next if init_poses is not None and cfg.track_photo_next > 0 else cfg.track_photo
@@ -878,7 +880,8 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
         # a fixed object: no fit (its poses are kept); its points are still drawn, so that the others' draws
         # (and joints) are those of a round that fits every object
         pts.append(np.zeros((0, 3)) if fixed[k] else sel)
-    poses, kinds, costs, axes = joint_poses(pts, poses, vms, Ks, return_axes=True, log=log)
+    poses, kinds, costs, axes, offsets = joint_poses(pts, poses, vms, Ks, return_axes=True, return_offsets=True,
+                                                     log=log)
     if search:
         from fgjax.pipeline.articulation import search_articulations
 
@@ -889,12 +892,13 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
                                             log=log)
         for k, f in enumerate(found):
             if f is not None and f["replaced"]:
-                kinds[k], axes[k] = f["kind"], np.asarray(f["axis"])
+                kinds[k], axes[k], offsets[k] = f["kind"], np.asarray(f["axis"]), np.nan
     out = {"joint_kinds": list(kinds), "joint_costs": [None if not np.isfinite(c) else float(c) for c in costs],
-           "joint_axes": [None if not np.all(np.isfinite(a)) else [float(x) for x in a] for a in axes]}
+           "joint_axes": [None if not np.all(np.isfinite(a)) else [float(x) for x in a] for a in axes],
+           "joint_hinge_offsets": [None if not np.isfinite(r) else float(r) for r in offsets]}
     for k in np.flatnonzero(fixed):  # the earlier round's joint
         for key in out:
-            out[key][k] = prev_joints[key][k]
+            out[key][k] = prev_joints.get(key, [None] * num_objects)[k]
     return poses, out
 
 
@@ -1707,7 +1711,8 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
         "num_noise": report.n_noise,
         "moving_pixel_fraction": float(disc.masks.mean()),
         "flow_loss": bool(stats.get("photometric", {}).get("flow_weight", 0.0) > 0),
-        **joints,  # the photometric tracking's joint kinds and robust costs (px^2; over 4: tracking likely lost)
+        **joints,  # the photometric tracking's joint kinds, robust costs (px^2; over 4: tracking likely lost), axes
+        # and hinge offsets (radii; over 2: likely a shift fitted as a turn)
         **fills,  # Gaussians that joined each cluster by hull_fill / hinge_fill, and the hinges found
         "time_s": time.perf_counter() - t_start,
         **stats,

@@ -898,7 +898,7 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
            "joint_hinge_offsets": [None if not np.isfinite(r) else float(r) for r in offsets]}
     for k in np.flatnonzero(fixed):  # the earlier round's joint
         for key in out:
-            out[key][k] = prev_joints.get(key, [None] * num_objects)[k]
+            out[key][k] = prev_joints[key][k]
     return poses, out
 
 

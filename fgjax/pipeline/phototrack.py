@@ -669,21 +669,23 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
         kinds.append(kind)
         costs[k] = cost[kind]
         axes_out[k] = fits[kind][3]
-        where = ""
+        where, far = "", None
         if kind == "revolute":
             off, ratio = hinge_offset(pts, fits[kind][3], fits[kind][4])
             turn = float(np.degrees(np.max(np.linalg.norm(
                 np.asarray(geometry.so3_log(jnp.asarray(out[k, :, :3, :3]))), axis=-1))))
             where = f", {off:.3f} from the part's centre ({ratio:.1f} radii), turning up to {turn:.1f} degrees"
             offsets[k] = ratio
+            if ratio > warn_offset and turn >= warn_turn_deg:
+                far = (f"photometric tracking: warning: object {k + 1}'s hinge lies {ratio:.1f} times its radius from "
+                       f"its centre (more than {warn_offset:g}) while it turns {turn:.1f} degrees: a turn about an axis "
+                       f"off the part is mostly a shift, so its tracking has likely mistaken a turn about its edge for "
+                       f"a lift or a slide, and controlled states far from the tracked ones will be wrong")
         log(f"photometric tracking: object {k + 1}: revolute cost {cost['revolute']:.3f} (inlier RMS "
             f"{fits['revolute'][1]:.2f} px), prismatic {cost['prismatic']:.3f} ({fits['prismatic'][1]:.2f} px) -> "
             f"{kind} (axis {np.round(fits[kind][3], 3).tolist()}{where}; {time.perf_counter() - t_obj:.1f} s)")
-        if kind == "revolute" and ratio > warn_offset and turn >= warn_turn_deg:
-            log(f"photometric tracking: warning: object {k + 1}'s hinge lies {ratio:.1f} times its radius from its "
-                f"centre (more than {warn_offset:g}) while it turns {turn:.1f} degrees: a turn about an axis off the "
-                f"part is mostly a shift, so its tracking has likely mistaken a turn about its edge for a lift or a "
-                f"slide, and controlled states far from the tracked ones will be wrong")
+        if far is not None:  # after the object's line, which it refers to
+            log(far)
         if not cost[kind] <= warn_cost:
             log(f"photometric tracking: warning: object {k + 1}'s {kind} joint explains its tracked poses poorly "
                 f"(robust cost {cost[kind]:.2f} px^2 > {warn_cost:g}): its tracking has likely failed, and its "

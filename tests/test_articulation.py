@@ -3,6 +3,7 @@ search recovering a hinge from rendered images where the given joint is wrong, n
 
 from __future__ import annotations
 
+import itertools
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +18,7 @@ from fgjax.pipeline.articulation import (
     articulation_hypotheses,
     displaced_frames,
     joint_from_poses,
+    rect_hinges,
     search_articulations,
 )
 
@@ -50,6 +52,47 @@ def test_articulation_hypotheses_are_hinges_on_the_box_edges_and_slides_along_it
         assert len(hyps) == 15
         assert all(np.all(np.isfinite(a)) and np.all(np.isfinite(p)) and abs(np.linalg.norm(a) - 1) < 1e-9
                    for _, a, p in hyps)
+
+
+def test_rect_hinges_run_along_the_four_edges_of_a_flat_part_turned_in_its_plane():
+    """A slab 2 x 0.8 x 0.2 turned 40 degrees in its own plane and then tilted (`_box`'s rotation): its principal
+    axes follow the turn, and so the rectangle must be found by its area, which is least with its sides along the
+    slab's: two hinges along the long side through +-0.36 across it (the 5th/95th percentiles of +-0.4), two along
+    the short side through +-0.9, every axis in the plane and every pivot at mid-thickness. A square plate (whose
+    principal axes in the plane are arbitrary) gets its own sides too, and so do both with 5% of stray points."""
+    rng = np.random.default_rng(3)
+    _, rot = _box()
+    centre = np.array([0.5, -0.2, 2.0])
+    for (size, turn), stray in itertools.product((((1.0, 0.4), 40.0), ((0.6, 0.6), 25.0)), (False, True)):
+        local = rng.uniform([-size[0], -size[1], -0.1], [size[0], size[1], 0.1], (3000, 3))
+        if stray:
+            local = np.concatenate([local, rng.uniform(-1.5, 1.5, (150, 3)) * [max(size), max(size), 0.3]])
+        spin = np.asarray(geometry.so3_exp(jnp.asarray([0.0, 0.0, np.radians(turn)])), np.float64)
+        frame = rot @ spin  # the slab's sides in the world
+        pts = local @ frame.T + centre
+        hyps = rect_hinges(pts)
+        assert len(hyps) == 4 and {h[0] for h in hyps} == {"revolute"}
+        axes = np.stack([h[1] for h in hyps])
+        piv = np.stack([(h[2] - centre) @ frame for h in hyps])  # [4, 3] pivots in the slab's frame
+        np.testing.assert_allclose(np.linalg.norm(axes, axis=1), 1.0, atol=1e-9)
+        assert np.abs(axes @ frame[:, 2]).max() < 0.02  # in the plane
+        np.testing.assert_allclose(piv[:, 2], 0.0, atol=0.02)  # mid-thickness
+        along = np.abs(axes @ frame[:, :2])  # [4, 2]: |cos| with the slab's two sides
+        assert np.all(along.max(1) > np.cos(np.radians(4.0))), along  # each along a side, within 4 degrees
+        for n in range(4):
+            side = int(np.argmax(along[n]))  # the hinge runs along this side: it lies across the other
+            assert abs(abs(piv[n, 1 - side]) - 0.9 * size[1 - side]) < 0.05 * size[1 - side], (n, piv)
+        assert len({tuple(np.sign(np.round(p[:2], 6))) for p in piv}) >= 3  # four distinct edges, not one twice
+    with pytest.raises(ValueError, match="at least 3 points"):
+        rect_hinges(pts[:2])
+    with pytest.raises(ValueError, match="finite"):
+        rect_hinges(np.where(np.arange(len(pts))[:, None] == 5, np.inf, pts))
+    for bad in (0.0, -1.0, 46.0, float("nan")):
+        with pytest.raises(ValueError, match="step_deg"):
+            rect_hinges(pts, bad)
+    for degenerate in (np.ones((5, 3)), np.outer(np.linspace(0, 1, 7), [1.0, 2.0, 3.0])):
+        assert all(np.all(np.isfinite(a)) and np.all(np.isfinite(p)) and abs(np.linalg.norm(a) - 1) < 1e-9
+                   for _, a, p in rect_hinges(degenerate))
 
 
 @pytest.mark.parametrize("kind", ["revolute", "prismatic"])
@@ -134,8 +177,45 @@ def test_search_articulations_finds_the_hinge_from_the_images_when_the_fitted_jo
     assert _point_error(est_t[0], true, pts).max() < 0.03
     # an object not searched, or never displaced, keeps its poses and has no info
     same, none = search_articulations(g, alive, labels, 1, imgs, vms, Ks, wrong[None], objects=[False], **kw)
-    np.testing.assert_array_equal(same, wrong[None].astype(np.float32)) and none == [None]
+    np.testing.assert_array_equal(same, wrong[None].astype(np.float32))
+    assert none == [None]
     still = np.tile(np.eye(4), (1, t, 1, 1))
     same, none = search_articulations(g, alive, labels, 1, imgs, vms, Ks, still, **kw)
-    np.testing.assert_array_equal(same, still) and none == [None]
+    np.testing.assert_array_equal(same, still)
     assert none == [None]
+
+
+def test_search_articulations_with_given_hypotheses_returns_candidates_and_can_leave_the_poses():
+    """The hinge scene of the test above with the part a thin door (0.6 x 0.06 x 0.4, hinged at its back edge):
+    with `rect_hinges` as its hypotheses, no fitted joint and ``keep`` 4 (no screening) and ``replace=False`` the
+    poses come back as given, and every hypothesis is a candidate carrying its poses: the best-scoring one is the
+    vertical hinge at the door's back edge, whose poses put its points within a few hundredths of the truth."""
+    t = 6
+    g, labels, vms, true = _coloured_hinge(t, 0.12)
+    door = jnp.asarray(labels) == 0
+    # the box's y from [-0.3, 0] to [-0.06, 0]: a door hinged at (-0.3, 0, z)
+    g = Gaussians(g.means.at[:, 1].multiply(jnp.where(door, 0.2, 1.0)).at[:, 2].multiply(jnp.where(door, 2 / 3, 1.0)),
+                  g.log_scales.at[:, 1].add(jnp.where(door, np.log(0.5), 0.0)), g.quats, g.opacity_logits, g.sh)
+    imgs = _images(g, labels, vms, true[None])
+    Ks = np.stack([K] * t)
+    pts = np.asarray(g.means)[labels == 0]
+    centre = pts.mean(0)
+    wrong = np.stack([np.asarray(articulated_pose(True, np.array([1.0, 0.0, 0.0]), centre + [0, 0, 0.8], 0.06 * i),
+                                 np.float64) for i in range(t)])
+    alive = np.ones(len(labels), bool)
+    hyps = rect_hinges(pts)
+    est, info = search_articulations(g, alive, labels, 1, imgs, vms, Ks, wrong[None], kinds=["none"], sh_degree=0,
+                                     background=np.zeros(3), tile_size=8, hypotheses={0: hyps}, replace=False, keep=4,
+                                     log=lambda m: None)
+    np.testing.assert_array_equal(est[0], wrong.astype(np.float32))
+    cands = info[0]["candidates"]
+    assert not info[0]["replaced"] and not info[0]["fitted_hypothesis"] and sorted(cands) == [0, 1, 2, 3]
+    assert np.all(np.isnan(info[0]["screen"])) and set(cands) == set(info[0]["scores"])
+    best = min(cands, key=lambda h: info[0]["scores"][h])
+    kind, axis, pivot, pk = cands[best]
+    assert kind == "revolute" and abs(axis[2]) > 0.99 and pivot[0] < -0.2, (best, axis, pivot)
+    assert _point_error(pk, true, pts).max() < 0.03 < _point_error(wrong, true, pts).max()
+    np.testing.assert_array_equal(pk[0], np.eye(4))  # frame 0: not displaced, kept as given
+    for h, (kd, ax, pv, p) in cands.items():
+        np.testing.assert_array_equal(ax, hyps[h][1])
+        assert p.shape == (t, 4, 4) and kd == "revolute" and np.all(np.isfinite(p))

@@ -296,6 +296,209 @@ def test_refit_lr_scale_scales_every_group_of_the_first_step(tiny):
         np.testing.assert_allclose(d2[big], 2.0 * d1[big], rtol=0.05, err_msg=field)
 
 
+def test_refit_draws_only_the_given_frames(tiny):
+    """``frames`` restricts the frames the re-fit's steps draw: with the last frame's pose wrong (the part left at
+    rest where the images show it slid), a step drawn from the other frames starts at ~0 loss and one drawn from
+    the last frame does not; indices outside the frames are refused."""
+    run, labels, poses, moved, order = _sliding_part(tiny, 0.1)
+    t = poses.shape[1]
+    wrong = poses.copy()
+    wrong[0, -1] = np.eye(4)
+
+    def first_loss(frames, seed):
+        logs = []
+        stage2.refit_gaussians(run, moved, order, labels, wrong, 1, frames=frames, seed=seed, log=logs.append)
+        return float(logs[0].split("loss ")[1].split(" -> ")[0])
+
+    # three draws each (drawn from all 8 frames, the last would be hit by all three with probability 1/512)
+    assert max(first_loss(np.arange(t - 1), s) for s in range(3)) < 1e-3 < min(first_loss([t - 1], s) for s in range(3))
+    for bad in ([t], [-1], []):
+        with pytest.raises(ValueError, match="frames must be indices"):
+            stage2.refit_gaussians(run, moved, order, labels, wrong, 1, frames=bad, log=lambda m: None)
+
+
+def test_posed_losses_are_the_refits_loss_of_each_frame(tiny):
+    """`_posed_losses` renders each frame with the objects at their poses: ~0 on images made that way, and in a
+    frame whose pose is wrong (the part left at rest) the same as the re-fit's first loss on that frame alone."""
+    run, labels, poses, moved, order = _sliding_part(tiny, 0.1)
+    t = poses.shape[1]
+    ref = stage2._reference_scene(run, float(moved.times[order[0]]))
+    assert stage2._posed_losses(run, moved, order, ref, labels, poses, np.arange(t)).max() < 1e-3
+    wrong = poses.copy()
+    wrong[0, -1] = np.eye(4)
+    got = stage2._posed_losses(run, moved, order, ref, labels, wrong, [0, t - 1])
+    logs = []
+    stage2.refit_gaussians(run, moved, order, labels, wrong, 1, frames=[t - 1], log=logs.append)
+    assert got[0] < 1e-3 < got[1] and abs(got[1] - float(logs[0].split("loss ")[1].split(" -> ")[0])) < 1e-4
+
+
+def _trial_setup(tiny):
+    """(run, scene, order, reference, labels, given poses [1, T, 4, 4], candidates for a faked search) for
+    `_hinge_trial`: part 0 of `_sliding_part` turning 20 degrees about an axis 4 radii off it."""
+    from fgjax.pipeline.articulation import articulated_pose
+    from fgjax.pipeline.phototrack import hinge_offset
+
+    run, labels, _, moved, order = _sliding_part(tiny, 0.1)
+    ref = stage2._reference_scene(run, float(moved.times[order[0]]))
+    pts = np.asarray(ref.means)[(labels == 0) & np.asarray(run.state.densify.alive)]
+    c = pts.mean(0)
+    r95 = np.percentile(np.linalg.norm(pts - c, axis=1), 95)
+    t = len(order)
+    far = c + np.array([0.0, 0.0, 4.0 * r95])
+
+    def hinge(axis, pivot, top):
+        return np.stack([np.asarray(articulated_pose(True, np.asarray(axis, float), pivot, a), np.float32)
+                         for a in np.radians(np.linspace(0.0, top, t))])
+
+    given = hinge([1.0, 0.0, 0.0], far, 20.0)[None]
+    assert abs(hinge_offset(pts, [1.0, 0.0, 0.0], far)[1] - 4.0) < 1e-6
+    edges = [([0.0, 1.0, 0.0], c + [0.05, 0, 0], 60.0), ([0.0, 1.0, 0.0], c - [0.05, 0, 0], 50.0),
+             ([0.0, 0.0, 1.0], c + [0.05, 0, 0], 30.0), ([0.0, 0.0, 1.0], c - [0.05, 0, 0], 40.0)]
+    cands = {h: ("revolute", np.array(a), p, hinge(a, p, top)) for h, (a, p, top) in enumerate(edges)}
+    return run, moved, order, ref, labels, given, cands, pts
+
+
+def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_closest(tiny, monkeypatch):
+    """`_hinge_trial` with the search and the re-fits faked: it searches the four `rect_hinges` of the part's alive
+    members (no fitted joint, no screening, no replacing), re-fits from the reference under each candidate (the
+    given poses first) for ``hinge_trial`` steps on the frames some candidate displaces the part in, and takes the
+    lowest re-fitted loss when it beats the given poses' by the margin; within the margin, or for a near hinge, a
+    small turn, a slide or an object left out, the poses stay (no search for the last four)."""
+    from fgjax.pipeline import articulation
+    from fgjax.pipeline.phototrack import hinge_offset
+
+    run, scene, order, ref, labels, given, cands, pts = _trial_setup(tiny)
+    t = given.shape[1]
+    seen = {}
+
+    def fake_search(gaussians, alive, labels_, k_, images, vms, Ks, poses, **kw):
+        seen["search"] = kw
+        seen["labels"] = labels_
+        assert np.asarray(gaussians.means).shape == np.asarray(ref.means).shape
+        np.testing.assert_array_equal(poses, given)
+        return poses, [dict(candidates=cands, frames=t - 1, score_given=1.0, scores={h: 0.5 for h in cands})]
+
+    refits = []
+
+    def fake_refit(run_, scene_, order_, labels_, poses, steps, *, init=None, frames=None, **kw):
+        refits.append((poses[0].copy(), steps, None if frames is None else list(frames)))
+        assert init is ref
+        return init, labels_
+
+    loss_of = {-1: 1.0, 0: 0.9, 1: 0.5, 2: 0.7, 3: 0.8}
+
+    def fake_losses(run_, scene_, order_, gs, labels_, poses, frames):
+        for h, pk in [(-1, given[0])] + [(h, c[3]) for h, c in cands.items()]:
+            if np.array_equal(poses[0], pk):
+                return np.full(len(frames), loss_of[h])
+        raise AssertionError("unknown poses")
+
+    monkeypatch.setattr(articulation, "search_articulations", fake_search)
+    monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
+    monkeypatch.setattr(stage2, "_posed_losses", fake_losses)
+    cfg = stage2.Stage2Config(hinge_trial=7, colour_radius=0.0)
+    far = np.array([hinge_offset(pts, [1.0, 0.0, 0.0], pts.mean(0) + [0.0, 0.0, 1.0])[1]])
+    far[0] = 4.0
+    logs = []
+    out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg, np.ones(1, bool),
+                                   log=logs.append)
+    np.testing.assert_array_equal(out[0], cands[1][3])
+    kw = seen["search"]
+    assert not kw["replace"] and kw["keep"] == 4 and list(kw["objects"]) == [True] and kw["kinds"] == ["none"]
+    hyps = kw["hypotheses"][0]
+    assert len(hyps) == 4 and all(h[0] == "revolute" for h in hyps)  # rect_hinges of the part's alive members
+    assert len(refits) == 5 and all(s == 7 for _, s, _ in refits)
+    np.testing.assert_array_equal(refits[0][0], given[0])
+    assert all(f == list(range(1, t)) for *_, f in refits)  # frame 0 is at rest under every candidate
+    r = rec[0]
+    assert r["replaced"] and r["given_loss"] == 1.0 and [c["hypothesis"] for c in r["candidates"]] == [-1, 0, 1, 2, 3]
+    assert [c["loss"] for c in r["candidates"]] == pytest.approx([1.0, 0.9, 0.5, 0.7, 0.8]) and r["frames"] == t - 1
+    assert r["axis"] == [0.0, 1.0, 0.0] and abs(r["offset"] - hinge_offset(pts, [0, 1, 0], cands[1][2])[1]) < 1e-9
+    json.dumps(r)  # written to stage2.json as it is
+    assert any("replaced by edge 1" in m for m in logs), logs
+    # within the margin: kept
+    loss_of.update({0: 0.99, 1: 0.985, 2: 0.995, 3: 1.2})
+    refits.clear()
+    out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg, np.ones(1, bool),
+                                   log=logs.append)
+    np.testing.assert_array_equal(out, given)
+    assert not rec[0]["replaced"] and rec[0]["axis"] is None and rec[0]["offset"] is None
+    # a near hinge, no turn, a slide, no offset, an object left out: no trial
+    still = given.copy()
+    still[0, :, :3, :3] = np.eye(3)
+    for poses, kinds, off, objects in ((given, ["revolute"], np.array([1.5]), np.ones(1, bool)),
+                                       (still, ["revolute"], far, np.ones(1, bool)),
+                                       (given, ["prismatic"], far, np.ones(1, bool)),
+                                       (given, ["revolute"], np.array([np.nan]), np.ones(1, bool)),
+                                       (given, ["revolute"], far, np.zeros(1, bool))):
+        seen.clear()
+        out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, poses, kinds, off, cfg, objects,
+                                       log=logs.append)
+        assert rec == {} and "search" not in seen
+        np.testing.assert_array_equal(out, poses)
+    # with ``colour_radius`` on, the search and every re-fit see the labels relabelled by colour on the reference
+    # (once for all the objects tried); the labels the pipeline goes on with are not changed
+    recoloured = np.where(labels == 0, -1, labels)
+    recoloured[np.flatnonzero(labels == 0)[::2]] = 0  # half the part
+    coloured = []
+    monkeypatch.setattr(stage2, "_refine_by_colour", lambda lab, gs, alive, cfg_, log=print: coloured.append(gs)
+                        or (recoloured, []))
+    labels_seen = []
+    monkeypatch.setattr(stage2, "refit_gaussians", lambda run_, sc_, o_, lab, *a, init=None, **k: labels_seen.append(lab)
+                        or (init, lab))
+    loss_of.update({1: 0.5})
+    stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, stage2.Stage2Config(hinge_trial=7),
+                        np.ones(1, bool), log=logs.append)
+    assert len(coloured) == 1 and coloured[0] is ref and len(labels_seen) == 5
+    assert all(lab is recoloured for lab in labels_seen)
+    hyps = seen["search"]["hypotheses"][0]
+    np.testing.assert_allclose(hyps[0][1], articulation.rect_hinges(
+        np.asarray(ref.means)[(recoloured == 0) & np.asarray(run.state.densify.alive)])[0][1])
+
+
+def test_trial_held_objects_are_those_a_trial_replaced_in_any_round():
+    hist = [{"joint_kinds": ["revolute"] * 3}, {"hinge_trials": [None, {"replaced": False}, {"replaced": True}]},
+            {"hinge_trials": [{"replaced": True}, None, None]}]
+    np.testing.assert_array_equal(stage2._trial_held(hist, 3), [True, False, True])
+    np.testing.assert_array_equal(stage2._trial_held(hist[:1], 3), [False, False, False])
+
+
+def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch):
+    """With ``hinge_trial`` > 0 (the default), `_photometric_poses` hands the joint fit's kinds and offsets and the
+    scene it tracked to `_hinge_trial` and takes its poses; a replaced joint's kind, axis and offset follow the trial
+    and its record is kept; off, no trial runs and the record is None."""
+    from fgjax.pipeline import phototrack
+
+    run, scene, order, ref, labels, given, cands, pts = _trial_setup(tiny)
+    monkeypatch.setattr(phototrack, "track_photometric", lambda *a, **k: (given.copy(), None))
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts_, poses, *a, **k: (
+        poses, ["revolute"], np.array([0.5]), np.array([[1.0, 0.0, 0.0]]), np.array([4.0])))
+    calls, refs = [], []
+
+    def fake_trial(run_, scene_, order_, ref_, labels_, k_, poses, kinds, offsets, cfg, objects, log):
+        calls.append((list(kinds), list(offsets), list(objects)))
+        refs.append(ref_)
+        out = poses.copy()
+        out[0] = cands[1][3]
+        return out, {0: {"replaced": True, "axis": [0.0, 1.0, 0.0], "offset": 0.3}}
+
+    monkeypatch.setattr(stage2, "_hinge_trial", fake_trial)
+    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(hinge_trial=5),
+                                              None, log=lambda m: None)
+    assert calls == [(["revolute"], [4.0], [True])] and refs == [ref]  # the scene the round tracked
+    np.testing.assert_array_equal(poses[0], cands[1][3])
+    assert joints["joint_axes"] == [[0.0, 1.0, 0.0]] and joints["joint_hinge_offsets"] == [0.3]
+    assert joints["hinge_trials"][0]["replaced"] and joints["joint_kinds"] == ["revolute"]
+    calls.clear()
+    refs.clear()
+    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(hinge_trial=0),
+                                              None, log=lambda m: None)
+    assert stage2.Stage2Config().hinge_trial == 150  # on by default (session 39)
+    assert calls == [] and joints["hinge_trials"] == [None] and joints["joint_hinge_offsets"] == [4.0]
+    np.testing.assert_array_equal(poses, given)
+    assert refs == []
+
+
 def test_refit_is_saved_and_the_controlled_scene_starts_from_it(tiny, tmp_path):
     import shutil
 
@@ -565,6 +768,55 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
             assert any("every joint converged" in m and "no round 4" in m for m in logs), logs
         else:
             assert all(c[1] is None or not np.any(c[1]) for c in tracks)
+
+
+def test_later_rounds_keep_the_joints_a_hinge_trial_chose(tiny, tmp_path, monkeypatch):
+    """With ``hinge_trial`` on, an object whose poses round 1's trial replaced is fixed in the later rounds (tracked
+    neither again nor tried): the tiny run's one object, so there is no round 2 and the log says why. A trial that
+    kept the poses holds nothing: all three rounds track it. stage2.json keeps each round's trial records (which
+    objects are held, for several: `test_trial_held_objects_are_those_a_trial_replaced_in_any_round`). Recorders
+    replace the tracking and the re-fit."""
+    import shutil
+
+    import jax
+
+    for replaced in (True, False):
+        dst = tmp_path / f"run{replaced}"
+        shutil.copytree(tiny[0], dst)
+        calls = []
+
+        def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
+                       prev_joints=None, search=False):
+            calls.append(("track", None if fixed is None else np.asarray(fixed).copy()))
+            poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
+            trials = [{"replaced": replaced, "axis": [1.0, 0.0, 0.0] if replaced else None, "offset": None}] * k
+            return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k,
+                           "joint_axes": [[1.0, 0.0, 0.0]] * k, "joint_hinge_offsets": [0.5] * k,
+                           "hinge_trials": trials}
+
+        def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
+                       init=None, lr_scale=1.0, log=print):
+            calls.append(("refit",))
+            return jax.tree_util.tree_map(lambda a: a + 0, init), labels
+
+        monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
+        monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
+        logs = []
+        cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
+                                  track_rounds=3, track_converged_deg=0.0, hull_fill=False, hinge_fill=False,
+                                  isolated_factor=0.0, through_prune=0.0, colour_radius=0.0, hinge_trial=3)
+        res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
+        if res.num_objects == 0:
+            pytest.skip("no clusters in the tiny run")
+        meta = stage2.load_stage2(dst).s2.meta
+        if replaced:
+            assert [c[0] for c in calls] == ["track", "refit"], calls
+            assert any("chosen by a hinge trial; no round 2" in m for m in logs), logs
+            assert len(meta["hinge_trials"]) == 1 and all(r["replaced"] for r in meta["hinge_trials"][0])
+        else:
+            assert [c[0] for c in calls] == ["track", "refit"] * 3, calls
+            assert all(c[1] is None or not c[1].any() for c in calls if c[0] == "track")
+            assert len(meta["hinge_trials"]) == 3 and not any(r["replaced"] for x in meta["hinge_trials"] for r in x)
 
 
 def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tmp_path, monkeypatch):
@@ -881,7 +1133,7 @@ def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
     _, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(track_photo=40), None,
                                           log=lambda m: None, init_poses=earlier, fixed=np.array([True]),
                                           prev_joints=prev)
-    assert joints == prev and len(pts_seen[-1][0]) == 0
+    assert joints == {**prev, "hinge_trials": [None]} and len(pts_seen[-1][0]) == 0  # an older record lacks trials
     # search=True: the joint fit's poses, kinds and the objects not fixed go to the search; where it replaces a
     # joint, its kind and axis are the ones reported (the real search: tests/test_articulation.py)
     from fgjax.pipeline import articulation
@@ -1001,7 +1253,11 @@ def test_validate_config_names_the_field():
                     ({"colour_radius": float("nan")}, "colour_radius"), ({"colour_components": 0}, "colour_components"),
                     ({"colour_components": True}, "colour_components"),
                     ({"colour_separation": 1.5}, "colour_separation"),
-                    ({"colour_separation": float("nan")}, "colour_separation")):
+                    ({"colour_separation": float("nan")}, "colour_separation"),
+                    ({"hinge_trial": -1}, "hinge_trial"), ({"hinge_trial": 1.5}, "hinge_trial"),
+                    ({"hinge_trial": True}, "hinge_trial"), ({"hinge_trial_margin": 1.0}, "hinge_trial_margin"),
+                    ({"hinge_trial_margin": -0.1}, "hinge_trial_margin"),
+                    ({"hinge_trial_margin": float("nan")}, "hinge_trial_margin")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

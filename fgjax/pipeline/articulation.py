@@ -48,7 +48,7 @@ from fgjax.geometry import HIGHEST
 from fgjax.pipeline.phototrack import blur_kernel, blur_with
 from fgjax.pipeline.track import transform_gaussians
 
-__all__ = ["articulation_hypotheses", "joint_from_poses", "articulated_pose", "displaced_frames",
+__all__ = ["articulation_hypotheses", "rect_hinges", "joint_from_poses", "articulated_pose", "displaced_frames",
            "search_articulations"]
 
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
@@ -76,6 +76,44 @@ def articulation_hypotheses(points) -> list[tuple[str, np.ndarray, np.ndarray]]:
             for sd in (lo[d], hi[d]):
                 out.append((REVOLUTE, e[a].copy(), c + sb * e[b] + sd * e[d]))
     out += [(PRISMATIC, e[a].copy(), c.copy()) for a in range(3)]
+    return out
+
+
+def rect_hinges(points, step_deg: float = 1.0) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """The four hinges along the edges of a flat part (a lid, a door, a flap): a list of (``"revolute"``, unit
+    axis [3], pivot [3]) from its reference points [M, 3] (M >= 3).
+
+    The part's plane is that of the points' two largest principal axes; its normal n is the smallest. In the
+    plane, the rectangle of least area whose sides run from the 2nd to the 98th percentile of the points along
+    them is found over directions ``step_deg`` apart; the hinges run along its sides, through the 5th and 95th
+    percentiles across them, at the median along n. `articulation_hypotheses`' hinges follow the principal axes,
+    and a square part's in-plane axes are arbitrary: on the synthetic scenes' lids the nearest of those is 13-34
+    degrees off the true hinge, the nearest of these 2-7.3 degrees off and within 0.065 of it (docs/benchmarks.md,
+    session 39). The 5th-95th percentile rectangle of a uniform square is 6-9 degrees off its sides (its
+    projections' tails thin as it turns); the 1st-99th is pulled off by 5% of stray points."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(p) < 3:
+        raise ValueError(f"rect_hinges: at least 3 points needed, got {len(p)}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError("rect_hinges: the points must be finite")
+    if not (np.isfinite(step_deg) and 0 < step_deg <= 45):
+        raise ValueError(f"rect_hinges: step_deg must be in (0, 45], got {step_deg!r}")
+    c = np.median(p, 0)  # [3]
+    _, _, vt = np.linalg.svd(p - p.mean(0), full_matrices=False)
+    e1, n = vt[0], vt[2]  # largest principal axis, the plane's normal
+    e2 = np.cross(n, e1)
+    q = p - c  # [M, 3]
+    th = np.radians(np.arange(0.0, 90.0 - 1e-9, float(step_deg)))  # [A]: a rectangle repeats every 90 degrees
+    u = np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2  # [A, 3] one side's direction
+    v = np.cross(n, u)  # [A, 3] the other's
+    lo_u, hi_u = np.percentile(q @ u.T, [2, 98], axis=0)  # [A] each
+    lo_v, hi_v = np.percentile(q @ v.T, [2, 98], axis=0)
+    j = int(np.argmin((hi_u - lo_u) * (hi_v - lo_v)))
+    (lo_u, hi_u), (lo_v, hi_v) = np.percentile(q @ u[j], [5, 95]), np.percentile(q @ v[j], [5, 95])
+    mid = float(np.median(q @ n))
+    out = []
+    for a, b, lo, hi in ((u[j], v[j], lo_v, hi_v), (v[j], -u[j], -hi_u, -lo_u)):
+        out += [(REVOLUTE, a.copy(), c + s * b + mid * n) for s in (lo, hi)]
     return out
 
 
@@ -133,7 +171,7 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
                          sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                          objects=None, sigma: float = 2.0, grid: int = 21, refine: int = 3,
                          max_turn_deg: float = 100.0, max_shift: float = 2.0, screen_frames: int = 4, keep: int = 2,
-                         warm_start: bool = True, log=print):
+                         warm_start: bool = True, hypotheses: dict | None = None, replace: bool = True, log=print):
     """Each part's poses replaced by the one articulation that renders closest to its frames (module docstring).
 
     Args:
@@ -144,15 +182,21 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
         sigma: blur of the loss (pixels). grid, refine: amounts on the grid, then halving steps about the best.
         max_turn_deg, max_shift: the grid spans +-max_turn_deg degrees, or +-max_shift times the part's largest
             extent (5th-95th percentile) for a slide.
-        screen_frames, keep: hypotheses are screened on this many frames, the ``keep`` best scored on all.
+        screen_frames, keep: hypotheses are screened on this many frames, the ``keep`` best scored on all (all of
+            them, unscreened, when there are no more than ``keep``; "screen" is then nan).
         warm_start: on all frames, a frame right after a displaced one searches about that one's amount (+-1 grid
             step, then the halving steps) instead of the whole grid.
+        hypotheses: {object: list of (kind, unit axis [3], pivot [3])} replacing `articulation_hypotheses` for those
+            objects (e.g. `rect_hinges`); the fitted joint is still added first.
+        replace: false: the poses are returned as given, whatever scores best (see "candidates").
 
     Returns:
         (poses [K, T, 4, 4], info: list of K dicts (None where not searched) with "kind", "axis", "pivot",
         "score", "score_given" (the given poses' loss summed over the same frames), "replaced", "frames", "renders",
         "hypothesis" (the best one's index; 0 is the fitted joint where "fitted_hypothesis"), "screen" (each
-        hypothesis' loss summed over the screening frames) and "scores" ({index: loss summed over all the frames}).
+        hypothesis' loss summed over the screening frames), "scores" ({index: loss summed over all the frames}) and
+        "candidates" ({index: (kind, axis [3], pivot [3], poses [T, 4, 4])}: each hypothesis scored on all the frames
+        with its best amounts there; the given poses elsewhere).
     """
     from fgjax.pipeline.stage1 import render_params
 
@@ -224,7 +268,7 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
         frames = np.flatnonzero(displaced_frames(pts, poses[k], 1e-3 * max(size, 1e-9)))
         if len(frames) == 0:
             continue
-        hyps = articulation_hypotheses(pts)
+        hyps = list(hypotheses[int(k)]) if hypotheses is not None and int(k) in hypotheses else articulation_hypotheses(pts)
         fitted = joint_from_poses(poses[k], kinds[k]) if kinds[k] in (REVOLUTE, PRISMATIC) else None
         if fitted is not None:
             hyps = [(kinds[k], *fitted)] + hyps
@@ -276,9 +320,13 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
         moved = np.einsum("tij,mj->tmi", poses[k, frames, :3, :3].astype(np.float64), pts) + poses[k, frames, None, :3, 3]
         mag = np.max(np.linalg.norm(moved - pts[None], axis=-1), axis=1)  # [F]
         key = frames[np.argsort(-mag)[:screen_frames]]
-        screen = np.array([sum(frame_best(h, i, fitted_amount[i] if n == 0 and fitted is not None else None)[0]
+        if keep >= len(hyps):  # every hypothesis is scored on all the frames: no screening
+            screen = np.full(len(hyps), np.nan)
+            top = list(range(len(hyps)))
+        else:
+            screen = np.array([sum(frame_best(h, i, fitted_amount[i] if n == 0 and fitted is not None else None)[0]
                                    for i in key) for n, h in enumerate(hyps)])
-        top = list(np.argsort(screen)[:keep])
+            top = list(np.argsort(screen)[:keep])
         if fitted is not None and 0 not in top:
             top.append(0)
         scores = {}
@@ -291,19 +339,26 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
         h_best = min(scores, key=lambda h: scores[h][0])
         score, amounts = scores[h_best]
         kind, axis, pivot = hyps[h_best]
-        replaced = bool(score < given)
+        candidates = {}
+        for h, (_, am) in scores.items():
+            pk = poses[k].copy()
+            for i, a in zip(frames, am):
+                pk[i] = np.asarray(articulated_pose(hyps[h][0] == REVOLUTE, hyps[h][1], hyps[h][2], a), np.float32)
+            candidates[int(h)] = (hyps[h][0], np.asarray(hyps[h][1], np.float64), np.asarray(hyps[h][2], np.float64), pk)
+        replaced = bool(replace and score < given)
         if replaced:
-            for i, a in zip(frames, amounts):
-                poses[k, i] = np.asarray(articulated_pose(kind == REVOLUTE, axis, pivot, a), np.float32)
+            poses[k] = candidates[int(h_best)][3]
         info[k] = dict(kind=kind, axis=[float(x) for x in axis], pivot=[float(x) for x in pivot], score=float(score),
                        score_given=float(given), replaced=replaced, frames=int(len(frames)), renders=int(n_renders),
                        hypothesis=int(h_best), fitted_hypothesis=fitted is not None,
-                       screen=[float(x) for x in screen], scores={int(h): float(v[0]) for h, v in scores.items()})
+                       screen=[float(x) for x in screen], scores={int(h): float(v[0]) for h, v in scores.items()},
+                       candidates=candidates)
         amt = np.degrees(np.max(np.abs(amounts))) if kind == REVOLUTE else float(np.max(np.abs(amounts)))
         log(f"articulation search: object {k + 1}: {len(hyps)} hypotheses over {len(frames)} displaced frames; best "
             f"{kind} (hypothesis {h_best}{', the fitted joint' if fitted is not None and h_best == 0 else ''}), axis "
             f"{np.round(axis, 3).tolist()}, largest {'turn' if kind == REVOLUTE else 'shift'} "
             f"{amt:.3g}{' degrees' if kind == REVOLUTE else ''}; loss {score / len(frames):.5f} a frame against the "
-            f"given poses' {given / len(frames):.5f} -> {'replaced' if replaced else 'kept'} ({n_renders} renders, "
+            f"given poses' {given / len(frames):.5f} -> {'replaced' if replaced else 'kept'}"
+            f"{'' if replace else ' (not replacing)'} ({n_renders} renders, "
             f"{time.perf_counter() - t0:.1f} s)")
     return poses, info

@@ -718,14 +718,23 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
     assert res.meta["joint_costs"] == [3.0] * res.num_objects  # the last round's joints are the ones kept
 
 
+def _recording_refit(calls: list):
+    """A stand-in for `stage2.refit_gaussians` that records ("refit",) in ``calls`` and returns its start unchanged."""
+    import jax
+
+    def fake_refit(run, scene, order, labels, poses, steps, *, init=None, **kw):
+        calls.append(("refit",))
+        return jax.tree_util.tree_map(lambda a: a + 0, init), labels
+
+    return fake_refit
+
+
 def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny, tmp_path, monkeypatch):
     """``track_rounds=4``: rounds 1 and 2 track every object; object 1's axis then turns by 40 degrees and the
     others' by 5, so round 3 tracks object 1 only (the others fixed, at round 2's poses); after round 3 no axis
     moved, so there is no round 4. With ``track_converged_deg=0`` every round tracks every object. Recorders
     replace the tracking and the re-fit (the real ones: tests/test_phototrack.py)."""
     import shutil
-
-    import jax
 
     def turned(deg):
         r = np.radians(deg)
@@ -745,13 +754,8 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
             calls.append(("track", None if fixed is None else np.asarray(fixed).copy(), init_poses))
             return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": axes}
 
-        def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
-                       init=None, lr_scale=1.0, log=print):
-            calls.append(("refit",))
-            return jax.tree_util.tree_map(lambda a: a + 0, init), labels
-
         monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
-        monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
+        monkeypatch.setattr(stage2, "refit_gaussians", _recording_refit(calls))
         logs = []
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                                   track_rounds=4, track_converged_deg=limit, hull_fill=False,
@@ -778,8 +782,6 @@ def test_later_rounds_keep_the_joints_a_hinge_trial_chose(tiny, tmp_path, monkey
     replace the tracking and the re-fit."""
     import shutil
 
-    import jax
-
     for replaced in (True, False):
         dst = tmp_path / f"run{replaced}"
         shutil.copytree(tiny[0], dst)
@@ -794,13 +796,8 @@ def test_later_rounds_keep_the_joints_a_hinge_trial_chose(tiny, tmp_path, monkey
                            "joint_axes": [[1.0, 0.0, 0.0]] * k, "joint_hinge_offsets": [0.5] * k,
                            "hinge_trials": trials}
 
-        def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
-                       init=None, lr_scale=1.0, log=print):
-            calls.append(("refit",))
-            return jax.tree_util.tree_map(lambda a: a + 0, init), labels
-
         monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
-        monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
+        monkeypatch.setattr(stage2, "refit_gaussians", _recording_refit(calls))
         logs = []
         cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                                   track_rounds=3, track_converged_deg=0.0, hull_fill=False, hinge_fill=False,

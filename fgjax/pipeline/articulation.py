@@ -268,7 +268,8 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
         frames = np.flatnonzero(displaced_frames(pts, poses[k], 1e-3 * max(size, 1e-9)))
         if len(frames) == 0:
             continue
-        hyps = list(hypotheses[int(k)]) if hypotheses is not None and int(k) in hypotheses else articulation_hypotheses(pts)
+        own = None if hypotheses is None else hypotheses.get(int(k))
+        hyps = articulation_hypotheses(pts) if own is None else list(own)
         fitted = joint_from_poses(poses[k], kinds[k]) if kinds[k] in (REVOLUTE, PRISMATIC) else None
         if fitted is not None:
             hyps = [(kinds[k], *fitted)] + hyps

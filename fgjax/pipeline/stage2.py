@@ -227,7 +227,8 @@ class Stage2Config:
     the lid turns only 42 of its 69 degrees (same session). Measured at the demo's settings (session 39): the lid's
     trial chose the edge nearest its true hinge in all four runs; held-out states 28.86 -> 29.30 dB (the demo's
     run), 27.08 -> 29.00 and 27.15 -> 27.76 (pose noise), 28.35 -> 27.59 (close pair, whose lid turns 29 of its 71
-    degrees); `ari_controlled` up on all four; the trial took 115 s of the demo's stage 2 (516 s against 434). 0: off."""
+    degrees); `ari_controlled` up on all four; the trial took 115 s of the demo's stage 2 (516 s against 434).
+    0: off."""
     hinge_trial_margin: float = 0.02
     """A candidate of `_hinge_trial` replaces the given poses only when its re-fitted loss is below (1 - this) times
     theirs."""
@@ -961,8 +962,8 @@ def _posed_losses(run: LoadedRun, scene, order, gs: Gaussians, labels: np.ndarra
               lam=float(run.cfg.train.lambda_dssim))
     return np.array([float(_posed_loss(g, *args, jnp.asarray(poses[:, f], jnp.float32),
                                        jnp.asarray(scene.viewmats[order[f]], jnp.float32),
-                                       jnp.asarray(scene.Ks[order[f]], jnp.float32), jnp.asarray(scene.images[order[f]]),
-                                       bg, **kw))
+                                       jnp.asarray(scene.Ks[order[f]], jnp.float32),
+                                       jnp.asarray(scene.images[order[f]]), bg, **kw))
                      for f in np.asarray(frames, np.int64).reshape(-1)])
 
 
@@ -986,10 +987,11 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     `ref`, the round's reference, raw parameters). The trial's labels are ``labels`` with the outlines relabelled
     by colour on `ref` (`_refine_by_colour`, with ``colour_radius`` > 0): with discovery's labels, whose lid takes
     in the rims of its box, the search turns the lid's true hinge only 25 of its 69 degrees, and 69 with these
-    (docs/benchmarks.md, session 39). They serve the trial only; the labels returned by the round are unchanged. The scene is re-fitted from `ref` under each (`refit_gaussians`, ``hinge_trial`` steps on
-    the frames in which some candidate displaces the part, the same seed), and scored by the mean photometric loss
-    of those frames rendered from its re-fit. The lowest replaces the part's poses when it is below
-    (1 - ``hinge_trial_margin``) times the given poses' score.
+    (docs/benchmarks.md, session 39). They serve the trial only; the labels returned by the round are unchanged.
+    The scene is re-fitted from `ref` under each candidate (`refit_gaussians`, ``hinge_trial`` steps on the frames
+    in which some candidate displaces the part, the same seed), and scored by the mean photometric loss of those
+    frames rendered from its re-fit. The lowest replaces the part's poses when it is below (1 -
+    ``hinge_trial_margin``) times the given poses' score.
 
     Returns (poses [K, T, 4, 4], {object: {"candidates": [{"hypothesis", "axis", "pivot", "loss"}, ...] (the given
     poses as hypothesis -1), "given_loss", "replaced", "axis", "offset", "frames", "seconds"}}).
@@ -1033,8 +1035,9 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
             f"{[round(found[k]['scores'][h] / n_f, 5) for h, *_ in cands[1:]]} a frame, the given poses "
             f"{found[k]['score_given'] / n_f:.5f}")
         disp = np.zeros(poses.shape[1], bool)
+        tol = 1e-3 * float(np.max(np.percentile(pts, 95, 0) - np.percentile(pts, 5, 0)))  # as the search's
         for *_, pk in cands:
-            disp |= displaced_frames(pts, pk, 1e-3 * float(np.max(np.percentile(pts, 95, 0) - np.percentile(pts, 5, 0))))
+            disp |= displaced_frames(pts, pk, tol)
         frames = np.flatnonzero(disp)
         if len(frames) == 0:
             continue

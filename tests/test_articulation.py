@@ -20,6 +20,7 @@ from fgjax.pipeline.articulation import (
     joint_from_poses,
     rect_hinges,
     search_articulations,
+    slide_from_poses,
 )
 
 
@@ -52,6 +53,39 @@ def test_articulation_hypotheses_are_hinges_on_the_box_edges_and_slides_along_it
         assert len(hyps) == 15
         assert all(np.all(np.isfinite(a)) and np.all(np.isfinite(p)) and abs(np.linalg.norm(a) - 1) < 1e-9
                    for _, a, p in hyps)
+
+
+def test_slide_from_poses_reads_a_slide_back_and_keeps_a_far_turns_chord():
+    """`slide_from_poses`: the poses of a slide give back its axis and amounts (to round-off, the sign such that the
+    largest amount is positive); a turn about a line far off the part gives its centroid's chord, whose poses
+    (`articulated_pose`) move the centroid exactly as the turn does; all-identity poses give None; bad shapes and
+    non-finite input are refused."""
+    pts, _ = _box()
+    axis = np.array([0.3, -0.8, 0.52])
+    axis /= np.linalg.norm(axis)
+    amounts = np.concatenate([np.zeros(3), np.linspace(0.0, -0.7, 9), np.linspace(-0.7, 0.0, 5)])  # [T]
+    poses = np.stack([np.asarray(articulated_pose(False, axis, np.zeros(3), a)) for a in amounts])
+    got_axis, got = slide_from_poses(pts, poses)
+    np.testing.assert_allclose(got_axis, -axis, atol=1e-12)  # its largest amount is -0.7 along ``axis``
+    np.testing.assert_allclose(got, -amounts, atol=1e-7)
+    c = pts.mean(0)
+    far = c + 6.0 * np.cross(axis, [0.0, 0.0, 1.0]) / np.linalg.norm(np.cross(axis, [0.0, 0.0, 1.0]))
+    turn = np.stack([np.asarray(articulated_pose(True, axis, far, a), np.float64)
+                     for a in np.radians(np.linspace(0.0, 20.0, 7))])
+    s_axis, s_am = slide_from_poses(pts, turn)
+    moved = np.einsum("tij,j->ti", turn[:, :3, :3], c) + turn[:, :3, 3]  # [T, 3] the centroid under the turn
+    slid = np.stack([np.asarray(articulated_pose(False, s_axis, np.zeros(3), a), np.float64) for a in s_am])
+    chord = slid[:, :3, 3] + c
+    assert abs(np.linalg.norm(s_axis) - 1.0) < 1e-12 and s_am[-1] > 0
+    # the chords of one arc are not parallel: the slide holds their main direction, within a small fraction
+    assert np.max(np.linalg.norm(chord - moved, axis=1)) < 0.1 * np.max(np.linalg.norm(moved - c, axis=1))
+    np.testing.assert_allclose(np.linalg.norm(chord[-1] - c), np.linalg.norm(moved[-1] - c), rtol=0.01)
+    np.testing.assert_allclose(slid[:, :3, :3], np.broadcast_to(np.eye(3), (7, 3, 3)), atol=1e-6)
+    assert slide_from_poses(pts, np.tile(np.eye(4), (5, 1, 1))) is None
+    for bad_pts, bad_poses in ((pts[:0], poses), (pts, poses[0]), (np.where(pts == pts[3], np.nan, pts), poses),
+                               (pts, np.where(poses == poses[4], np.inf, poses))):
+        with pytest.raises(ValueError, match="slide_from_poses"):
+            slide_from_poses(bad_pts, bad_poses)
 
 
 def test_rect_hinges_run_along_the_four_edges_of_a_flat_part_turned_in_its_plane():

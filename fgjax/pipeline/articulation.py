@@ -48,8 +48,8 @@ from fgjax.geometry import HIGHEST
 from fgjax.pipeline.phototrack import blur_kernel, blur_with
 from fgjax.pipeline.track import transform_gaussians
 
-__all__ = ["articulation_hypotheses", "rect_hinges", "joint_from_poses", "articulated_pose", "displaced_frames",
-           "search_articulations"]
+__all__ = ["articulation_hypotheses", "rect_hinges", "joint_from_poses", "slide_from_poses", "articulated_pose",
+           "displaced_frames", "search_articulations"]
 
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
 
@@ -138,6 +138,33 @@ def joint_from_poses(poses, kind: str):
         n = float(np.linalg.norm(sh[j]))
         return (sh[j] / n, np.zeros(3)) if n > 1e-12 else None
     raise ValueError(f"joint_from_poses: kind must be {REVOLUTE!r} or {PRISMATIC!r}, got {kind!r}")
+
+
+def slide_from_poses(points, poses):
+    """The slide nearest a part's trajectory: (unit axis [3], amounts [T]) from its reference points [M, 3] and
+    poses [T, 4, 4], or None when no pose moves the points' centroid.
+
+    Each frame's best pure shift of the points is the shift of their centroid c, d_t = R_t c + t_t - c; the axis
+    is the direction that holds most of the shifts (the first right singular vector of the uncentred [T, 3]
+    stack; a slide starts at rest), signed so that the largest amount is positive, and the amounts are d_t along
+    it. Exact for the poses of a slide; for a turn about a far line (a slide fitted as a turn) it keeps the chord
+    and drops the turn. `articulated_pose` (``revolute`` false) gives the slide's poses."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    P = np.asarray(poses, np.float64)
+    if len(p) == 0 or P.ndim != 3 or P.shape[1:] != (4, 4):
+        raise ValueError(f"slide_from_poses: points must be [M >= 1, 3] and poses [T, 4, 4], got "
+                         f"{list(np.shape(points))} and {list(np.shape(poses))}")
+    c = p.mean(0)
+    d = np.einsum("tij,j->ti", P[:, :3, :3], c) + P[:, :3, 3] - c  # [T, 3]
+    if not np.all(np.isfinite(d)):
+        raise ValueError("slide_from_poses: the points and the poses must be finite")
+    if not np.max(np.linalg.norm(d, axis=1)) > 1e-12:
+        return None
+    axis = np.linalg.svd(d, full_matrices=False)[2][0]  # [3]
+    amounts = d @ axis  # [T]
+    if amounts[int(np.argmax(np.abs(amounts)))] < 0:
+        axis, amounts = -axis, -amounts
+    return axis, amounts
 
 
 def articulated_pose(revolute, axis, pivot, amount):

@@ -230,8 +230,13 @@ class Stage2Config:
     turns 29-30 of its 71 degrees); `ari_controlled` up on all five; the trial took 115 s of the demo's stage 2 (516 s against 434).
     0: off."""
     hinge_trial_margin: float = 0.02
-    """A candidate of `_hinge_trial` replaces the given poses only when its re-fitted loss is below (1 - this) times
-    theirs."""
+    """An edge of `_hinge_trial` replaces the given poses only when its re-fitted loss is below (1 - this) times
+    theirs (and no worse than the slide's); the slide does when its loss is no more than (1 + this) times theirs."""
+    hinge_trial_slide: bool = True
+    """`_hinge_trial` also tries the slide nearest the given poses (`fgjax.pipeline.articulation.slide_from_poses`:
+    their chord without the turn), which wins ties within ``hinge_trial_margin``: a hinge several radii off its
+    part is `joint_poses`' sign of a slide fitted as a turn, and the close pair's drawer was fitted as a hinge 3.1
+    radii off it turning 36 degrees (15 degrees in its final poses; docs/benchmarks.md, session 40)."""
     track_subset_margin: int = 2
     """The photometric tracker's steps draw only the changing Gaussians and the others whose tiles meet theirs,
     widened by this many tiles (`track_photometric`'s ``subset_margin``; a frame whose part leaves the margin is
@@ -922,7 +927,8 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
                                      log)
         for k, t in trials.items():
             if t["replaced"]:
-                kinds[k], axes[k], offsets[k] = "revolute", np.asarray(t["axis"]), t["offset"]
+                kinds[k], axes[k] = t["kind"], np.asarray(t["axis"])
+                offsets[k] = np.nan if t["offset"] is None else t["offset"]
     out = {"joint_kinds": list(kinds), "joint_costs": [None if not np.isfinite(c) else float(c) for c in costs],
            "joint_axes": [None if not np.all(np.isfinite(a)) else [float(x) for x in a] for a in axes],
            "joint_hinge_offsets": [None if not np.isfinite(r) else float(r) for r in offsets],
@@ -977,27 +983,57 @@ def _trial_held(history: list[dict], num_objects: int) -> np.ndarray:
     return held
 
 
+def _trial_name(h: int, axis) -> str:
+    """How the log names `_hinge_trial`'s candidate ``h`` (-1 the given poses, -2 the slide, else an edge)."""
+    if h == -1:
+        return "the given poses"
+    return f"{'slide' if h == -2 else f'edge {h}'}, axis {np.round(np.asarray(axis), 3).tolist()}"
+
+
+def _trial_choice(hyps, losses, margin: float) -> int:
+    """The index of `_hinge_trial`'s choice among its candidates (``hyps``: -1 the given poses, first; -2 the
+    slide; else an edge) by their re-fitted ``losses``: the best edge when it is below (1 - ``margin``) times the
+    given poses' loss and no worse than the slide's; else the slide when it is no more than (1 + ``margin``) times
+    the given poses' (a hinge far off its part is likely a slide fitted as a turn: `joint_poses`); else the given
+    poses (0)."""
+    hyps, losses = list(hyps), np.asarray(losses, np.float64)
+    if hyps[0] != -1 or not np.all(np.isfinite(losses) | (losses == np.inf)):
+        raise ValueError(f"_trial_choice: the given poses come first and the losses are not NaN; got {hyps}, "
+                         f"{losses.tolist()}")
+    slide = hyps.index(-2) if -2 in hyps else None
+    edges = [i for i, h in enumerate(hyps) if h >= 0]
+    if edges:
+        e = min(edges, key=lambda i: losses[i])
+        if losses[e] < (1.0 - margin) * losses[0] and (slide is None or losses[e] <= losses[slide]):
+            return e
+    if slide is not None and losses[slide] <= (1.0 + margin) * losses[0]:
+        return slide
+    return 0
+
+
 def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
                  poses: np.ndarray, kinds, offsets, cfg: Stage2Config, objects, log=print) -> tuple[np.ndarray, dict]:
     """Each far hinge (``Stage2Config.hinge_trial``) tried against hinges along its part's own edges, by re-fits.
 
     For each object in ``objects`` [K] bool whose joint (``kinds`` [K]) is revolute with a `hinge_offset` ratio
-    (``offsets`` [K]) over 2 and a largest turn of 5 degrees or more: candidates are the given poses and the four
-    `rect_hinges` of the part's alive members, each with its best amount in every frame (`search_articulations` on
-    `ref`, the round's reference, raw parameters). The trial's labels are ``labels`` with the outlines relabelled
+    (``offsets`` [K]) over 2 and a largest turn of 5 degrees or more: candidates are the given poses, the slide
+    nearest them (`slide_from_poses`, with ``hinge_trial_slide``) and the four `rect_hinges` of the part's alive
+    members, each hinge with its best amount in every frame (`search_articulations` on `ref`, the round's
+    reference, raw parameters). The trial's labels are ``labels`` with the outlines relabelled
     by colour on `ref` (`_refine_by_colour`, with ``colour_radius`` > 0): with discovery's labels, whose lid takes
     in the rims of its box, the search turns the lid's true hinge only 25 of its 69 degrees, and 69 with these
     (docs/benchmarks.md, session 39). They serve the trial only; the labels returned by the round are unchanged.
     The scene is re-fitted from `ref` under each candidate (`refit_gaussians`, ``hinge_trial`` steps on the frames
     in which some candidate displaces the part, the same seed), and scored by the mean photometric loss of those
-    frames rendered from its re-fit. The lowest replaces the part's poses when it is below (1 -
-    ``hinge_trial_margin``) times the given poses' score.
+    frames rendered from its re-fit; `_trial_choice` picks by those scores (an edge must beat the given poses by
+    ``hinge_trial_margin``; the slide wins ties within it).
 
-    Returns (poses [K, T, 4, 4], {object: {"candidates": [{"hypothesis", "axis", "pivot", "loss"}, ...] (the given
-    poses as hypothesis -1), "given_loss", "replaced", "axis", "offset", "frames", "seconds"}}).
+    Returns (poses [K, T, 4, 4], {object: {"candidates": [{"hypothesis", "kind", "axis", "pivot", "loss"}, ...]
+    (the given poses as hypothesis -1, the slide as -2), "given_loss", "replaced", "kind" (the chosen joint's, None
+    where kept), "axis", "offset" (None for a slide), "frames", "seconds"}}).
     """
     from fgjax.geometry import so3_log
-    from fgjax.pipeline.articulation import displaced_frames, rect_hinges, search_articulations
+    from fgjax.pipeline.articulation import displaced_frames, rect_hinges, search_articulations, slide_from_poses
     from fgjax.pipeline.phototrack import hinge_offset
 
     poses = np.asarray(poses, np.float32).copy()
@@ -1028,11 +1064,17 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
                                         tile_size=run.cfg.train.tile_size, log=log)
         if found[k] is None:
             continue
-        cands = [(-1, None, None, poses[k])] + [(h, ax, pv, pk) for h, (_, ax, pv, pk) in
-                                                 sorted(found[k]["candidates"].items())]
+        cands = [(-1, "revolute", None, None, poses[k])]  # (hypothesis, kind, axis, pivot, poses [T, 4, 4])
+        slide = slide_from_poses(pts, poses[k]) if cfg.hinge_trial_slide else None
+        if slide is not None:  # the given trajectory's chord without its turn
+            pk = np.tile(np.eye(4, dtype=np.float32), (poses.shape[1], 1, 1))
+            pk[:, :3, 3] = slide[1][:, None] * slide[0]
+            cands.append((-2, "prismatic", slide[0], np.zeros(3), pk))
+        edges = sorted(found[k]["candidates"].items())
+        cands += [(h, "revolute", ax, pv, pk) for h, (_, ax, pv, pk) in edges]
         n_f = max(int(found[k]["frames"]), 1)
         log(f"hinge trial: object {k + 1}: the images of the round's scene score the edges "
-            f"{[round(found[k]['scores'][h] / n_f, 5) for h, *_ in cands[1:]]} a frame, the given poses "
+            f"{[round(found[k]['scores'][h] / n_f, 5) for h, _ in edges]} a frame, the given poses "
             f"{found[k]['score_given'] / n_f:.5f}")
         disp = np.zeros(poses.shape[1], bool)
         tol = 1e-3 * float(np.max(np.percentile(pts, 95, 0) - np.percentile(pts, 5, 0)))  # as the search's
@@ -1042,33 +1084,34 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
         if len(frames) == 0:
             continue
         losses = []
-        for h, ax, pv, pk in cands:
+        for h, kind, ax, pv, pk in cands:
             trial = poses.copy()
             trial[k] = pk
             gs, _ = refit_gaussians(run, scene, order, tl, trial, int(cfg.hinge_trial), seed=cfg.seed, init=ref,
                                     lr_scale=cfg.refit_lr_scale, frames=frames, log=lambda *a: None)
             losses.append(float(np.mean(_posed_losses(run, scene, order, gs, tl, trial, frames))))
-            what = "the given poses" if h < 0 else f"edge {h}, axis {np.round(ax, 3).tolist()}"
-            log(f"hinge trial: object {k + 1}: {what}: loss {losses[-1]:.5f} after a {cfg.hinge_trial}-step re-fit "
-                f"on its {len(frames)} displaced frames")
-        best = int(np.argmin(losses))
-        replaced = best > 0 and losses[best] < (1.0 - cfg.hinge_trial_margin) * losses[0]
-        h, ax, pv, pk = cands[best]
-        rec = {"candidates": [{"hypothesis": int(c[0]), "axis": None if c[1] is None else [float(x) for x in c[1]],
-                               "pivot": None if c[2] is None else [float(x) for x in c[2]], "loss": l}
+            log(f"hinge trial: object {k + 1}: {_trial_name(h, ax)}: loss {losses[-1]:.5f} after a "
+                f"{cfg.hinge_trial}-step re-fit on its {len(frames)} displaced frames")
+        best = _trial_choice([c[0] for c in cands], losses, cfg.hinge_trial_margin)
+        replaced = best > 0
+        h, kind, ax, pv, pk = cands[best]
+        rec = {"candidates": [{"hypothesis": int(c[0]), "kind": c[1],
+                               "axis": None if c[2] is None else [float(x) for x in c[2]],
+                               "pivot": None if c[3] is None else [float(x) for x in c[3]], "loss": l}
                               for c, l in zip(cands, losses)],
-               "given_loss": losses[0], "replaced": bool(replaced), "frames": int(len(frames)),
-               "axis": None, "offset": None, "seconds": 0.0}
+               "given_loss": losses[0], "replaced": bool(replaced), "kind": kind if replaced else None,
+               "frames": int(len(frames)), "axis": None, "offset": None, "seconds": 0.0}
         if replaced:
             poses[k] = pk
             rec["axis"] = [float(x) for x in ax]
-            rec["offset"] = hinge_offset(pts, ax, pv)[1]
+            rec["offset"] = hinge_offset(pts, ax, pv)[1] if kind == "revolute" else None
         rec["seconds"] = time.perf_counter() - t0
         out[int(k)] = rec
+        where = "" if rec["offset"] is None else f", {rec['offset']:.1f} radii off its centre"
         log(f"hinge trial: object {k + 1}: "
-            + (f"replaced by edge {h} (axis {np.round(ax, 3).tolist()}, {rec['offset']:.1f} radii off its centre), "
-               f"loss {losses[best]:.5f} against the given poses' {losses[0]:.5f}" if replaced else
-               f"kept (the given poses' {losses[0]:.5f}, the best candidate's {losses[best]:.5f})")
+            + (f"replaced by the {_trial_name(h, ax)}{where}, loss {losses[best]:.5f} against the given poses' "
+               f"{losses[0]:.5f}" if replaced else
+               f"kept (the given poses' {losses[0]:.5f}, the best candidate's {min(losses):.5f})")
             + f" ({rec['seconds']:.1f} s)")
     return poses, out
 
@@ -1709,6 +1752,8 @@ def validate_config(cfg: Stage2Config) -> None:
         raise ValueError(f"Stage2Config.hinge_trial must be an integer >= 0 (0: off), got {cfg.hinge_trial!r}")
     if not 0 <= cfg.hinge_trial_margin < 1:  # NaN too
         raise ValueError(f"Stage2Config.hinge_trial_margin must be in [0, 1), got {cfg.hinge_trial_margin!r}")
+    if not isinstance(cfg.hinge_trial_slide, (bool, np.bool_)):
+        raise ValueError(f"Stage2Config.hinge_trial_slide must be true or false, got {cfg.hinge_trial_slide!r}")
     if not cfg.track_converged_deg >= 0:
         raise ValueError(f"Stage2Config.track_converged_deg must be >= 0 (0: every round tracks every object); got "
                          f"{cfg.track_converged_deg!r}")

@@ -17,6 +17,8 @@ from fgjax.pipeline.phototrack import (
     blur_with,
     converged_joints,
     hinge_offset,
+    is_far_hinge,
+    largest_turn_deg,
     joint_poses,
     mixed_copies,
     pose_delta,
@@ -150,6 +152,19 @@ def test_hinge_offset_measures_the_axis_from_the_centroid():
     assert off == pytest.approx(5.0) and ratio == pytest.approx(5.0 / radius)
     off, _ = hinge_offset(pts, [1.0, 0.0, 0.0], [9.0, 0.0, 0.0])  # the line through the centroid
     assert off == pytest.approx(0.0, abs=1e-12)
+
+
+def test_largest_turn_and_the_far_hinge_rule():
+    """`largest_turn_deg` is the largest rotation angle of a pose sequence (0 for none or the identity, 180 for a
+    half turn); `is_far_hinge` needs both more than 2 radii and a turn of 5 degrees or more, and a NaN ratio is
+    never far."""
+    turns = [np.radians(a) * np.array([0.6, 0.0, 0.8]) for a in (0.0, 12.5, 37.0, 3.0)]
+    poses = np.stack([_pose(r, np.array([1.0, -2.0, 0.5])) for r in turns])
+    assert largest_turn_deg(poses) == pytest.approx(37.0, abs=1e-4)
+    assert largest_turn_deg(np.tile(np.eye(4), (3, 1, 1))) == 0.0 and largest_turn_deg(np.zeros((0, 4, 4))) == 0.0
+    assert largest_turn_deg(_pose(np.array([np.pi, 0.0, 0.0]), np.zeros(3))) == pytest.approx(180.0, abs=1e-3)
+    assert is_far_hinge(2.1, 5.0) and not is_far_hinge(2.0, 40.0) and not is_far_hinge(9.0, 4.99)
+    assert not is_far_hinge(np.nan, 40.0) and is_far_hinge(1.5, 1.0, radii=1.0, turn=1.0)
 
 
 @pytest.mark.parametrize("far", [False, True])

@@ -345,13 +345,14 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
                 out.append(frame_best(hyps[h], i, out[-1][1] if warm else None))
             return out
 
-        moved = np.einsum("tij,mj->tmi", poses[k, frames, :3, :3].astype(np.float64), pts) + poses[k, frames, None, :3, 3]
-        mag = np.max(np.linalg.norm(moved - pts[None], axis=-1), axis=1)  # [F]
-        key = frames[np.argsort(-mag)[:screen_frames]]
         if keep >= len(hyps):  # every hypothesis is scored on all the frames: no screening
             screen = np.full(len(hyps), np.nan)
             top = list(range(len(hyps)))
-        else:
+        else:  # screened on the frames of largest displacement
+            moved = (np.einsum("tij,mj->tmi", poses[k, frames, :3, :3].astype(np.float64), pts)
+                     + poses[k, frames, None, :3, 3])
+            mag = np.max(np.linalg.norm(moved - pts[None], axis=-1), axis=1)  # [F]
+            key = frames[np.argsort(-mag)[:screen_frames]]
             screen = np.array([sum(frame_best(h, i, fitted_amount[i] if n == 0 and fitted is not None else None)[0]
                                    for i in key) for n, h in enumerate(hyps)])
             top = list(np.argsort(screen)[:keep])

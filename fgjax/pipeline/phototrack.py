@@ -52,7 +52,8 @@ from fgjax.render.tiles import tile_ranges
 
 __all__ = ["blur", "blur_kernel", "blur_with", "pose_delta", "relabel_candidates", "mixed_opacity_logits",
            "mixed_copies", "soft_members", "tile_region", "rects_meeting", "subset_bucket", "rest_spans",
-           "settle_at_rest", "track_photometric", "joint_poses", "hinge_offset", "converged_joints"]
+           "settle_at_rest", "track_photometric", "joint_poses", "hinge_offset", "largest_turn_deg", "is_far_hinge",
+           "FAR_HINGE_RADII", "FAR_HINGE_TURN_DEG", "converged_joints"]
 
 
 def blur_kernel(sigma: float, radius: int | None = None) -> np.ndarray:
@@ -586,6 +587,28 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
     return (poses, pi, stats) if return_stats else (poses, pi)
 
 
+# A far hinge lies more than FAR_HINGE_RADII of its part's radii off it (`hinge_offset`) while the part turns
+# FAR_HINGE_TURN_DEG degrees or more: likely a shift fitted as a turn (`joint_poses`' warning; the hinge trial of
+# `fgjax.pipeline.stage2`).
+FAR_HINGE_RADII = 2.0
+FAR_HINGE_TURN_DEG = 5.0
+
+
+def largest_turn_deg(poses) -> float:
+    """The largest rotation angle, in degrees, of the poses [T, 4, 4] (0 for none)."""
+    P = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    if len(P) == 0:
+        return 0.0
+    return float(np.degrees(np.max(np.linalg.norm(np.asarray(geometry.so3_log(jnp.asarray(P[:, :3, :3]))), axis=-1))))
+
+
+def is_far_hinge(ratio: float, turn_deg: float, *, radii: float = FAR_HINGE_RADII,
+                 turn: float = FAR_HINGE_TURN_DEG) -> bool:
+    """Whether a hinge ``ratio`` radii off its part (`hinge_offset`) turning up to ``turn_deg`` is a far hinge (over
+    ``radii`` radii while turning ``turn`` degrees or more; a NaN ratio is not)."""
+    return bool(np.isfinite(ratio) and ratio > radii and turn_deg >= turn)
+
+
 def hinge_offset(points, axis, pivot) -> tuple[float, float]:
     """How far a hinge lies from its part: (the distance of the axis line (unit ``axis`` [3] through ``pivot``
     [3]) from the centroid of ``points`` [M, 3], that distance over the 95th percentile of the points' distances
@@ -601,7 +624,8 @@ def hinge_offset(points, axis, pivot) -> tuple[float, float]:
 
 
 def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_margin: float = 0.95,
-                warn_cost: float = 4.0, warn_offset: float = 2.0, warn_turn_deg: float = 5.0,
+                warn_cost: float = 4.0, warn_offset: float = FAR_HINGE_RADII,
+                warn_turn_deg: float = FAR_HINGE_TURN_DEG,
                 return_axes: bool = False, return_offsets: bool = False, log=print):
     """Each object's poses replaced by the one articulation that best explains them.
 
@@ -672,11 +696,10 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
         where, far = "", None
         if kind == "revolute":
             off, ratio = hinge_offset(pts, fits[kind][3], fits[kind][4])
-            turn = float(np.degrees(np.max(np.linalg.norm(
-                np.asarray(geometry.so3_log(jnp.asarray(out[k, :, :3, :3]))), axis=-1))))
+            turn = largest_turn_deg(out[k])
             where = f", {off:.3f} from the part's centre ({ratio:.1f} radii), turning up to {turn:.1f} degrees"
             offsets[k] = ratio
-            if ratio > warn_offset and turn >= warn_turn_deg:
+            if is_far_hinge(ratio, turn, radii=warn_offset, turn=warn_turn_deg):
                 far = (f"photometric tracking: warning: object {k + 1}'s hinge lies {ratio:.1f} times its radius from "
                        f"its centre (more than {warn_offset:g}) while it turns {turn:.1f} degrees: a turn about an axis "
                        f"off the part is mostly a shift, so its tracking has likely mistaken a turn about its edge for "

@@ -939,12 +939,10 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
     return poses, out
 
 
-@functools.partial(jax.jit, static_argnames=("sh_degree", "width", "height", "capacity", "tile_size", "lam"))
-def _posed_loss(g: Gaussians, alive, labels, pose, viewmat, K, image, background, *, sh_degree: int, width: int,
-                height: int, capacity: int | None, tile_size: int, lam: float):
-    """Stage 1's photometric loss of ``image`` [H, W, 3] against `g` (raw parameters) with each object moved by its
-    pose (``pose`` [K, 4, 4]; ``labels`` [N], -1 static) seen by one camera; inf where the render overflows. Jitted
-    once for all the scenes and poses of a shape."""
+def _posed_frame_loss(g: Gaussians, alive, labels, pose, viewmat, K, image, background, *, sh_degree: int,
+                      width: int, height: int, capacity: int | None, tile_size: int, lam: float):
+    """(stage 1's photometric loss of ``image`` [H, W, 3] against `g` (raw parameters) with each object moved by its
+    pose (``pose`` [K, 4, 4]; ``labels`` [N], -1 static) seen by one camera, whether the render overflowed)."""
     from fgjax.pipeline.stage1 import render_params
     from fgjax.pipeline.track import transform_gaussians
     from fgjax.train.losses import photometric_loss
@@ -953,8 +951,15 @@ def _posed_loss(g: Gaussians, alive, labels, pose, viewmat, K, image, background
     img, _, info, _ = render_params({"gaussians": Gaussians(m, g.log_scales, q, g.opacity_logits, g.sh)}, alive,
                                     viewmat, K, 0.0, spec=None, sh_degree=sh_degree, width=width, height=height,
                                     background=background, capacity=capacity, tile_size=tile_size)
-    loss = photometric_loss(img, image, lam)
-    return jnp.where(jnp.isfinite(loss) & ~info["overflow"], loss, jnp.inf)
+    return photometric_loss(img, image, lam), info["overflow"]
+
+
+@functools.partial(jax.jit, static_argnames=("sh_degree", "width", "height", "capacity", "tile_size", "lam"))
+def _posed_loss(g: Gaussians, alive, labels, pose, viewmat, K, image, background, **kw):
+    """`_posed_frame_loss`'s loss, inf where the render overflows or the loss is not finite. Jitted once for all
+    the scenes and poses of a shape."""
+    loss, over = _posed_frame_loss(g, alive, labels, pose, viewmat, K, image, background, **kw)
+    return jnp.where(jnp.isfinite(loss) & ~over, loss, jnp.inf)
 
 
 def _posed_losses(run: LoadedRun, scene, order, gs: Gaussians, labels: np.ndarray, poses: np.ndarray, frames):
@@ -1032,9 +1037,8 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     (the given poses as hypothesis -1, the slide as -2), "given_loss", "replaced", "kind" (the chosen joint's, None
     where kept), "axis", "offset" (None for a slide), "frames", "seconds"}}).
     """
-    from fgjax.geometry import so3_log
     from fgjax.pipeline.articulation import displaced_frames, rect_hinges, search_articulations, slide_from_poses
-    from fgjax.pipeline.phototrack import hinge_offset
+    from fgjax.pipeline.phototrack import hinge_offset, is_far_hinge, largest_turn_deg
 
     poses = np.asarray(poses, np.float32).copy()
     alive = np.asarray(run.state.densify.alive, bool)
@@ -1042,10 +1046,8 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     out = {}
     tl = None  # the trial's labels: the outlines relabelled by colour on the round's reference
     for k in np.flatnonzero(np.asarray(objects, bool)):
-        if kinds[k] != "revolute" or not (np.isfinite(offsets[k]) and offsets[k] > 2.0):
-            continue
-        turn = float(np.degrees(np.max(np.linalg.norm(np.asarray(so3_log(jnp.asarray(poses[k, :, :3, :3]))), axis=-1))))
-        if turn < 5.0:
+        turn = largest_turn_deg(poses[k])
+        if kinds[k] != "revolute" or not is_far_hinge(offsets[k], turn):
             continue
         if tl is None:
             tl = _refine_by_colour(labels, ref, alive, cfg, log)[0] if cfg.colour_radius > 0 else labels
@@ -1401,7 +1403,6 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
         when ``relabel_steps`` is 0)).
     """
     from fgjax.pipeline.stage1 import render_params, scene_extent
-    from fgjax.pipeline.track import transform_gaussians
     from fgjax.train.losses import photometric_loss
     from fgjax.train.optim import OptimSpec, make_optimizer
 
@@ -1429,11 +1430,11 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
 
     def posed_loss(labels_):
         lab = jnp.asarray(labels_)
+        kw = dict(sh_degree=run.cfg.model.sh_degree, width=scene.width, height=scene.height, capacity=cap,
+                  tile_size=run.cfg.train.tile_size, lam=lam)
 
         def loss_fn(p, i):
-            gg = p["gaussians"]
-            m, q = transform_gaussians(gg.means, gg.quats, lab, pj[:, i])
-            return photo(Gaussians(m, gg.log_scales, q, gg.opacity_logits, gg.sh), alive, i)
+            return _posed_frame_loss(p["gaussians"], alive, lab, pj[:, i], vms[i], Ks[i], images[i], bg, **kw)
 
         return loss_fn
 

@@ -81,6 +81,17 @@ def test_slide_from_poses_reads_a_slide_back_and_keeps_a_far_turns_chord():
     assert np.max(np.linalg.norm(chord - moved, axis=1)) < 0.1 * np.max(np.linalg.norm(moved - c, axis=1))
     np.testing.assert_allclose(np.linalg.norm(chord[-1] - c), np.linalg.norm(moved[-1] - c), rtol=0.01)
     np.testing.assert_allclose(slid[:, :3, :3], np.broadcast_to(np.eye(3), (7, 3, 3)), atol=1e-6)
+    # snapped: the part's principal axis nearest the chord, the amounts the shifts along it
+    _, rot = _box()  # the slab's sides run along rot's columns (the longest first)
+    off_axis = np.asarray(geometry.so3_exp(jnp.asarray(0.26 * rot[:, 2])), np.float64) @ rot[:, 0]  # 15 deg off
+    drift = np.stack([np.asarray(articulated_pose(False, off_axis, np.zeros(3), a)) for a in amounts])
+    chord_axis, _ = slide_from_poses(pts, drift)
+    s_axis, s_am = slide_from_poses(pts, drift, snap=True)
+    first = np.linalg.svd(pts - pts.mean(0), full_matrices=False)[2][0]  # the sample's longest principal axis
+    assert abs(chord_axis @ off_axis) > 1 - 1e-9 and abs(s_axis @ first) > 1 - 1e-9
+    assert abs(first @ rot[:, 0]) > np.cos(np.radians(4.0))
+    np.testing.assert_allclose(s_am, (drift[:, :3, 3] @ s_axis), atol=1e-12)
+    assert s_am[np.argmax(np.abs(s_am))] > 0
     assert slide_from_poses(pts, np.tile(np.eye(4), (5, 1, 1))) is None
     for bad_pts, bad_poses in ((pts[:0], poses), (pts, poses[0]), (np.where(pts == pts[3], np.nan, pts), poses),
                                (pts, np.where(poses == poses[4], np.inf, poses))):

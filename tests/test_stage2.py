@@ -385,19 +385,24 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
         assert init is ref
         return init, labels_
 
-    loss_of = {-1: 1.0, -2: 1.1, 0: 0.9, 1: 0.5, 2: 0.7, 3: 0.8}
-    slide_axis, slide_amounts = articulation.slide_from_poses(pts.astype(np.float64), given[0])
+    loss_of = {-1: 1.0, -2: 1.1, -3: 1.15, 0: 0.9, 1: 0.5, 2: 0.7, 3: 0.8}
+    slide_axis, _ = articulation.slide_from_poses(pts.astype(np.float64), given[0])
+    snap_axis, _ = articulation.slide_from_poses(pts.astype(np.float64), given[0], snap=True)
+    # the setup's chord runs well off the part's principal axes, so the snapped slide is tried too
+    assert abs(slide_axis @ snap_axis) < np.cos(np.radians(2.0))
 
     def fake_losses(run_, scene_, order_, gs, labels_, poses, frames):
         for h, pk in [(-1, given[0])] + [(h, c[3]) for h, c in cands.items()]:
             if np.array_equal(poses[0], pk):
                 return np.full(len(frames), loss_of[h])
-        # the slide nearest the given poses: no turn, their centroid's chord
+        # a slide: no turn; the given poses' chord, or along the part's principal axis nearest it
         np.testing.assert_array_equal(poses[0][:, :3, :3], np.broadcast_to(np.eye(3), (t, 3, 3)))
         members = np.asarray(ref.means, np.float64)[(labels_ == 0) & np.asarray(run.state.densify.alive)]
-        ax, am = articulation.slide_from_poses(members, given[0])  # of the trial's labels
-        np.testing.assert_allclose(poses[0][:, :3, 3], am[:, None] * ax, atol=1e-6)
-        return np.full(len(frames), loss_of[-2])
+        for h, snap in ((-2, False), (-3, True)):
+            ax, am = articulation.slide_from_poses(members, given[0], snap=snap)  # of the trial's labels
+            if np.allclose(poses[0][:, :3, 3], am[:, None] * ax, atol=1e-6):
+                return np.full(len(frames), loss_of[h])
+        raise AssertionError("unknown poses")
 
     monkeypatch.setattr(articulation, "search_articulations", fake_search)
     monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
@@ -413,35 +418,37 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     assert not kw["replace"] and kw["keep"] == 4 and list(kw["objects"]) == [True] and kw["kinds"] == ["none"]
     hyps = kw["hypotheses"][0]
     assert len(hyps) == 4 and all(h[0] == "revolute" for h in hyps)  # rect_hinges of the part's alive members
-    assert len(refits) == 6 and all(s == 7 for _, s, _ in refits)
+    assert len(refits) == 7 and all(s == 7 for _, s, _ in refits)
     np.testing.assert_array_equal(refits[0][0], given[0])
     assert all(f == list(range(1, t)) for *_, f in refits)  # frame 0 is at rest under every candidate
     r = rec[0]
     assert r["replaced"] and r["given_loss"] == 1.0 and r["kind"] == "revolute"
-    assert [c["hypothesis"] for c in r["candidates"]] == [-1, -2, 0, 1, 2, 3]
-    assert [c["kind"] for c in r["candidates"]] == ["revolute", "prismatic"] + ["revolute"] * 4
-    assert [c["loss"] for c in r["candidates"]] == pytest.approx([1.0, 1.1, 0.9, 0.5, 0.7, 0.8]) and r["frames"] == t - 1
+    assert [c["hypothesis"] for c in r["candidates"]] == [-1, -2, -3, 0, 1, 2, 3]
+    assert [c["kind"] for c in r["candidates"]] == ["revolute", "prismatic", "prismatic"] + ["revolute"] * 4
+    assert [c["loss"] for c in r["candidates"]] == pytest.approx([1.0, 1.1, 1.15, 0.9, 0.5, 0.7, 0.8])
+    assert r["frames"] == t - 1
     assert r["axis"] == [0.0, 1.0, 0.0] and abs(r["offset"] - hinge_offset(pts, [0, 1, 0], cands[1][2])[1]) < 1e-9
     json.dumps(r)  # written to stage2.json as it is
     assert any("replaced by the edge 1" in m for m in logs), logs
     # within the margin: kept
-    loss_of.update({-2: 1.05, 0: 0.99, 1: 0.985, 2: 0.995, 3: 1.2})
+    loss_of.update({-2: 1.05, -3: 1.03, 0: 0.99, 1: 0.985, 2: 0.995, 3: 1.2})
     refits.clear()
     out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg, np.ones(1, bool),
                                    log=logs.append)
     np.testing.assert_array_equal(out, given)
     assert not rec[0]["replaced"] and rec[0]["axis"] is None and rec[0]["offset"] is None and rec[0]["kind"] is None
-    # the slide within the margin of the given poses, or an edge that beats them but not the slide: the slide
-    for update in ({-2: 1.01}, {-2: 0.4, 1: 0.5}):
+    # the best slide within the margin of the given poses, or an edge that beats them but not that slide: the slide
+    for update, axis in (({-2: 1.01}, slide_axis), ({-2: 0.4, 1: 0.5}, slide_axis), ({-3: 0.3}, snap_axis)):
         loss_of.update(update)
         out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg,
                                        np.ones(1, bool), log=logs.append)
         r = rec[0]
         assert r["replaced"] and r["kind"] == "prismatic" and r["offset"] is None
-        np.testing.assert_allclose(r["axis"], slide_axis, atol=1e-12)
+        np.testing.assert_allclose(r["axis"], axis, atol=1e-12)
         np.testing.assert_array_equal(out[0][:, :3, :3], np.broadcast_to(np.eye(3), (t, 3, 3)))
         json.dumps(r)
-    assert any("replaced by the slide" in m for m in logs), logs
+    assert any("replaced by the slide, axis" in m for m in logs), logs
+    assert any("replaced by the slide along a principal axis" in m for m in logs), logs
     # without ``hinge_trial_slide``: no slide is tried
     refits.clear()
     out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
@@ -449,7 +456,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
                                    np.ones(1, bool), log=logs.append)
     assert len(refits) == 5 and [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, 0, 1, 2, 3]
     np.testing.assert_array_equal(out[0], cands[1][3])
-    loss_of.update({-2: 1.1, 1: 0.985})
+    loss_of.update({-2: 1.1, -3: 1.15, 1: 0.985})
     # a near hinge, no turn, a slide, no offset, an object left out: no trial
     still = given.copy()
     still[0, :, :3, :3] = np.eye(3)
@@ -476,7 +483,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     loss_of.update({1: 0.5})
     stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, stage2.Stage2Config(hinge_trial=7),
                         np.ones(1, bool), log=logs.append)
-    assert len(coloured) == 1 and coloured[0] is ref and len(labels_seen) == 6
+    assert len(coloured) == 1 and coloured[0] is ref and len(labels_seen) in (6, 7)  # the snapped slide may run
     assert all(lab is recoloured for lab in labels_seen)
     hyps = seen["search"]["hypotheses"][0]
     np.testing.assert_allclose(hyps[0][1], articulation.rect_hinges(
@@ -492,6 +499,8 @@ def test_trial_choice_takes_an_edge_by_the_margin_and_the_slide_within_it():
     assert stage2._trial_choice([-1, -2, 0, 1], [1.0, 1.1, 0.99, 0.985], m) == 0
     assert stage2._trial_choice([-1, -2, 0, 1], [1.0, 1.019, 0.99, 0.985], m) == 1
     assert stage2._trial_choice([-1, -2, 0, 1], [1.0, 0.85, 0.9, 0.95], m) == 1  # the slide beats the best edge
+    assert stage2._trial_choice([-1, -2, -3, 0], [1.0, 0.86, 0.85, 0.9], m) == 2  # the better of two slides
+    assert stage2._trial_choice([-1, -2, -3, 0], [1.0, 1.5, 0.88, 0.87], m) == 3  # the best slide is what counts
     assert stage2._trial_choice([-1, -2, 0], [1.0, 0.9, 0.9], m) == 2  # a tie with the slide goes to the edge
     assert stage2._trial_choice([-1, 0, 1], [1.0, 0.99, 0.5], m) == 2
     assert stage2._trial_choice([-1, 0, 1], [1.0, 0.99, 0.985], m) == 0

@@ -140,7 +140,7 @@ def joint_from_poses(poses, kind: str):
     raise ValueError(f"joint_from_poses: kind must be {REVOLUTE!r} or {PRISMATIC!r}, got {kind!r}")
 
 
-def slide_from_poses(points, poses):
+def slide_from_poses(points, poses, *, snap: bool = False):
     """The slide nearest a part's trajectory: (unit axis [3], amounts [T]) from its reference points [M, 3] and
     poses [T, 4, 4], or None when no pose moves the points' centroid.
 
@@ -148,7 +148,10 @@ def slide_from_poses(points, poses):
     is the direction that holds most of the shifts (the first right singular vector of the uncentred [T, 3]
     stack; a slide starts at rest), signed so that the largest amount is positive, and the amounts are d_t along
     it. Exact for the poses of a slide; for a turn about a far line (a slide fitted as a turn) it keeps the chord
-    and drops the turn. `articulated_pose` (``revolute`` false) gives the slide's poses."""
+    and drops the turn. ``snap``: the axis is instead the principal axis of the points nearest that direction (a
+    drawer slides along one of its box's axes; on the close pair's drawer the chord of its tracked poses was 19-29
+    degrees off its true slide, its nearest principal axis 7: docs/benchmarks.md, session 40). `articulated_pose`
+    (``revolute`` false) gives the slide's poses."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     P = np.asarray(poses, np.float64)
     if len(p) == 0 or P.ndim != 3 or P.shape[1:] != (4, 4):
@@ -161,6 +164,9 @@ def slide_from_poses(points, poses):
     if not np.max(np.linalg.norm(d, axis=1)) > 1e-12:
         return None
     axis = np.linalg.svd(d, full_matrices=False)[2][0]  # [3]
+    if snap and len(p) >= 3:
+        pa = np.linalg.svd(p - c, full_matrices=False)[2]  # [3, 3] principal axes
+        axis = pa[int(np.argmax(np.abs(pa @ axis)))]
     amounts = d @ axis  # [T]
     if amounts[int(np.argmax(np.abs(amounts)))] < 0:
         axis, amounts = -axis, -amounts

@@ -233,10 +233,12 @@ class Stage2Config:
     """An edge of `_hinge_trial` replaces the given poses only when its re-fitted loss is below (1 - this) times
     theirs (and no worse than the slide's); the slide does when its loss is no more than (1 + this) times theirs."""
     hinge_trial_slide: bool = True
-    """`_hinge_trial` also tries the slide nearest the given poses (`fgjax.pipeline.articulation.slide_from_poses`:
-    their chord without the turn), which wins ties within ``hinge_trial_margin``: a hinge several radii off its
-    part is `joint_poses`' sign of a slide fitted as a turn, and the close pair's drawer was fitted as a hinge 3.1
-    radii off it turning 36 degrees (15 degrees in its final poses; docs/benchmarks.md, session 40)."""
+    """`_hinge_trial` also tries two slides (`fgjax.pipeline.articulation.slide_from_poses`): the given poses' chord
+    without their turn, and the same along the part's principal axis nearest it (where that is more than 2 degrees
+    off the chord). The better slide wins ties within ``hinge_trial_margin``: a hinge several radii off its part is
+    `joint_poses`' sign of a slide fitted as a turn. The close pair's drawer was fitted as a hinge 3.1 radii off it
+    turning 36 degrees, and the second pose-noise scene's drawer as one 7.4 radii off turning 6 degrees
+    (docs/benchmarks.md, session 40)."""
     track_subset_margin: int = 2
     """The photometric tracker's steps draw only the changing Gaussians and the others whose tiles meet theirs,
     widened by this many tiles (`track_photometric`'s ``subset_margin``; a frame whose part leaves the margin is
@@ -992,20 +994,22 @@ def _trial_name(h: int, axis) -> str:
     """How the log names `_hinge_trial`'s candidate ``h`` (-1 the given poses, -2 the slide, else an edge)."""
     if h == -1:
         return "the given poses"
-    return f"{'slide' if h == -2 else f'edge {h}'}, axis {np.round(np.asarray(axis), 3).tolist()}"
+    what = {-2: "slide", -3: "slide along a principal axis"}.get(h, f"edge {h}")
+    return f"{what}, axis {np.round(np.asarray(axis), 3).tolist()}"
 
 
 def _trial_choice(hyps, losses, margin: float) -> int:
-    """The index of `_hinge_trial`'s choice among its candidates (``hyps``: -1 the given poses, first; -2 the
+    """The index of `_hinge_trial`'s choice among its candidates (``hyps``: -1 the given poses, first; below -1 a
     slide; else an edge) by their re-fitted ``losses``: the best edge when it is below (1 - ``margin``) times the
-    given poses' loss and no worse than the slide's; else the slide when it is no more than (1 + ``margin``) times
-    the given poses' (a hinge far off its part is likely a slide fitted as a turn: `joint_poses`); else the given
-    poses (0)."""
+    given poses' loss and no worse than the best slide's; else the best slide when it is no more than (1 +
+    ``margin``) times the given poses' (a hinge far off its part is likely a slide fitted as a turn:
+    `joint_poses`); else the given poses (0)."""
     hyps, losses = list(hyps), np.asarray(losses, np.float64)
     if hyps[0] != -1 or not np.all(np.isfinite(losses) | (losses == np.inf)):
         raise ValueError(f"_trial_choice: the given poses come first and the losses are not NaN; got {hyps}, "
                          f"{losses.tolist()}")
-    slide = hyps.index(-2) if -2 in hyps else None
+    slides = [i for i, h in enumerate(hyps) if h < -1]
+    slide = min(slides, key=lambda i: losses[i]) if slides else None
     edges = [i for i, h in enumerate(hyps) if h >= 0]
     if edges:
         e = min(edges, key=lambda i: losses[i])
@@ -1067,11 +1071,18 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
         if found[k] is None:
             continue
         cands = [(-1, "revolute", None, None, poses[k])]  # (hypothesis, kind, axis, pivot, poses [T, 4, 4])
-        slide = slide_from_poses(pts, poses[k]) if cfg.hinge_trial_slide else None
-        if slide is not None:  # the given trajectory's chord without its turn
+        # the given trajectory's chord without its turn, and along the part's principal axis nearest it (unless
+        # the chord already runs within 2 degrees of that axis)
+        chord = slide_from_poses(pts, poses[k]) if cfg.hinge_trial_slide else None
+        snapped = None if chord is None else slide_from_poses(pts, poses[k], snap=True)
+        if snapped is not None and abs(float(snapped[0] @ chord[0])) > np.cos(np.radians(2.0)):
+            snapped = None
+        for h, slide in ((-2, chord), (-3, snapped)):
+            if slide is None:
+                continue
             pk = np.tile(np.eye(4, dtype=np.float32), (poses.shape[1], 1, 1))
             pk[:, :3, 3] = slide[1][:, None] * slide[0]
-            cands.append((-2, "prismatic", slide[0], np.zeros(3), pk))
+            cands.append((h, "prismatic", slide[0], np.zeros(3), pk))
         edges = sorted(found[k]["candidates"].items())
         cands += [(h, "revolute", ax, pv, pk) for h, (_, ax, pv, pk) in edges]
         n_f = max(int(found[k]["frames"]), 1)

@@ -317,6 +317,25 @@ def test_refit_draws_only_the_given_frames(tiny):
             stage2.refit_gaussians(run, moved, order, labels, wrong, 1, frames=bad, log=lambda m: None)
 
 
+def test_refits_of_one_configuration_share_one_compiled_step(tiny):
+    """Re-fits with the same step count, rate and scene (a hinge trial's candidates) under other poses and labels
+    reuse `_posed_refit_step`'s compiled program: the poses, labels and images are its arguments, not constants.
+    Another step count (another optimiser schedule) compiles once more. The poses still count: the re-fit under
+    the wrong poses ends elsewhere."""
+    run, labels, poses, moved, order = _sliding_part(tiny, 0.1)
+    wrong = poses.copy()
+    wrong[0, -1] = np.eye(4)
+    quiet = lambda m: None
+    stage2.refit_gaussians(run, moved, order, labels, poses, 2, seed=5, log=quiet)
+    n = stage2._posed_refit_step._cache_size()
+    a, _ = stage2.refit_gaussians(run, moved, order, labels, poses, 2, seed=5, log=quiet)
+    b, _ = stage2.refit_gaussians(run, moved, order, np.where(labels == 0, 0, -1), wrong, 2, seed=5, log=quiet)
+    assert stage2._posed_refit_step._cache_size() == n
+    assert not np.array_equal(np.asarray(a.means), np.asarray(b.means))
+    stage2.refit_gaussians(run, moved, order, labels, poses, 3, seed=5, log=quiet)
+    assert stage2._posed_refit_step._cache_size() == n + 1
+
+
 def test_posed_losses_are_the_refits_loss_of_each_frame(tiny):
     """`_posed_losses` renders each frame with the objects at their poses: ~0 on images made that way, and in a
     frame whose pose is wrong (the part left at rest) the same as the re-fit's first loss on that frame alone."""

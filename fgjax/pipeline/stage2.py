@@ -1364,21 +1364,45 @@ def _reference_scene(run: LoadedRun, t: float) -> Gaussians:
     return Gaussians(m, ls, q, g.opacity_logits, g.sh)
 
 
+def _guarded_update(loss_fn, opt, p, st, i):
+    """(params, opt_state, loss, skipped): one `opt` step on ``loss_fn(params, i) -> (loss, overflow)``; a step
+    whose render overflowed the tile capacity or whose loss is not finite leaves params and state unchanged."""
+    (loss, over), gr = jax.value_and_grad(loss_fn, has_aux=True)(p, i)
+    up, st2 = opt.update(gr, st, p)
+    new = optax.apply_updates(p, up)
+    bad = over | ~jnp.isfinite(loss)
+    keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(bad, y, x), a, b)
+    return keep(new, p), keep(st2, st), loss, bad
+
+
 def _guarded_step(loss_fn, opt):
-    """jitted (params, opt_state, i) -> (params, opt_state, loss, skipped): one `opt` step on
-    ``loss_fn(params, i) -> (loss, overflow)``; a step whose render overflowed the tile capacity or whose
-    loss is not finite leaves params and state unchanged."""
+    """jitted (params, opt_state, i) -> `_guarded_update`."""
+    return jax.jit(functools.partial(_guarded_update, loss_fn, opt))
 
-    @jax.jit
-    def step(p, st, i):
-        (loss, over), gr = jax.value_and_grad(loss_fn, has_aux=True)(p, i)
-        up, st2 = opt.update(gr, st, p)
-        new = optax.apply_updates(p, up)
-        bad = over | ~jnp.isfinite(loss)
-        keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(bad, y, x), a, b)
-        return keep(new, p), keep(st2, st), loss, bad
 
-    return step
+@functools.lru_cache(maxsize=16)
+def _refit_optimizer(steps: int, scene_extent: float, num_sh_coeffs: int, lr_scale: float):
+    """`refit_gaussians`' optimiser: stage 1's groups and rates (decaying over ``steps``) times ``lr_scale``.
+    Memoised (it is a pure function of its arguments), so that the re-fits of one configuration, e.g. a hinge
+    trial's candidates, share one compiled `_posed_refit_step`."""
+    from fgjax.train.optim import OptimSpec, make_optimizer
+
+    # Adam's update is linear in its learning rate: scaling the update scales every group's rate and schedule
+    return optax.chain(make_optimizer(OptimSpec(steps=steps, scene_extent=scene_extent), num_sh_coeffs),
+                       optax.scale(lr_scale))
+
+
+@functools.partial(jax.jit, static_argnames=("opt", "sh_degree", "width", "height", "capacity", "tile_size", "lam"))
+def _posed_refit_step(p, st, i, labels, poses, viewmats, Ks, images, background, alive, *, opt, **kw):
+    """`_guarded_update` of `_posed_frame_loss` on training frame i (time order) with each object moved by its
+    pose (``poses`` [K, T, 4, 4]). Everything but the optimiser and the render's settings is an argument, so one
+    compiled step serves every re-fit of a shape."""
+
+    def loss_fn(p_, i_):
+        return _posed_frame_loss(p_["gaussians"], alive, labels, poses[:, i_], viewmats[i_], Ks[i_], images[i_],
+                                 background, **kw)
+
+    return _guarded_update(loss_fn, opt, p, st, i)
 
 
 def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.ndarray, steps: int, *, seed: int = 0,
@@ -1415,7 +1439,6 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     """
     from fgjax.pipeline.stage1 import render_params, scene_extent
     from fgjax.train.losses import photometric_loss
-    from fgjax.train.optim import OptimSpec, make_optimizer
 
     t_start = time.perf_counter()
     ref = _reference_scene(run, float(scene.times[order[0]])) if init is None else init
@@ -1428,9 +1451,8 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
     bg = jnp.asarray(run.cfg.model.background, jnp.float32)
     cap = _render_capacity(run)
     lam = float(run.cfg.train.lambda_dssim)
-    # Adam's update is linear in its learning rate: scaling the update scales every group's rate and schedule
-    opt = optax.chain(make_optimizer(OptimSpec(steps=max(int(steps), 1), scene_extent=scene_extent(scene.viewmats)),
-                                     int(ref.sh.shape[1])), optax.scale(float(lr_scale)))
+    opt = _refit_optimizer(max(int(steps), 1), float(scene_extent(scene.viewmats)), int(ref.sh.shape[1]),
+                           float(lr_scale))
 
     def photo(gs: Gaussians, alive_, i):
         """(photometric loss, overflow) of training frame i (time order) rendered from `gs` as given."""
@@ -1438,16 +1460,6 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
                                         sh_degree=run.cfg.model.sh_degree, width=scene.width, height=scene.height,
                                         background=bg, capacity=cap, tile_size=run.cfg.train.tile_size)
         return photometric_loss(img, images[i], lam), info["overflow"]
-
-    def posed_loss(labels_):
-        lab = jnp.asarray(labels_)
-        kw = dict(sh_degree=run.cfg.model.sh_degree, width=scene.width, height=scene.height, capacity=cap,
-                  tile_size=run.cfg.train.tile_size, lam=lam)
-
-        def loss_fn(p, i):
-            return _posed_frame_loss(p["gaussians"], alive, lab, pj[:, i], vms[i], Ks[i], images[i], bg, **kw)
-
-        return loss_fn
 
     st = opt.init(params)
     rng = np.random.default_rng(seed + 2)
@@ -1462,13 +1474,17 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
         log(f"stage 2: relabelled by motion in {n_rel} steps: {info}")
     else:
         n_rel = 0
-    step = _guarded_step(posed_loss(labels), opt)
+    lab = jnp.asarray(labels)
+    kw = dict(opt=opt, sh_degree=int(run.cfg.model.sh_degree), width=int(scene.width), height=int(scene.height),
+              capacity=cap, tile_size=int(run.cfg.train.tile_size), lam=lam)
+    step = functools.partial(_posed_refit_step, **kw)
     pool = np.arange(len(order)) if frames is None else np.asarray(frames, np.int64).reshape(-1)
     if len(pool) == 0 or pool.min() < 0 or pool.max() >= len(order):
         raise ValueError(f"refit_gaussians: frames must be indices into the {len(order)} training frames, got "
                          f"{pool.tolist()}")
     for _ in range(int(steps) - n_rel):
-        params, st, loss, bad = step(params, st, jnp.asarray(pool[rng.integers(len(pool))], jnp.int32))
+        params, st, loss, bad = step(params, st, jnp.asarray(pool[rng.integers(len(pool))], jnp.int32), lab, pj, vms,
+                                     Ks, images, bg, jnp.asarray(alive))
         losses.append(loss)
         n_bad += int(bad)
     if losses:

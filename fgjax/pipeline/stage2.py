@@ -215,9 +215,10 @@ class Stage2Config:
     """Steps of each trial re-fit of `_hinge_trial` (0: off). After a round's joint fits, a part fitted as a hinge
     that turns 5 degrees or more about an axis more than 2 of its radii from its centre (the far-hinge warning of
     `fgjax.pipeline.phototrack.joint_poses`: a lift mistaken for a turn) is tried against the hinges along the four
-    edges of its outline (`fgjax.pipeline.articulation.rect_hinges`): their amounts are searched in the images
-    (`search_articulations`), the scene is re-fitted from the round's reference under each candidate's poses (the
-    given ones included) for this many steps on the frames where the part is displaced, and the candidate whose
+    edges of its outline (`fgjax.pipeline.articulation.rect_hinges`) and two slides (``hinge_trial_slide``): the
+    hinges' amounts are searched in the images (`search_articulations`), the scene is re-fitted from the round's
+    reference under each candidate's poses (the given ones included) for this many steps on the frames where the
+    part is displaced, and the candidate whose
     re-fit renders those frames closest (by more than ``hinge_trial_margin``) replaces the poses. The later rounds
     then keep that part's joint (they do not track it again). Why a re-fit: on stage 1's scene, which paints the
     open lid as a blur of its states, the images score the lid's true hinge no better than its lift (0.00844

@@ -228,7 +228,8 @@ class Stage2Config:
     the lid turns only 42 of its 69 degrees (same session). Measured at the demo's settings (session 39): the lid's
     trial chose the edge nearest its true hinge in all five runs; held-out states 28.86 -> 29.30 dB (the demo's
     run), 27.08 -> 29.00 and 27.15 -> 27.76 (pose noise), 28.35 -> 27.59 and 29.62 -> 28.97 (close pair, whose lid
-    turns 29-30 of its 71 degrees); `ari_controlled` up on all five; the trial took 115 s of the demo's stage 2 (516 s against 434).
+    turns 29-30 of its 71 degrees); `ari_controlled` up on all five; the trial took 115 s of the demo's stage 2
+    (516 s against 434).
     0: off."""
     hinge_trial_margin: float = 0.02
     """An edge of `_hinge_trial` replaces the given poses only when its re-fitted loss is below (1 - this) times

@@ -233,7 +233,8 @@ class Stage2Config:
     0: off."""
     hinge_trial_margin: float = 0.02
     """An edge of `_hinge_trial` replaces the given poses only when its re-fitted loss is below (1 - this) times
-    theirs (and no worse than the slide's); the slide does when its loss is no more than (1 + this) times theirs."""
+    theirs (and no worse than the better slide's); that slide does when its loss is no more than (1 + this) times
+    theirs."""
     hinge_trial_slide: bool = True
     """`_hinge_trial` also tries two slides (`fgjax.pipeline.articulation.slide_from_poses`): the given poses' chord
     without their turn, and the same along the part's principal axis nearest it (where that is more than 2 degrees
@@ -993,7 +994,8 @@ def _trial_held(history: list[dict], num_objects: int) -> np.ndarray:
 
 
 def _trial_name(h: int, axis) -> str:
-    """How the log names `_hinge_trial`'s candidate ``h`` (-1 the given poses, -2 the slide, else an edge)."""
+    """How the log names `_hinge_trial`'s candidate ``h`` (-1 the given poses, -2 the chord's slide, -3 the slide
+    along a principal axis, else an edge)."""
     if h == -1:
         return "the given poses"
     what = {-2: "slide", -3: "slide along a principal axis"}.get(h, f"edge {h}")
@@ -1024,11 +1026,13 @@ def _trial_choice(hyps, losses, margin: float) -> int:
 
 def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
                  poses: np.ndarray, kinds, offsets, cfg: Stage2Config, objects, log=print) -> tuple[np.ndarray, dict]:
-    """Each far hinge (``Stage2Config.hinge_trial``) tried against hinges along its part's own edges, by re-fits.
+    """Each far hinge (``Stage2Config.hinge_trial``) tried against hinges along its part's own edges and against
+    slides, by re-fits.
 
     For each object in ``objects`` [K] bool whose joint (``kinds`` [K]) is revolute with a `hinge_offset` ratio
-    (``offsets`` [K]) over 2 and a largest turn of 5 degrees or more: candidates are the given poses, the slide
-    nearest them (`slide_from_poses`, with ``hinge_trial_slide``) and the four `rect_hinges` of the part's alive
+    (``offsets`` [K]) over 2 and a largest turn of 5 degrees or more (`is_far_hinge`): candidates are the given
+    poses, with ``hinge_trial_slide`` two slides (`slide_from_poses`: their chord, and along the part's principal
+    axis nearest it where that is over 2 degrees off the chord) and the four `rect_hinges` of the part's alive
     members, each hinge with its best amount in every frame (`search_articulations` on `ref`, the round's
     reference, raw parameters). The trial's labels are ``labels`` with the outlines relabelled
     by colour on `ref` (`_refine_by_colour`, with ``colour_radius`` > 0): with discovery's labels, whose lid takes
@@ -1037,10 +1041,10 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     The scene is re-fitted from `ref` under each candidate (`refit_gaussians`, ``hinge_trial`` steps on the frames
     in which some candidate displaces the part, the same seed), and scored by the mean photometric loss of those
     frames rendered from its re-fit; `_trial_choice` picks by those scores (an edge must beat the given poses by
-    ``hinge_trial_margin``; the slide wins ties within it).
+    ``hinge_trial_margin``; the better slide wins ties within it).
 
     Returns (poses [K, T, 4, 4], {object: {"candidates": [{"hypothesis", "kind", "axis", "pivot", "loss"}, ...]
-    (the given poses as hypothesis -1, the slide as -2), "given_loss", "replaced", "kind" (the chosen joint's, None
+    (the given poses as hypothesis -1, the slides as -2 and -3), "given_loss", "replaced", "kind" (the chosen joint's, None
     where kept), "axis", "offset" (None for a slide), "frames", "seconds"}}).
     """
     from fgjax.pipeline.articulation import displaced_frames, rect_hinges, search_articulations, slide_from_poses

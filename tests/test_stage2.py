@@ -1335,7 +1335,8 @@ def test_validate_config_names_the_field():
                     ({"hinge_trial": -1}, "hinge_trial"), ({"hinge_trial": 1.5}, "hinge_trial"),
                     ({"hinge_trial": True}, "hinge_trial"), ({"hinge_trial_margin": 1.0}, "hinge_trial_margin"),
                     ({"hinge_trial_margin": -0.1}, "hinge_trial_margin"),
-                    ({"hinge_trial_margin": float("nan")}, "hinge_trial_margin")):
+                    ({"hinge_trial_margin": float("nan")}, "hinge_trial_margin"),
+                    ({"hinge_trial_slide": "yes"}, "hinge_trial_slide"), ({"hinge_trial_slide": 1}, "hinge_trial_slide")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

@@ -150,8 +150,8 @@ def slide_from_poses(points, poses, *, snap: bool = False):
     it. Exact for the poses of a slide; for a turn about a far line (a slide fitted as a turn) it keeps the chord
     and drops the turn. ``snap``: the axis is instead the principal axis of the points nearest that direction (a
     drawer slides along one of its box's axes; on the close pair's drawer the chord of its tracked poses was 19-29
-    degrees off its true slide, its nearest principal axis 7: docs/benchmarks.md, session 40). `articulated_pose`
-    (``revolute`` false) gives the slide's poses."""
+    degrees off its true slide, its nearest principal axis 7: docs/benchmarks.md, session 40; with fewer than 3
+    points, the chord). `articulated_pose` (``revolute`` false) gives the slide's poses."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     P = np.asarray(poses, np.float64)
     if len(p) == 0 or P.ndim != 3 or P.shape[1:] != (4, 4):

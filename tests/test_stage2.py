@@ -531,6 +531,33 @@ def test_trial_choice_takes_an_edge_by_the_margin_and_the_slide_within_it():
             stage2._trial_choice(hyps, losses, m)
 
 
+def test_trial_slides_offer_the_chord_and_the_principal_axis_unless_they_agree():
+    """`_trial_slides`: poses that slide a slab along its longest side give the chord alone (the principal axis
+    agrees with it); a turn about a far line gives the chord and the slab's nearest principal axis as well, each
+    with no turn and the chord's shifts along its axis; poses that never move it give none."""
+    from fgjax.pipeline.articulation import articulated_pose
+
+    g = np.meshgrid(np.linspace(-1.0, 1.0, 11), np.linspace(-0.4, 0.4, 5), np.linspace(-0.1, 0.1, 3), indexing="ij")
+    pts = np.stack([x.ravel() for x in g], 1)  # a slab on a grid: its principal axes are x (longest), y, z exactly
+    amounts = np.linspace(0.0, 0.6, 7)
+    slide = np.stack([np.asarray(articulated_pose(False, np.array([1.0, 0.0, 0.0]), np.zeros(3), a), np.float64)
+                      for a in amounts])
+    got = stage2._trial_slides(pts, slide)
+    assert [c[0] for c in got] == [-2] and got[0][1] == "prismatic"
+    np.testing.assert_allclose(got[0][2], [1.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(got[0][4][:, :3, 3], slide[:, :3, 3], atol=1e-6)
+    turn = np.stack([np.asarray(articulated_pose(True, np.array([0.0, 0.0, 1.0]), np.array([0.0, -6.0, 0.0]), a),
+                                np.float64) for a in np.radians(np.linspace(0.0, 25.0, 7))])
+    got = stage2._trial_slides(pts, turn)
+    assert [c[0] for c in got] == [-2, -3]
+    assert abs(got[1][2][0]) > 0.999  # the slab's longest side; the chord of a 25-degree arc is 12.5 degrees off it
+    for _, kind, axis, pivot, pk in got:
+        assert kind == "prismatic" and np.array_equal(pivot, np.zeros(3))
+        np.testing.assert_array_equal(pk[:, :3, :3], np.broadcast_to(np.eye(3), (7, 3, 3)))
+        np.testing.assert_allclose(pk[:, :3, 3] @ axis, np.linalg.norm(pk[:, :3, 3], axis=1), rtol=1e-5, atol=1e-7)
+    assert stage2._trial_slides(pts, np.tile(np.eye(4), (4, 1, 1))) == []
+
+
 def test_trial_held_objects_are_those_a_trial_replaced_in_any_round():
     hist = [{"joint_kinds": ["revolute"] * 3}, {"hinge_trials": [None, {"replaced": False}, {"replaced": True}]},
             {"hinge_trials": [{"replaced": True}, None, None]}]

@@ -1024,6 +1024,27 @@ def _trial_choice(hyps, losses, margin: float) -> int:
     return 0
 
 
+def _trial_slides(points, poses, min_deg: float = 2.0) -> list[tuple]:
+    """`_hinge_trial`'s slide candidates for a part (reference points [M, 3]) and its given poses [T, 4, 4]: a list
+    of (hypothesis, "prismatic", unit axis [3], pivot 0 [3], poses [T, 4, 4]); -2 the chord of the poses without
+    their turn, -3 the same along the part's principal axis nearest it, unless that is within ``min_deg`` of the
+    chord (`slide_from_poses`). Empty when the poses do not move the part's centroid."""
+    from fgjax.pipeline.articulation import slide_from_poses
+
+    chord = slide_from_poses(points, poses)
+    if chord is None:
+        return []
+    snapped = slide_from_poses(points, poses, snap=True)
+    out = []
+    for h, (axis, amounts) in ((-2, chord), (-3, snapped)):
+        if h == -3 and abs(float(axis @ chord[0])) > np.cos(np.radians(min_deg)):
+            continue
+        pk = np.tile(np.eye(4, dtype=np.float32), (len(amounts), 1, 1))
+        pk[:, :3, 3] = amounts[:, None] * axis
+        out.append((h, "prismatic", axis, np.zeros(3), pk))
+    return out
+
+
 def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
                  poses: np.ndarray, kinds, offsets, cfg: Stage2Config, objects, log=print) -> tuple[np.ndarray, dict]:
     """Each far hinge (``Stage2Config.hinge_trial``) tried against hinges along its part's own edges and against
@@ -1047,7 +1068,7 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     (the given poses as hypothesis -1, the slides as -2 and -3), "given_loss", "replaced", "kind" (the chosen joint's, None
     where kept), "axis", "offset" (None for a slide), "frames", "seconds"}}).
     """
-    from fgjax.pipeline.articulation import displaced_frames, rect_hinges, search_articulations, slide_from_poses
+    from fgjax.pipeline.articulation import displaced_frames, rect_hinges, search_articulations
     from fgjax.pipeline.phototrack import hinge_offset, is_far_hinge, largest_turn_deg
 
     poses = np.asarray(poses, np.float32).copy()
@@ -1077,18 +1098,8 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
         if found[k] is None:
             continue
         cands = [(-1, "revolute", None, None, poses[k])]  # (hypothesis, kind, axis, pivot, poses [T, 4, 4])
-        # the given trajectory's chord without its turn, and along the part's principal axis nearest it (unless
-        # the chord already runs within 2 degrees of that axis)
-        chord = slide_from_poses(pts, poses[k]) if cfg.hinge_trial_slide else None
-        snapped = None if chord is None else slide_from_poses(pts, poses[k], snap=True)
-        if snapped is not None and abs(float(snapped[0] @ chord[0])) > np.cos(np.radians(2.0)):
-            snapped = None
-        for h, slide in ((-2, chord), (-3, snapped)):
-            if slide is None:
-                continue
-            pk = np.tile(np.eye(4, dtype=np.float32), (poses.shape[1], 1, 1))
-            pk[:, :3, 3] = slide[1][:, None] * slide[0]
-            cands.append((h, "prismatic", slide[0], np.zeros(3), pk))
+        if cfg.hinge_trial_slide:
+            cands += _trial_slides(pts, poses[k])
         edges = sorted(found[k]["candidates"].items())
         cands += [(h, "revolute", ax, pv, pk) for h, (_, ax, pv, pk) in edges]
         n_f = max(int(found[k]["frames"]), 1)

@@ -192,12 +192,17 @@ def _amounts(poses, kind: str, axis) -> np.ndarray:
     return P[:, :3, 3] @ np.asarray(axis, np.float64)
 
 
-def displaced_frames(points, poses, tol: float) -> np.ndarray:
-    """[T] bool: the frames in which ``poses`` [T, 4, 4] move some of ``points`` [M, 3] by more than ``tol``."""
+def _largest_displacement(points, poses) -> np.ndarray:
+    """[T] the largest distance any of ``points`` [M, 3] is moved by each of ``poses`` [T, 4, 4]."""
     p = np.asarray(points, np.float64)
     P = np.asarray(poses, np.float64)
     moved = np.einsum("tij,mj->tmi", P[:, :3, :3], p) + P[:, None, :3, 3]
-    return np.max(np.linalg.norm(moved - p[None], axis=-1), axis=1) > tol
+    return np.max(np.linalg.norm(moved - p[None], axis=-1), axis=1)
+
+
+def displaced_frames(points, poses, tol: float) -> np.ndarray:
+    """[T] bool: the frames in which ``poses`` [T, 4, 4] move some of ``points`` [M, 3] by more than ``tol``."""
+    return _largest_displacement(points, poses) > tol
 
 
 def search_articulations(gaussians, alive, labels, num_objects: int, images, viewmats, Ks, poses, *, kinds,
@@ -355,10 +360,7 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
             screen = np.full(len(hyps), np.nan)
             top = list(range(len(hyps)))
         else:  # screened on the frames of largest displacement
-            moved = (np.einsum("tij,mj->tmi", poses[k, frames, :3, :3].astype(np.float64), pts)
-                     + poses[k, frames, None, :3, 3])
-            mag = np.max(np.linalg.norm(moved - pts[None], axis=-1), axis=1)  # [F]
-            key = frames[np.argsort(-mag)[:screen_frames]]
+            key = frames[np.argsort(-_largest_displacement(pts, poses[k, frames]))[:screen_frames]]
             screen = np.array([sum(frame_best(h, i, fitted_amount[i] if n == 0 and fitted is not None else None)[0]
                                    for i in key) for n, h in enumerate(hyps)])
             top = list(np.argsort(screen)[:keep])

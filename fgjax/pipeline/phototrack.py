@@ -595,11 +595,9 @@ FAR_HINGE_TURN_DEG = 5.0
 
 
 def largest_turn_deg(poses) -> float:
-    """The largest rotation angle, in degrees, of the poses [T, 4, 4] (0 for none)."""
+    """The largest rotation angle, in degrees, of the poses [T, 4, 4] (0 for none; `rotation_angle_deg`)."""
     P = np.asarray(poses, np.float64).reshape(-1, 4, 4)
-    if len(P) == 0:
-        return 0.0
-    return float(np.degrees(np.max(np.linalg.norm(np.asarray(geometry.so3_log(jnp.asarray(P[:, :3, :3]))), axis=-1))))
+    return float(np.max(rotation_angle_deg(P[:, :3, :3]), initial=0.0))
 
 
 def is_far_hinge(ratio: float, turn_deg: float, *, radii: float = FAR_HINGE_RADII,

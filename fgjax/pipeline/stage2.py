@@ -218,8 +218,8 @@ class Stage2Config:
     edges of its outline (`fgjax.pipeline.articulation.rect_hinges`) and two slides (``hinge_trial_slide``): the
     hinges' amounts are searched in the images (`search_articulations`), the scene is re-fitted from the round's
     reference under each candidate's poses (the given ones included) for this many steps on the frames where the
-    part is displaced, and the candidate whose
-    re-fit renders those frames closest (by more than ``hinge_trial_margin``) replaces the poses. The later rounds
+    part is displaced, and `_trial_choice` picks by how close each re-fit renders those frames (an edge must beat
+    the given poses by ``hinge_trial_margin``, a slide may be within it). The later rounds
     then keep that part's joint (they do not track it again). Why a re-fit: on stage 1's scene, which paints the
     open lid as a blur of its states, the images score the lid's true hinge no better than its lift (0.00844
     against 0.00836 a frame), and every round then re-fits the scene to the lift; re-fitted for 300 steps under
@@ -1491,7 +1491,7 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
         log(f"stage 2: relabelled by motion in {n_rel} steps: {info}")
     else:
         n_rel = 0
-    lab = jnp.asarray(labels)
+    lab, alive_j = jnp.asarray(labels), jnp.asarray(alive)
     kw = dict(opt=opt, sh_degree=int(run.cfg.model.sh_degree), width=int(scene.width), height=int(scene.height),
               capacity=cap, tile_size=int(run.cfg.train.tile_size), lam=lam)
     step = functools.partial(_posed_refit_step, **kw)
@@ -1501,7 +1501,7 @@ def refit_gaussians(run: LoadedRun, scene, order, labels: np.ndarray, poses: np.
                          f"{pool.tolist()}")
     for _ in range(int(steps) - n_rel):
         params, st, loss, bad = step(params, st, jnp.asarray(pool[rng.integers(len(pool))], jnp.int32), lab, pj, vms,
-                                     Ks, images, bg, jnp.asarray(alive))
+                                     Ks, images, bg, alive_j)
         losses.append(loss)
         n_bad += int(bad)
     if losses:

@@ -64,6 +64,77 @@ def test_controlled_render_zero_vector_is_stage1_at_t0(tiny):
         stage2.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"], source="gt")
 
 
+def test_rigid_control_moves_each_cluster_by_the_rigid_motion_nearest_the_network(tiny):
+    """`controlled_gaussians(rigid=True)` (`Stage2Config.control_rigid`): each cluster's members are their base
+    centres moved by one rotation and shift (distances between them kept), the one nearest the network's centres
+    (checked against an independent float64 Kabsch fit); their orientations turn with it, their scales are the
+    base's, and the static Gaussians are untouched; a zero vector gives the base scene; results of a stage 2
+    without the option render as the network gives them."""
+    import jax.numpy as jnp
+
+    from fgjax.geometry import quat_to_rotmat
+
+    run = stage2.load_stage2(tiny[0])
+    s2 = run.s2
+    assert s2.rigid  # the default
+    k = s2.num_objects
+    if k == 0:
+        pytest.skip("the tiny run found no object")
+    base, can, lab = run.base(), run.state.params["gaussians"].means, jnp.asarray(s2.labels)
+    vec = jnp.asarray(s2.traj[:, -1] - s2.traj[:, 0] + 0.05, jnp.float32)  # [K, 3]
+    free = stage2.controlled_gaussians(s2.control, base, can, lab, vec)
+    rig = stage2.controlled_gaussians(s2.control, base, can, lab, vec, rigid=True)
+    m0, mf, mr = (np.asarray(x, np.float64) for x in (base[0], free[0], rig[0]))
+    static = s2.labels < 0
+    np.testing.assert_array_equal(mr[static], m0[static])
+    np.testing.assert_array_equal(np.asarray(rig[2]), np.asarray(base[2]))
+    for c in range(k):
+        sel = s2.labels == c
+        a, b = m0[sel], mf[sel]
+        u, _, vt = np.linalg.svd((a - a.mean(0)).T @ (b - b.mean(0)))
+        rot = vt.T @ np.diag([1, 1, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+        expect = (a - a.mean(0)) @ rot.T + b.mean(0)
+        np.testing.assert_allclose(mr[sel], expect, atol=2e-5)
+        # the orientations turn by the same rotation
+        r0 = np.asarray(quat_to_rotmat(jnp.asarray(base[1])[sel]), np.float64)
+        r1 = np.asarray(quat_to_rotmat(rig[1][sel]), np.float64)
+        np.testing.assert_allclose(r1, np.einsum("ij,njk->nik", rot, r0), atol=1e-4)
+    zero = stage2.controlled_gaussians(s2.control, base, can, lab, jnp.zeros((k, 3)), rigid=True)
+    np.testing.assert_allclose(np.asarray(zero[0]), m0, atol=1e-5)
+    # an older stage 2 (no control_rigid in its config): the network as it is
+    old = stage2.Stage2Result(s2.labels, s2.dynamic, s2.scores, s2.traj, s2.traj_times, s2.control,
+                              {**s2.meta, "config": {key: v for key, v in s2.meta["config"].items()
+                                                     if key != "control_rigid"}}, s2.refit)
+    assert not old.rigid
+
+
+def test_fit_group_poses_recovers_each_groups_motion_and_degrades_safely():
+    """`track.fit_group_poses`: exact poses of moved groups; a group of one or two points gets its shift only; an
+    empty group the identity; coincident points a finite pose; gradients 0, never NaN."""
+    import jax
+    import jax.numpy as jnp
+
+    from fgjax import geometry
+    from fgjax.pipeline.track import fit_group_poses, transform_gaussians
+
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(300, 3))
+    lab = rng.integers(-1, 3, 300)  # groups 0-2 and the ungrouped
+    lab[:2] = 3  # group 3: two points; group 4: none
+    poses = np.stack([np.asarray(geometry.make_pose(geometry.so3_exp(rng.normal(size=3) * 1.5), rng.normal(size=3)))
+                      for _ in range(5)])
+    dst = np.asarray(transform_gaussians(jnp.asarray(src, jnp.float32), jnp.ones((300, 4)), lab, poses)[0])
+    got = np.asarray(fit_group_poses(src, dst, lab, 5))
+    np.testing.assert_allclose(got[:3], poses[:3], atol=1e-5)
+    np.testing.assert_allclose(got[3, :3, :3], np.eye(3), atol=1e-6)  # two points: no turn ...
+    np.testing.assert_allclose(got[3, :3, 3], (dst[:2] - src[:2]).mean(0), atol=1e-5)  # ... their shift
+    np.testing.assert_array_equal(got[4], np.eye(4))  # no points
+    same = np.zeros((10, 3))
+    assert np.isfinite(np.asarray(fit_group_poses(same, same + 1.0, np.zeros(10, int), 1))).all()
+    grad = jax.grad(lambda d: jnp.sum(fit_group_poses(src, d, lab, 5)))(jnp.asarray(dst, jnp.float32))
+    assert np.all(np.asarray(grad) == 0)
+
+
 def test_cluster_map_of_the_stage1_source_is_the_stage1_model_at_t(tiny):
     """source="stage1": the one-hot ids composited over the stage-1 model at time t (what `fgjax render`
     draws in colour), checked against an independent composite of the same geometry."""
@@ -605,6 +676,45 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
     assert calls == [] and joints["hinge_trials"] == [None] and joints["joint_hinge_offsets"] == [4.0]
     np.testing.assert_array_equal(poses, given)
     assert refs == []
+
+
+def test_snap_hinges_moves_near_hinges_only(tiny, monkeypatch):
+    """`_snap_hinges` (``hinge_snap_deg``): a near hinge of an object in ``objects`` gets `snap_hinge`'s poses and a
+    record (its axis, degrees, width and new offset); a far hinge, a slide, an object not in ``objects`` and one
+    with no edge near are left as they are. `_photometric_poses` takes the snapped axis and offset."""
+    from fgjax.pipeline import articulation, phototrack
+
+    run, scene, order, ref, labels, given, cands, pts = _trial_setup(tiny)
+    seen = []
+
+    def fake_snap(points, poses, *, max_deg):
+        seen.append((len(points), max_deg))
+        return np.array([0.0, 1.0, 0.0]), pts.mean(0), cands[0][3], 7.0, 0.1
+
+    monkeypatch.setattr(articulation, "snap_hinge", fake_snap)
+    cfg = stage2.Stage2Config(hinge_snap_deg=25.0, colour_radius=0.0)
+    out, rec = stage2._snap_hinges(run, ref, labels, 1, given, ["revolute"], [0.5], cfg, [True], log=lambda m: None)
+    np.testing.assert_array_equal(out[0], cands[0][3])
+    assert seen == [(len(pts), 25.0)] and rec[0]["deg"] == 7.0 and rec[0]["axis"] == [0.0, 1.0, 0.0]
+    assert np.isfinite(rec[0]["offset"]) and rec[0]["offset"] < 1e-6  # the fake's pivot: the part's centroid
+    for kinds, offsets, objects in ((["revolute"], [4.0], [True]), (["prismatic"], [np.nan], [True]),
+                                    (["revolute"], [0.5], [False])):
+        out, rec = stage2._snap_hinges(run, ref, labels, 1, given, kinds, offsets, cfg, objects, log=lambda m: None)
+        np.testing.assert_array_equal(out, given)
+        assert rec == {}
+    assert len(seen) == 1
+    monkeypatch.setattr(articulation, "snap_hinge", lambda *a, **k: None)
+    out, rec = stage2._snap_hinges(run, ref, labels, 1, given, ["revolute"], [0.5], cfg, [True], log=lambda m: None)
+    np.testing.assert_array_equal(out, given)
+    assert rec == {}
+    monkeypatch.setattr(articulation, "snap_hinge", fake_snap)
+    monkeypatch.setattr(phototrack, "track_photometric", lambda *a, **k: (given.copy(), None))
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts_, poses, *a, **k: (
+        poses, ["revolute"], np.array([0.5]), np.array([[1.0, 0.0, 0.0]]), np.array([0.5])))
+    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, cfg, None, log=lambda m: None)
+    np.testing.assert_array_equal(poses[0], cands[0][3])
+    assert joints["joint_axes"] == [[0.0, 1.0, 0.0]] and joints["hinge_snaps"][0]["deg"] == 7.0
+    assert joints["joint_hinge_offsets"][0] < 1e-6
 
 
 def test_refit_is_saved_and_the_controlled_scene_starts_from_it(tiny, tmp_path):
@@ -1363,7 +1473,10 @@ def test_validate_config_names_the_field():
                     ({"hinge_trial": True}, "hinge_trial"), ({"hinge_trial_margin": 1.0}, "hinge_trial_margin"),
                     ({"hinge_trial_margin": -0.1}, "hinge_trial_margin"),
                     ({"hinge_trial_margin": float("nan")}, "hinge_trial_margin"),
-                    ({"hinge_trial_slide": "yes"}, "hinge_trial_slide"), ({"hinge_trial_slide": 1}, "hinge_trial_slide")):
+                    ({"hinge_trial_slide": "yes"}, "hinge_trial_slide"), ({"hinge_trial_slide": 1}, "hinge_trial_slide"),
+                    ({"control_rigid": "no"}, "control_rigid"), ({"control_rigid": 0}, "control_rigid"),
+                    ({"hinge_snap_deg": -1.0}, "hinge_snap_deg"), ({"hinge_snap_deg": 91.0}, "hinge_snap_deg"),
+                    ({"hinge_snap_deg": float("nan")}, "hinge_snap_deg")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

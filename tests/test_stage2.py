@@ -461,12 +461,25 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     t = given.shape[1]
     seen = {}
 
+    searched = {}  # the searched slides' poses (hinge_trial_search_slides): -4 the chord's, -5 the snapped one's
+    edge_scores = [0.5, 0.5, 0.5, 0.5]
+
     def fake_search(gaussians, alive, labels_, k_, images, vms, Ks, poses, **kw):
         seen["search"] = kw
         seen["labels"] = labels_
+        seen["poses"] = poses
         assert np.asarray(gaussians.means).shape == np.asarray(ref.means).shape
-        np.testing.assert_array_equal(poses, given)
-        return poses, [dict(candidates=cands, frames=t - 1, score_given=1.0, scores={h: 0.5 for h in cands})]
+        if kw["kinds"] == ["none"]:
+            np.testing.assert_array_equal(poses, given)
+            return poses, [dict(candidates=cands, frames=t - 1, score_given=1.0, fitted_hypothesis=False,
+                                scores=dict(enumerate(edge_scores)))]
+        # the chord's slide as the fitted joint, first; the edges; the snapped slide last
+        assert kw["kinds"] == ["prismatic"] and len(kw["hypotheses"][0]) == 5
+        ax5 = kw["hypotheses"][0][4][1]
+        found = {0: ("prismatic", slide_axis, np.zeros(3), searched[-4]),
+                 **{h + 1: c for h, c in cands.items()}, 5: ("prismatic", ax5, np.zeros(3), searched[-5])}
+        return poses, [dict(candidates=found, frames=t - 1, score_given=1.0, fitted_hypothesis=True,
+                            scores={0: 0.4, **{h + 1: v for h, v in enumerate(edge_scores)}, 5: 0.4})]
 
     refits = []
 
@@ -482,7 +495,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     assert abs(slide_axis @ snap_axis) < np.cos(np.radians(2.0))
 
     def fake_losses(run_, scene_, order_, gs, labels_, poses, frames):
-        for h, pk in [(-1, given[0])] + [(h, c[3]) for h, c in cands.items()]:
+        for h, pk in [(-1, given[0])] + [(h, c[3]) for h, c in cands.items()] + list(searched.items()):
             if np.array_equal(poses[0], pk):
                 return np.full(len(frames), loss_of[h])
         # a slide: no turn; the given poses' chord, or along the part's principal axis nearest it
@@ -505,7 +518,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
                                    log=logs.append)
     np.testing.assert_array_equal(out[0], cands[1][3])
     kw = seen["search"]
-    assert not kw["replace"] and kw["keep"] == 4 and list(kw["objects"]) == [True] and kw["kinds"] == ["none"]
+    assert not kw["replace"] and kw["keep"] >= 4 and list(kw["objects"]) == [True] and kw["kinds"] == ["none"]
     hyps = kw["hypotheses"][0]
     assert len(hyps) == 4 and all(h[0] == "revolute" for h in hyps)  # rect_hinges of the part's alive members
     assert len(refits) == 7 and all(s == 7 for _, s, _ in refits)
@@ -547,6 +560,28 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     assert len(refits) == 5 and [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, 0, 1, 2, 3]
     np.testing.assert_array_equal(out[0], cands[1][3])
     loss_of.update({-2: 1.1, -3: 1.15, 1: 0.985})
+    # ``hinge_trial_edges``: only the edges the search scores best are re-fitted; ``hinge_trial_search_slides``: the
+    # search also takes the chord's slide as its fitted joint (its poses, first) and the snapped slide as a
+    # hypothesis after the edges, and their searched poses are two more candidates (-4, -5)
+    for h, ax in ((-4, slide_axis), (-5, snap_axis)):
+        searched[h] = np.tile(np.eye(4, dtype=np.float32), (t, 1, 1))
+        searched[h][:, :3, 3] = np.linspace(0.0, 0.3 if h == -4 else 0.2, t)[:, None] * ax
+    edge_scores[:] = [0.6, 0.3, 0.7, 0.2]
+    loss_of.update({-4: 0.45, -5: 0.6, 1: 0.5})
+    refits.clear()
+    out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
+                                   stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_edges=2,
+                                                       hinge_trial_search_slides=True),
+                                   np.ones(1, bool), log=logs.append)
+    assert [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, -2, -3, -4, -5, 1, 3] and len(refits) == 7
+    np.testing.assert_array_equal(seen["poses"][0][:, :3, :3], np.broadcast_to(np.eye(3), (t, 3, 3)))
+    np.testing.assert_allclose(seen["poses"][0][:, :3, 3], np.asarray(
+        articulation.slide_from_poses(pts.astype(np.float64), given[0])[1])[:, None] * slide_axis, atol=1e-6)
+    np.testing.assert_allclose(seen["search"]["hypotheses"][0][4][1], snap_axis, atol=1e-12)
+    assert rec[0]["replaced"] and rec[0]["kind"] == "prismatic"
+    np.testing.assert_array_equal(out[0], searched[-4])
+    assert any("its amounts searched" in m for m in logs) and any("re-fitting edges [1, 3]" in m for m in logs)
+    edge_scores[:] = [0.5, 0.5, 0.5, 0.5]
     # a near hinge, no turn, a slide, no offset, an object left out: no trial
     still = given.copy()
     still[0, :, :3, :3] = np.eye(3)
@@ -1476,7 +1511,9 @@ def test_validate_config_names_the_field():
                     ({"hinge_trial_slide": "yes"}, "hinge_trial_slide"), ({"hinge_trial_slide": 1}, "hinge_trial_slide"),
                     ({"control_rigid": "no"}, "control_rigid"), ({"control_rigid": 0}, "control_rigid"),
                     ({"hinge_snap_deg": -1.0}, "hinge_snap_deg"), ({"hinge_snap_deg": 91.0}, "hinge_snap_deg"),
-                    ({"hinge_snap_deg": float("nan")}, "hinge_snap_deg")):
+                    ({"hinge_snap_deg": float("nan")}, "hinge_snap_deg"),
+                    ({"hinge_trial_edges": 5}, "hinge_trial_edges"), ({"hinge_trial_edges": True}, "hinge_trial_edges"),
+                    ({"hinge_trial_search_slides": 1}, "hinge_trial_search_slides")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

@@ -245,6 +245,12 @@ class Stage2Config:
     `joint_poses`' sign of a slide fitted as a turn. The close pair's drawer was fitted as a hinge 3.1 radii off it
     turning 36 degrees, and the second pose-noise scene's drawer as one 7.4 radii off turning 6 degrees
     (docs/benchmarks.md, session 40)."""
+    hinge_trial_search_slides: bool = False
+    """`_hinge_trial`'s slides are also tried with their amounts searched from the images of the round's scene
+    (`search_articulations`, each frame from the slide's own amount), as two more candidates."""
+    hinge_trial_edges: int = 4
+    """How many of the four edges `_hinge_trial` re-fits: those the images of the round's scene score best
+    (`search_articulations`)."""
     hinge_snap_deg: float = 0.0
     """Each round, a hinge fitted near its part (not a far hinge, `fgjax.pipeline.phototrack.is_far_hinge`) is moved
     onto the nearest edge of the part's outline within this many degrees and a quarter of the part's width
@@ -1074,7 +1080,8 @@ def _trial_name(h: int, axis) -> str:
     along a principal axis, else an edge)."""
     if h == -1:
         return "the given poses"
-    what = {-2: "slide", -3: "slide along a principal axis"}.get(h, f"edge {h}")
+    what = {-2: "slide", -3: "slide along a principal axis", -4: "slide, its amounts searched",
+            -5: "slide along a principal axis, its amounts searched"}.get(h, f"edge {h}")
     return f"{what}, axis {np.round(np.asarray(axis), 3).tolist()}"
 
 
@@ -1164,24 +1171,36 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
         t0 = time.perf_counter()
         log(f"hinge trial: object {k + 1}'s hinge lies {offsets[k]:.1f} radii off it while it turns {turn:.1f} "
             f"degrees; trying hinges along its edges")
+        slides = _trial_slides(pts, poses[k]) if cfg.hinge_trial_slide else []
+        hyps = rect_hinges(pts)
+        search_poses, search_kinds = poses, ["none"] * num_objects
+        if cfg.hinge_trial_search_slides and slides:  # the chord's slide as the fitted joint (each frame from its
+            search_poses = poses.copy()  # own amount), the other slide as a hypothesis after the edges
+            search_poses[k] = slides[0][4]
+            search_kinds[k] = "prismatic"
+            hyps += [("prismatic", ax, pv) for _, _, ax, pv, _ in slides[1:]]
         _, found = search_articulations(ref, alive, tl, num_objects, scene.images[order], scene.viewmats[order],
-                                        scene.Ks[order], poses, kinds=["none"] * num_objects,
-                                        objects=np.arange(num_objects) == k, keep=4,
-                                        hypotheses={int(k): rect_hinges(pts)},
-                                        replace=False, sh_degree=run.cfg.model.sh_degree,
+                                        scene.Ks[order], search_poses, kinds=search_kinds,
+                                        objects=np.arange(num_objects) == k, keep=len(hyps) + 1,
+                                        hypotheses={int(k): hyps}, replace=False, sh_degree=run.cfg.model.sh_degree,
                                         background=run.cfg.model.background, capacity=_render_capacity(run),
                                         tile_size=run.cfg.train.tile_size, log=log)
         if found[k] is None:
             continue
-        cands = [(-1, "revolute", None, None, poses[k])]  # (hypothesis, kind, axis, pivot, poses [T, 4, 4])
-        if cfg.hinge_trial_slide:
-            cands += _trial_slides(pts, poses[k])
-        edges = sorted(found[k]["candidates"].items())
-        cands += [(h, "revolute", ax, pv, pk) for h, (_, ax, pv, pk) in edges]
+        cands = [(-1, "revolute", None, None, poses[k])] + slides  # (hypothesis, kind, axis, pivot, poses [T, 4, 4])
+        shift = 1 if found[k]["fitted_hypothesis"] else 0  # the search's index of the first edge
+        edges = sorted((h - shift, c) for h, c in found[k]["candidates"].items() if 0 <= h - shift < 4)
+        for h, (kind, ax, pv, pk) in found[k]["candidates"].items():  # the searched slides: -4 the chord's, -5
+            if kind == "prismatic":
+                cands.append((-4 if h == 0 else -5, kind, ax, pv, pk))
         n_f = max(int(found[k]["frames"]), 1)
+        score = {h: found[k]["scores"][h + shift] / n_f for h, _ in edges}
+        kept = sorted(score, key=lambda h: score[h])[:max(int(cfg.hinge_trial_edges), 0)]
+        cands += [(h, "revolute", ax, pv, pk) for h, (_, ax, pv, pk) in edges if h in kept]
         log(f"hinge trial: object {k + 1}: the images of the round's scene score the edges "
-            f"{[round(found[k]['scores'][h] / n_f, 5) for h, _ in edges]} a frame, the given poses "
-            f"{found[k]['score_given'] / n_f:.5f}")
+            f"{[round(score[h], 5) for h, _ in edges]} a frame"
+            + (f", the given poses {found[k]['score_given'] / n_f:.5f}" if not shift else "")
+            + (f"; re-fitting edges {sorted(kept)}" if len(kept) < len(edges) else ""))
         disp = np.zeros(poses.shape[1], bool)
         tol = 1e-3 * float(np.max(np.percentile(pts, 95, 0) - np.percentile(pts, 5, 0)))  # as the search's
         for *_, pk in cands:
@@ -1875,6 +1894,12 @@ def validate_config(cfg: Stage2Config) -> None:
         raise ValueError(f"Stage2Config.hinge_trial_margin must be in [0, 1), got {cfg.hinge_trial_margin!r}")
     if not isinstance(cfg.hinge_trial_slide, (bool, np.bool_)):
         raise ValueError(f"Stage2Config.hinge_trial_slide must be true or false, got {cfg.hinge_trial_slide!r}")
+    if not isinstance(cfg.hinge_trial_search_slides, (bool, np.bool_)):
+        raise ValueError(f"Stage2Config.hinge_trial_search_slides must be true or false, got "
+                         f"{cfg.hinge_trial_search_slides!r}")
+    if not (isinstance(cfg.hinge_trial_edges, (int, np.integer)) and not isinstance(cfg.hinge_trial_edges, bool)
+            and 0 <= cfg.hinge_trial_edges <= 4):
+        raise ValueError(f"Stage2Config.hinge_trial_edges must be an integer in 0..4, got {cfg.hinge_trial_edges!r}")
     if not 0 <= cfg.hinge_snap_deg <= 90:  # NaN too
         raise ValueError(f"Stage2Config.hinge_snap_deg must be in [0, 90] (0: off), got {cfg.hinge_snap_deg!r}")
     if not isinstance(cfg.control_rigid, (bool, np.bool_)):

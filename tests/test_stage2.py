@@ -582,6 +582,24 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     np.testing.assert_array_equal(out[0], searched[-4])
     assert any("its amounts searched" in m for m in logs) and any("re-fitting edges [1, 3]" in m for m in logs)
     edge_scores[:] = [0.5, 0.5, 0.5, 0.5]
+    # ``hinge_trial_skew_deg``: a near hinge that runs more than that off every edge is tried against the edges
+    # (no slides); one within it is not
+    skew = stage2._edge_skew_deg(pts, given[0])
+    assert 5.0 < skew < 85.0
+    for deg, tried in ((skew - 2.0, True), (skew + 2.0, False)):
+        seen.clear()
+        refits.clear()
+        out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], np.array([1.5]),
+                                       stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_skew_deg=deg),
+                                       np.ones(1, bool), log=logs.append)
+        assert ("search" in seen) == tried
+        if tried:
+            assert [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, 0, 1, 2, 3] and len(refits) == 5
+            np.testing.assert_array_equal(out[0], cands[1][3])
+            assert any("degrees off every edge of its outline" in m for m in logs)
+        else:
+            assert rec == {}
+            np.testing.assert_array_equal(out, given)
     # a near hinge, no turn, a slide, no offset, an object left out: no trial
     still = given.copy()
     still[0, :, :3, :3] = np.eye(3)
@@ -1513,7 +1531,9 @@ def test_validate_config_names_the_field():
                     ({"hinge_snap_deg": -1.0}, "hinge_snap_deg"), ({"hinge_snap_deg": 91.0}, "hinge_snap_deg"),
                     ({"hinge_snap_deg": float("nan")}, "hinge_snap_deg"),
                     ({"hinge_trial_edges": 5}, "hinge_trial_edges"), ({"hinge_trial_edges": True}, "hinge_trial_edges"),
-                    ({"hinge_trial_search_slides": 1}, "hinge_trial_search_slides")):
+                    ({"hinge_trial_search_slides": 1}, "hinge_trial_search_slides"),
+                    ({"hinge_trial_skew_deg": -1.0}, "hinge_trial_skew_deg"),
+                    ({"hinge_trial_skew_deg": float("nan")}, "hinge_trial_skew_deg")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

@@ -248,6 +248,9 @@ class Stage2Config:
     hinge_trial_search_slides: bool = False
     """`_hinge_trial`'s slides are also tried with their amounts searched from the images of the round's scene
     (`search_articulations`, each frame from the slide's own amount), as two more candidates."""
+    hinge_trial_skew_deg: float = 0.0
+    """`_hinge_trial` also tries a hinge near its part (not a far hinge) that runs more than this many degrees off
+    every edge of its part's outline (`_edge_skew_deg`), against those edges (no slides). 0: off."""
     hinge_trial_edges: int = 4
     """How many of the four edges `_hinge_trial` re-fits: those the images of the round's scene score best
     (`search_articulations`)."""
@@ -1128,6 +1131,17 @@ def _trial_slides(points, poses, min_deg: float = 2.0) -> list[tuple]:
     return out
 
 
+def _edge_skew_deg(points, poses) -> float:
+    """The angle (degrees) between the hinge of ``poses`` [T, 4, 4] (`joint_from_poses`, revolute) and the nearest
+    in direction of the four edges of its part's outline (`rect_hinges` of ``points`` [M, 3]); nan without a turn."""
+    from fgjax.pipeline.articulation import joint_from_poses, rect_hinges
+
+    fitted = joint_from_poses(poses, "revolute")
+    if fitted is None:
+        return float("nan")
+    return float(min(np.degrees(np.arccos(min(1.0, abs(float(a @ fitted[0]))))) for _, a, _ in rect_hinges(points)))
+
+
 def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
                  poses: np.ndarray, kinds, offsets, cfg: Stage2Config, objects, log=print) -> tuple[np.ndarray, dict]:
     """Each far hinge (``Stage2Config.hinge_trial``) tried against hinges along its part's own edges and against
@@ -1152,7 +1166,7 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     where kept), "axis", "offset" (None for a slide), "frames", "seconds"}}).
     """
     from fgjax.pipeline.articulation import displaced_frames, rect_hinges, search_articulations
-    from fgjax.pipeline.phototrack import hinge_offset, is_far_hinge, largest_turn_deg
+    from fgjax.pipeline.phototrack import FAR_HINGE_TURN_DEG, hinge_offset, is_far_hinge, largest_turn_deg
 
     poses = np.asarray(poses, np.float32).copy()
     alive = np.asarray(run.state.densify.alive, bool)
@@ -1161,7 +1175,9 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     tl = None  # the trial's labels: the outlines relabelled by colour on the round's reference
     for k in np.flatnonzero(np.asarray(objects, bool)):
         turn = largest_turn_deg(poses[k])
-        if kinds[k] != "revolute" or not is_far_hinge(offsets[k], turn):
+        far = is_far_hinge(offsets[k], turn)
+        skewed = cfg.hinge_trial_skew_deg > 0 and turn >= FAR_HINGE_TURN_DEG
+        if kinds[k] != "revolute" or not (far or skewed):
             continue
         if tl is None:
             tl = _refine_by_colour(labels, ref, alive, cfg, log)[0] if cfg.colour_radius > 0 else labels
@@ -1169,9 +1185,16 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
         if len(pts) < 3:
             continue
         t0 = time.perf_counter()
-        log(f"hinge trial: object {k + 1}'s hinge lies {offsets[k]:.1f} radii off it while it turns {turn:.1f} "
-            f"degrees; trying hinges along its edges")
-        slides = _trial_slides(pts, poses[k]) if cfg.hinge_trial_slide else []
+        if far:
+            log(f"hinge trial: object {k + 1}'s hinge lies {offsets[k]:.1f} radii off it while it turns {turn:.1f} "
+                f"degrees; trying hinges along its edges")
+        else:
+            skew = _edge_skew_deg(pts, poses[k])
+            if not skew > cfg.hinge_trial_skew_deg:
+                continue
+            log(f"hinge trial: object {k + 1}'s hinge runs {skew:.1f} degrees off every edge of its outline while it "
+                f"turns {turn:.1f} degrees; trying hinges along its edges")
+        slides = _trial_slides(pts, poses[k]) if cfg.hinge_trial_slide and far else []
         hyps = rect_hinges(pts)
         search_poses, search_kinds = poses, ["none"] * num_objects
         if cfg.hinge_trial_search_slides and slides:  # the chord's slide as the fitted joint (each frame from its
@@ -1900,6 +1923,9 @@ def validate_config(cfg: Stage2Config) -> None:
     if not (isinstance(cfg.hinge_trial_edges, (int, np.integer)) and not isinstance(cfg.hinge_trial_edges, bool)
             and 0 <= cfg.hinge_trial_edges <= 4):
         raise ValueError(f"Stage2Config.hinge_trial_edges must be an integer in 0..4, got {cfg.hinge_trial_edges!r}")
+    if not 0 <= cfg.hinge_trial_skew_deg <= 90:  # NaN too
+        raise ValueError(f"Stage2Config.hinge_trial_skew_deg must be in [0, 90] (0: off), got "
+                         f"{cfg.hinge_trial_skew_deg!r}")
     if not 0 <= cfg.hinge_snap_deg <= 90:  # NaN too
         raise ValueError(f"Stage2Config.hinge_snap_deg must be in [0, 90] (0: off), got {cfg.hinge_snap_deg!r}")
     if not isinstance(cfg.control_rigid, (bool, np.bool_)):

@@ -140,35 +140,6 @@ def test_rect_hinges_run_along_the_four_edges_of_a_flat_part_turned_in_its_plane
                    for _, a, p in rect_hinges(degenerate))
 
 
-def test_snap_hinge_moves_a_tilted_hinge_onto_the_doors_edge_and_leaves_far_or_steep_ones():
-    """A door 1 x 2 x 0.05 (x across, z up) hinged at its edge x = 0, tracked as turning 0-70 degrees about a hinge
-    tilted 12 degrees off the edge and 0.03 from it: `snap_hinge` moves it onto the edge (within 1.5 degrees and
-    0.03), keeps each frame's turn about it (the rotations' components), its poses are those of that hinge, and the
-    axis keeps the tracked one's sign. Not snapped: a tilt over ``max_deg``, a hinge far from every edge, poses that
-    do not turn; no NaN for degenerate points."""
-    from fgjax.pipeline.articulation import articulated_pose, joint_from_poses, snap_hinge
-
-    rng = np.random.default_rng(0)
-    pts = np.c_[rng.uniform(0, 1, 3000), rng.uniform(-0.025, 0.025, 3000), rng.uniform(0, 2, 3000)]
-    tilt = np.array([np.sin(np.radians(12.0)), 0.0, np.cos(np.radians(12.0))])
-    turns = np.radians(np.linspace(0, 70, 8))
-    poses = np.stack([np.asarray(articulated_pose(True, tilt, [0.03, 0.0, 1.0], a), np.float64) for a in turns])
-    axis, pivot, snapped, deg, dist = snap_hinge(pts, poses)
-    assert axis[2] > np.cos(np.radians(1.5)) and abs(deg - 12.0) < 1.5 and dist < 0.2  # 0.15: the tilt
-    assert np.hypot(pivot[0], pivot[1]) < 0.07  # on the edge x = y = 0 (rect_hinges: its 5th percentile, 0.05)
-    back = joint_from_poses(snapped, "revolute")
-    np.testing.assert_allclose(back[0], axis, atol=1e-5)
-    np.testing.assert_allclose(np.degrees(np.arccos((np.trace(snapped[:, :3, :3], axis1=1, axis2=2) - 1) / 2)),
-                               np.degrees(turns) * np.cos(np.radians(deg)), atol=0.3)  # the turns about the edge
-    assert snap_hinge(pts, poses, max_deg=10.0) is None
-    far = np.stack([np.asarray(articulated_pose(True, tilt, [0.5, 0.0, 1.0], a), np.float64) for a in turns])
-    assert snap_hinge(pts, far) is None  # the door's centre line: half a door from every edge
-    assert snap_hinge(pts, np.tile(np.eye(4), (4, 1, 1))) is None
-    for degenerate in (np.ones((5, 3)), np.outer(np.linspace(0, 1, 7), [1.0, 2.0, 3.0])):
-        r = snap_hinge(degenerate, poses)
-        assert r is None or all(np.all(np.isfinite(np.asarray(x))) for x in r)
-
-
 @pytest.mark.parametrize("kind", ["revolute", "prismatic"])
 def test_joint_from_poses_reads_back_the_joint_that_made_them(kind):
     axis = np.array([0.6, 0.0, 0.8])

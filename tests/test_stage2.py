@@ -582,24 +582,6 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     np.testing.assert_array_equal(out[0], searched[-4])
     assert any("its amounts searched" in m for m in logs) and any("re-fitting edges [1, 3]" in m for m in logs)
     edge_scores[:] = [0.5, 0.5, 0.5, 0.5]
-    # ``hinge_trial_skew_deg``: a near hinge that runs more than that off every edge is tried against the edges
-    # (no slides); one within it is not
-    skew = stage2._edge_skew_deg(pts, given[0])
-    assert 5.0 < skew < 85.0
-    for deg, tried in ((skew - 2.0, True), (skew + 2.0, False)):
-        seen.clear()
-        refits.clear()
-        out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], np.array([1.5]),
-                                       stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_skew_deg=deg),
-                                       np.ones(1, bool), log=logs.append)
-        assert ("search" in seen) == tried
-        if tried:
-            assert [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, 0, 1, 2, 3] and len(refits) == 5
-            np.testing.assert_array_equal(out[0], cands[1][3])
-            assert any("degrees off every edge of its outline" in m for m in logs)
-        else:
-            assert rec == {}
-            np.testing.assert_array_equal(out, given)
     # a near hinge, no turn, a slide, no offset, an object left out: no trial
     still = given.copy()
     still[0, :, :3, :3] = np.eye(3)
@@ -729,45 +711,6 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
     assert calls == [] and joints["hinge_trials"] == [None] and joints["joint_hinge_offsets"] == [4.0]
     np.testing.assert_array_equal(poses, given)
     assert refs == []
-
-
-def test_snap_hinges_moves_near_hinges_only(tiny, monkeypatch):
-    """`_snap_hinges` (``hinge_snap_deg``): a near hinge of an object in ``objects`` gets `snap_hinge`'s poses and a
-    record (its axis, degrees, width and new offset); a far hinge, a slide, an object not in ``objects`` and one
-    with no edge near are left as they are. `_photometric_poses` takes the snapped axis and offset."""
-    from fgjax.pipeline import articulation, phototrack
-
-    run, scene, order, ref, labels, given, cands, pts = _trial_setup(tiny)
-    seen = []
-
-    def fake_snap(points, poses, *, max_deg):
-        seen.append((len(points), max_deg))
-        return np.array([0.0, 1.0, 0.0]), pts.mean(0), cands[0][3], 7.0, 0.1
-
-    monkeypatch.setattr(articulation, "snap_hinge", fake_snap)
-    cfg = stage2.Stage2Config(hinge_snap_deg=25.0, colour_radius=0.0)
-    out, rec = stage2._snap_hinges(run, ref, labels, 1, given, ["revolute"], [0.5], cfg, [True], log=lambda m: None)
-    np.testing.assert_array_equal(out[0], cands[0][3])
-    assert seen == [(len(pts), 25.0)] and rec[0]["deg"] == 7.0 and rec[0]["axis"] == [0.0, 1.0, 0.0]
-    assert np.isfinite(rec[0]["offset"]) and rec[0]["offset"] < 1e-6  # the fake's pivot: the part's centroid
-    for kinds, offsets, objects in ((["revolute"], [4.0], [True]), (["prismatic"], [np.nan], [True]),
-                                    (["revolute"], [0.5], [False])):
-        out, rec = stage2._snap_hinges(run, ref, labels, 1, given, kinds, offsets, cfg, objects, log=lambda m: None)
-        np.testing.assert_array_equal(out, given)
-        assert rec == {}
-    assert len(seen) == 1
-    monkeypatch.setattr(articulation, "snap_hinge", lambda *a, **k: None)
-    out, rec = stage2._snap_hinges(run, ref, labels, 1, given, ["revolute"], [0.5], cfg, [True], log=lambda m: None)
-    np.testing.assert_array_equal(out, given)
-    assert rec == {}
-    monkeypatch.setattr(articulation, "snap_hinge", fake_snap)
-    monkeypatch.setattr(phototrack, "track_photometric", lambda *a, **k: (given.copy(), None))
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts_, poses, *a, **k: (
-        poses, ["revolute"], np.array([0.5]), np.array([[1.0, 0.0, 0.0]]), np.array([0.5])))
-    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, cfg, None, log=lambda m: None)
-    np.testing.assert_array_equal(poses[0], cands[0][3])
-    assert joints["joint_axes"] == [[0.0, 1.0, 0.0]] and joints["hinge_snaps"][0]["deg"] == 7.0
-    assert joints["joint_hinge_offsets"][0] < 1e-6
 
 
 def test_refit_is_saved_and_the_controlled_scene_starts_from_it(tiny, tmp_path):
@@ -1528,12 +1471,8 @@ def test_validate_config_names_the_field():
                     ({"hinge_trial_margin": float("nan")}, "hinge_trial_margin"),
                     ({"hinge_trial_slide": "yes"}, "hinge_trial_slide"), ({"hinge_trial_slide": 1}, "hinge_trial_slide"),
                     ({"control_rigid": "no"}, "control_rigid"), ({"control_rigid": 0}, "control_rigid"),
-                    ({"hinge_snap_deg": -1.0}, "hinge_snap_deg"), ({"hinge_snap_deg": 91.0}, "hinge_snap_deg"),
-                    ({"hinge_snap_deg": float("nan")}, "hinge_snap_deg"),
                     ({"hinge_trial_edges": 5}, "hinge_trial_edges"), ({"hinge_trial_edges": True}, "hinge_trial_edges"),
-                    ({"hinge_trial_search_slides": 1}, "hinge_trial_search_slides"),
-                    ({"hinge_trial_skew_deg": -1.0}, "hinge_trial_skew_deg"),
-                    ({"hinge_trial_skew_deg": float("nan")}, "hinge_trial_skew_deg")):
+                    ({"hinge_trial_search_slides": 1}, "hinge_trial_search_slides")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

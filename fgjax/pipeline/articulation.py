@@ -48,8 +48,8 @@ from fgjax.geometry import HIGHEST
 from fgjax.pipeline.phototrack import blur_kernel, blur_with
 from fgjax.pipeline.track import transform_gaussians
 
-__all__ = ["articulation_hypotheses", "rect_hinges", "snap_hinge", "joint_from_poses", "slide_from_poses",
-           "articulated_pose", "displaced_frames", "search_articulations"]
+__all__ = ["articulation_hypotheses", "rect_hinges", "joint_from_poses", "slide_from_poses", "articulated_pose",
+           "displaced_frames", "search_articulations"]
 
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
 
@@ -115,54 +115,6 @@ def rect_hinges(points, step_deg: float = 1.0) -> list[tuple[str, np.ndarray, np
     for a, b, lo, hi in ((u[j], v[j], lo_v, hi_v), (v[j], -u[j], -hi_u, -lo_u)):
         out += [(REVOLUTE, a.copy(), c + s * b + mid * n) for s in (lo, hi)]
     return out
-
-
-def _segment_distance(points, edge_axis, edge_pivot, axis, pivot) -> float:
-    """The mean distance from a hinge's line (unit ``axis`` [3] through ``pivot`` [3]) of three points of an edge
-    (the line of ``edge_axis`` through ``edge_pivot``) where it runs along the part (``points`` [M, 3] projected
-    on it: their 5th, 50th and 95th percentiles). Unlike the distance between the two lines, a hinge tilted in
-    the part's plane is not at distance 0 from every edge it crosses."""
-    ea, ep = np.asarray(edge_axis, np.float64), np.asarray(edge_pivot, np.float64)
-    s = np.percentile((np.asarray(points, np.float64) - ep) @ ea, [5, 50, 95])  # [3]
-    d = ep + s[:, None] * ea - np.asarray(pivot, np.float64)  # [3, 3]
-    a = np.asarray(axis, np.float64)
-    return float(np.mean(np.linalg.norm(d - (d @ a)[:, None] * a, axis=1)))
-
-
-def snap_hinge(points, poses, *, max_deg: float = 30.0, max_dist: float = 0.25):
-    """A hinge fitted near its part moved onto the nearest edge of the part's outline: (unit axis [3], pivot [3],
-    poses [T, 4, 4], degrees turned, distance from the edge in the part's widths across it), or None where no edge
-    is near.
-
-    The hinge is `joint_from_poses`' of ``poses`` [T, 4, 4] (revolute); the edges are the `rect_hinges` of the
-    part's reference points [M, 3]. The nearest edge is the one nearest the hinge (`_segment_distance`: the mean
-    distance from the hinge's line of three points along the edge, over the part's width across the edge: the
-    distance to the parallel edge) among those within ``max_deg`` degrees of it; it must lie within ``max_dist``
-    widths (a hinge down the middle of a part is half a width from its edges). Each frame turns
-    about it by its rotation's component along it (`_amounts`). A door or a lid turns about one of its edges, and a
-    hinge tracked from the images tilts off it: on the second pose-noise scene's door 17 degrees, against 9.6 for
-    its nearest edge (docs/benchmarks.md, session 41)."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    fitted = joint_from_poses(poses, REVOLUTE)
-    if fitted is None or len(p) < 3:
-        return None
-    axis, pivot = fitted
-    edges = rect_hinges(p)
-    best = None
-    for e, (_, ea, ep) in enumerate(edges):
-        deg = float(np.degrees(np.arccos(min(1.0, abs(float(ea @ axis))))))
-        across = ep - edges[e ^ 1][2]  # to the parallel edge: [0, 1] and [2, 3] are pairs
-        width = max(float(np.linalg.norm(across - (across @ ea) * ea)), 1e-12)
-        dist = _segment_distance(p, ea, ep, axis, pivot) / width
-        if deg <= max_deg and dist <= max_dist and (best is None or dist < best[1]):
-            best = (deg, dist, ea if float(ea @ axis) >= 0 else -ea, ep)
-    if best is None:
-        return None
-    deg, dist, ea, ep = best
-    amounts = _amounts(poses, REVOLUTE, ea)  # [T]
-    out = np.asarray(jax.vmap(lambda a: articulated_pose(True, ea, ep, a))(jnp.asarray(amounts, jnp.float32)),
-                     np.float64)
-    return ea, ep, out, deg, dist
 
 
 def joint_from_poses(poses, kind: str):

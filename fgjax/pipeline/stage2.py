@@ -248,17 +248,9 @@ class Stage2Config:
     hinge_trial_search_slides: bool = False
     """`_hinge_trial`'s slides are also tried with their amounts searched from the images of the round's scene
     (`search_articulations`, each frame from the slide's own amount), as two more candidates."""
-    hinge_trial_skew_deg: float = 0.0
-    """`_hinge_trial` also tries a hinge near its part (not a far hinge) that runs more than this many degrees off
-    every edge of its part's outline (`_edge_skew_deg`), against those edges (no slides). 0: off."""
     hinge_trial_edges: int = 4
     """How many of the four edges `_hinge_trial` re-fits: those the images of the round's scene score best
     (`search_articulations`)."""
-    hinge_snap_deg: float = 0.0
-    """Each round, a hinge fitted near its part (not a far hinge, `fgjax.pipeline.phototrack.is_far_hinge`) is moved
-    onto the nearest edge of the part's outline within this many degrees and a quarter of the part's width
-    (`fgjax.pipeline.articulation.snap_hinge`, on the part's alive members, relabelled by colour as for the hinge
-    trial); each frame keeps its turn about the new hinge. 0: off."""
     track_subset_margin: int = 2
     """The photometric tracker's steps draw only the changing Gaussians and the others whose tiles meet theirs,
     widened by this many tiles (`track_photometric`'s ``subset_margin``; a frame whose part leaves the margin is
@@ -970,11 +962,6 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
         for k, f in enumerate(found):
             if f is not None and f["replaced"]:
                 kinds[k], axes[k], offsets[k] = f["kind"], np.asarray(f["axis"]), np.nan
-    snaps: dict = {}
-    if cfg.hinge_snap_deg > 0:
-        poses, snaps = _snap_hinges(run, ref, labels, num_objects, poses, kinds, offsets, cfg, ~fixed, log)
-        for k, rec in snaps.items():
-            axes[k], offsets[k] = np.asarray(rec["axis"]), rec["offset"]
     trials = {}
     if cfg.hinge_trial > 0:
         poses, trials = _hinge_trial(run, scene, order, ref, labels, num_objects, poses, kinds, offsets, cfg, ~fixed,
@@ -986,46 +973,10 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
     out = {"joint_kinds": list(kinds), "joint_costs": [None if not np.isfinite(c) else float(c) for c in costs],
            "joint_axes": [None if not np.all(np.isfinite(a)) else [float(x) for x in a] for a in axes],
            "joint_hinge_offsets": [None if not np.isfinite(r) else float(r) for r in offsets],
-           "hinge_trials": [trials.get(k) for k in range(num_objects)],
-           "hinge_snaps": [snaps.get(k) for k in range(num_objects)]}
+           "hinge_trials": [trials.get(k) for k in range(num_objects)]}
     for k in np.flatnonzero(fixed):  # the earlier round's joint
         for key in out:
             out[key][k] = prev_joints.get(key, [None] * num_objects)[k]
-    return poses, out
-
-
-def _snap_hinges(run: LoadedRun, ref: Gaussians, labels: np.ndarray, num_objects: int, poses: np.ndarray, kinds,
-                 offsets, cfg: Stage2Config, objects, log=print) -> tuple[np.ndarray, dict]:
-    """``Stage2Config.hinge_snap_deg``: each near hinge of ``objects`` [K] bool (``kinds`` [K] revolute, ``offsets``
-    [K] not a far hinge) moved onto the nearest edge of its part (`fgjax.pipeline.articulation.snap_hinge` on the
-    alive members of `ref`, raw parameters, with ``labels`` relabelled by colour where ``colour_radius`` > 0).
-    Returns (poses [K, T, 4, 4], {object: {"axis", "pivot", "deg" (the turn of the axis), "dist" (in widths),
-    "offset" (the new `hinge_offset` ratio)}})."""
-    from fgjax.pipeline.articulation import snap_hinge
-    from fgjax.pipeline.phototrack import hinge_offset, is_far_hinge, largest_turn_deg
-
-    poses = np.asarray(poses, np.float32).copy()
-    alive = np.asarray(run.state.densify.alive, bool)
-    m0 = np.asarray(ref.means, np.float64)
-    out: dict = {}
-    tl = None
-    for k in np.flatnonzero(np.asarray(objects, bool)):
-        if kinds[k] != "revolute" or is_far_hinge(offsets[k], largest_turn_deg(poses[k])):
-            continue
-        if tl is None:
-            tl = _refine_by_colour(labels, ref, alive, cfg, log=lambda *a: None)[0] if cfg.colour_radius > 0 else labels
-        pts = m0[(tl == k) & alive]
-        snapped = snap_hinge(pts, poses[k], max_deg=float(cfg.hinge_snap_deg)) if len(pts) >= 3 else None
-        if snapped is None:
-            log(f"hinge snap: object {k + 1}: no edge of its outline within {cfg.hinge_snap_deg:g} degrees and a "
-                f"quarter of its width of its hinge; kept")
-            continue
-        axis, pivot, pk, deg, dist = snapped
-        poses[k] = pk
-        out[int(k)] = {"axis": [float(x) for x in axis], "pivot": [float(x) for x in pivot], "deg": float(deg),
-                       "dist": float(dist), "offset": float(hinge_offset(pts, axis, pivot)[1])}
-        log(f"hinge snap: object {k + 1}'s hinge moved onto an edge of its outline {deg:.1f} degrees and "
-            f"{dist:.2f} of its width from it")
     return poses, out
 
 
@@ -1131,17 +1082,6 @@ def _trial_slides(points, poses, min_deg: float = 2.0) -> list[tuple]:
     return out
 
 
-def _edge_skew_deg(points, poses) -> float:
-    """The angle (degrees) between the hinge of ``poses`` [T, 4, 4] (`joint_from_poses`, revolute) and the nearest
-    in direction of the four edges of its part's outline (`rect_hinges` of ``points`` [M, 3]); nan without a turn."""
-    from fgjax.pipeline.articulation import joint_from_poses, rect_hinges
-
-    fitted = joint_from_poses(poses, "revolute")
-    if fitted is None:
-        return float("nan")
-    return float(min(np.degrees(np.arccos(min(1.0, abs(float(a @ fitted[0]))))) for _, a, _ in rect_hinges(points)))
-
-
 def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
                  poses: np.ndarray, kinds, offsets, cfg: Stage2Config, objects, log=print) -> tuple[np.ndarray, dict]:
     """Each far hinge (``Stage2Config.hinge_trial``) tried against hinges along its part's own edges and against
@@ -1166,7 +1106,7 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     where kept), "axis", "offset" (None for a slide), "frames", "seconds"}}).
     """
     from fgjax.pipeline.articulation import displaced_frames, rect_hinges, search_articulations
-    from fgjax.pipeline.phototrack import FAR_HINGE_TURN_DEG, hinge_offset, is_far_hinge, largest_turn_deg
+    from fgjax.pipeline.phototrack import hinge_offset, is_far_hinge, largest_turn_deg
 
     poses = np.asarray(poses, np.float32).copy()
     alive = np.asarray(run.state.densify.alive, bool)
@@ -1175,9 +1115,7 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     tl = None  # the trial's labels: the outlines relabelled by colour on the round's reference
     for k in np.flatnonzero(np.asarray(objects, bool)):
         turn = largest_turn_deg(poses[k])
-        far = is_far_hinge(offsets[k], turn)
-        skewed = cfg.hinge_trial_skew_deg > 0 and turn >= FAR_HINGE_TURN_DEG
-        if kinds[k] != "revolute" or not (far or skewed):
+        if kinds[k] != "revolute" or not is_far_hinge(offsets[k], turn):
             continue
         if tl is None:
             tl = _refine_by_colour(labels, ref, alive, cfg, log)[0] if cfg.colour_radius > 0 else labels
@@ -1185,16 +1123,9 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
         if len(pts) < 3:
             continue
         t0 = time.perf_counter()
-        if far:
-            log(f"hinge trial: object {k + 1}'s hinge lies {offsets[k]:.1f} radii off it while it turns {turn:.1f} "
-                f"degrees; trying hinges along its edges")
-        else:
-            skew = _edge_skew_deg(pts, poses[k])
-            if not skew > cfg.hinge_trial_skew_deg:
-                continue
-            log(f"hinge trial: object {k + 1}'s hinge runs {skew:.1f} degrees off every edge of its outline while it "
-                f"turns {turn:.1f} degrees; trying hinges along its edges")
-        slides = _trial_slides(pts, poses[k]) if cfg.hinge_trial_slide and far else []
+        log(f"hinge trial: object {k + 1}'s hinge lies {offsets[k]:.1f} radii off it while it turns {turn:.1f} "
+            f"degrees; trying hinges along its edges")
+        slides = _trial_slides(pts, poses[k]) if cfg.hinge_trial_slide else []
         hyps = rect_hinges(pts)
         search_poses, search_kinds = poses, ["none"] * num_objects
         if cfg.hinge_trial_search_slides and slides:  # the chord's slide as the fitted joint (each frame from its
@@ -1923,11 +1854,6 @@ def validate_config(cfg: Stage2Config) -> None:
     if not (isinstance(cfg.hinge_trial_edges, (int, np.integer)) and not isinstance(cfg.hinge_trial_edges, bool)
             and 0 <= cfg.hinge_trial_edges <= 4):
         raise ValueError(f"Stage2Config.hinge_trial_edges must be an integer in 0..4, got {cfg.hinge_trial_edges!r}")
-    if not 0 <= cfg.hinge_trial_skew_deg <= 90:  # NaN too
-        raise ValueError(f"Stage2Config.hinge_trial_skew_deg must be in [0, 90] (0: off), got "
-                         f"{cfg.hinge_trial_skew_deg!r}")
-    if not 0 <= cfg.hinge_snap_deg <= 90:  # NaN too
-        raise ValueError(f"Stage2Config.hinge_snap_deg must be in [0, 90] (0: off), got {cfg.hinge_snap_deg!r}")
     if not isinstance(cfg.control_rigid, (bool, np.bool_)):
         raise ValueError(f"Stage2Config.control_rigid must be true or false, got {cfg.control_rigid!r}")
     if not cfg.track_converged_deg >= 0:

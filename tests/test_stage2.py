@@ -581,6 +581,18 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     assert rec[0]["replaced"] and rec[0]["kind"] == "prismatic"
     np.testing.assert_array_equal(out[0], searched[-4])
     assert any("its amounts searched" in m for m in logs) and any("re-fitting edges [1, 3]" in m for m in logs)
+    # a searched slide with the poses of another candidate (its search kept every amount) is not re-fitted again
+    chord = np.tile(np.eye(4, dtype=np.float32), (t, 1, 1))
+    chord[:, :3, 3] = np.asarray(articulation.slide_from_poses(
+        pts.astype(np.float64), given[0])[1])[:, None] * slide_axis + 4e-7
+    searched[-4] = chord
+    refits.clear()
+    out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
+                                   stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_edges=2,
+                                                       hinge_trial_search_slides=True),
+                                   np.ones(1, bool), log=logs.append)
+    assert len(refits) == 6 and rec[0]["candidates"][3]["loss"] == rec[0]["candidates"][1]["loss"]
+    assert any("the poses of the slide, axis" in m for m in logs)
     edge_scores[:] = [0.5, 0.5, 0.5, 0.5]
     # a near hinge, no turn, a slide, no offset, an object left out: no trial
     still = given.copy()

@@ -1163,7 +1163,13 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
         if len(frames) == 0:
             continue
         losses = []
-        for h, kind, ax, pv, pk in cands:
+        for n, (h, kind, ax, pv, pk) in enumerate(cands):
+            same = next((m for m in range(n) if np.allclose(cands[m][4], pk, rtol=0.0, atol=1e-6)), None)
+            if same is not None:  # e.g. a slide whose search kept every amount: the same re-fit
+                losses.append(losses[same])
+                log(f"hinge trial: object {k + 1}: {_trial_name(h, ax)}: the poses of the "
+                    f"{_trial_name(cands[same][0], cands[same][2])}; loss {losses[-1]:.5f}")
+                continue
             trial = poses.copy()
             trial[k] = pk
             gs, _ = refit_gaussians(run, scene, order, tl, trial, int(cfg.hinge_trial), seed=cfg.seed, init=ref,

@@ -264,3 +264,14 @@ def test_search_articulations_with_given_hypotheses_returns_candidates_and_can_l
     for h, (kd, ax, pv, p) in cands.items():
         np.testing.assert_array_equal(ax, hyps[h][1])
         assert p.shape == (t, 4, 4) and kd == "revolute" and np.all(np.isfinite(p))
+    # ``fitted_poses``: the fitted joint (first) read from other poses, here the truth, and searched from their
+    # amounts; the hypotheses after it searched exactly as without it (the same frames, the given poses elsewhere)
+    _, info_f = search_articulations(g, alive, labels, 1, imgs, vms, Ks, wrong[None], kinds=["revolute"], sh_degree=0,
+                                     background=np.zeros(3), tile_size=8, hypotheses={0: hyps}, replace=False,
+                                     keep=5, fitted_poses={0: true}, log=lambda m: None)
+    cf = info_f[0]["candidates"]
+    assert info_f[0]["fitted_hypothesis"] and sorted(cf) == [0, 1, 2, 3, 4]
+    assert abs(cf[0][1][2]) > 0.99 and _point_error(cf[0][3], true, pts).max() < 0.03
+    for h in range(4):
+        np.testing.assert_array_equal(cf[h + 1][3], cands[h][3])
+        assert info_f[0]["scores"][h + 1] == info[0]["scores"][h]

@@ -467,10 +467,11 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     def fake_search(gaussians, alive, labels_, k_, images, vms, Ks, poses, **kw):
         seen["search"] = kw
         seen["labels"] = labels_
-        seen["poses"] = poses
+        seen["poses"] = kw["fitted_poses"]
         assert np.asarray(gaussians.means).shape == np.asarray(ref.means).shape
+        np.testing.assert_array_equal(poses, given)  # the displaced frames and the edges' searches: the given poses'
         if kw["kinds"] == ["none"]:
-            np.testing.assert_array_equal(poses, given)
+            assert kw["fitted_poses"] is None
             return poses, [dict(candidates=cands, frames=t - 1, score_given=1.0, fitted_hypothesis=False,
                                 scores=dict(enumerate(edge_scores)))]
         # the chord's slide as the fitted joint, first; the edges; the snapped slide last
@@ -574,7 +575,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
                                                        hinge_trial_search_slides=True),
                                    np.ones(1, bool), log=logs.append)
     assert [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, -2, -3, -4, -5, 1, 3] and len(refits) == 7
-    np.testing.assert_array_equal(seen["poses"][0][:, :3, :3], np.broadcast_to(np.eye(3), (t, 3, 3)))
+    np.testing.assert_array_equal(seen["poses"][0][:, :3, :3], np.broadcast_to(np.eye(3), (t, 3, 3)))  # the chord's
     np.testing.assert_allclose(seen["poses"][0][:, :3, 3], np.asarray(
         articulation.slide_from_poses(pts.astype(np.float64), given[0])[1])[:, None] * slide_axis, atol=1e-6)
     np.testing.assert_allclose(seen["search"]["hypotheses"][0][4][1], snap_axis, atol=1e-12)

@@ -209,7 +209,8 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
                          sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                          objects=None, sigma: float = 2.0, grid: int = 21, refine: int = 3,
                          max_turn_deg: float = 100.0, max_shift: float = 2.0, screen_frames: int = 4, keep: int = 2,
-                         warm_start: bool = True, hypotheses: dict | None = None, replace: bool = True, log=print):
+                         warm_start: bool = True, hypotheses: dict | None = None, fitted_poses: dict | None = None,
+                         replace: bool = True, log=print):
     """Each part's poses replaced by the one articulation that renders closest to its frames (module docstring).
 
     Args:
@@ -226,6 +227,9 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
             step, then the halving steps) instead of the whole grid.
         hypotheses: {object: list of (kind, unit axis [3], pivot [3])} replacing `articulation_hypotheses` for those
             objects (e.g. `rect_hinges`); the fitted joint is still added first.
+        fitted_poses: {object: poses [T, 4, 4]} from which those objects' fitted joint (of kind ``kinds[k]``) and its
+            amounts are read instead of from ``poses``, which still give the displaced frames, the other objects'
+            poses, the given poses' loss and the candidates' poses outside the displaced frames.
         replace: false: the poses are returned as given, whatever scores best (see "candidates").
 
     Returns:
@@ -308,10 +312,11 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
             continue
         own = None if hypotheses is None else hypotheses.get(int(k))
         hyps = articulation_hypotheses(pts) if own is None else list(own)
-        fitted = joint_from_poses(poses[k], kinds[k]) if kinds[k] in (REVOLUTE, PRISMATIC) else None
+        source = poses[k] if fitted_poses is None or int(k) not in fitted_poses else np.asarray(fitted_poses[int(k)])
+        fitted = joint_from_poses(source, kinds[k]) if kinds[k] in (REVOLUTE, PRISMATIC) else None
         if fitted is not None:
             hyps = [(kinds[k], *fitted)] + hyps
-            fitted_amount = _amounts(poses[k], kinds[k], fitted[0])  # [T]
+            fitted_amount = _amounts(source, kinds[k], fitted[0])  # [T]
         span = np.radians(max_turn_deg)
         rests = {int(i): rest_image(jnp.asarray(poses[:, i]), jnp.asarray(i, jnp.int32), jnp.asarray(k, jnp.int32))
                  for i in frames}

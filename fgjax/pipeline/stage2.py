@@ -1127,14 +1127,13 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
             f"degrees; trying hinges along its edges")
         slides = _trial_slides(pts, poses[k]) if cfg.hinge_trial_slide else []
         hyps = rect_hinges(pts)
-        search_poses, search_kinds = poses, ["none"] * num_objects
+        search_kinds, fitted_poses = ["none"] * num_objects, None
         if cfg.hinge_trial_search_slides and slides:  # the chord's slide as the fitted joint (each frame from its
-            search_poses = poses.copy()  # own amount), the other slide as a hypothesis after the edges
-            search_poses[k] = slides[0][4]
-            search_kinds[k] = "prismatic"
+            search_kinds[k] = "prismatic"  # own amount), the other slide as a hypothesis after the edges; the
+            fitted_poses = {int(k): slides[0][4]}  # displaced frames and the edges' searches are the given poses'
             hyps += [("prismatic", ax, pv) for _, _, ax, pv, _ in slides[1:]]
         _, found = search_articulations(ref, alive, tl, num_objects, scene.images[order], scene.viewmats[order],
-                                        scene.Ks[order], search_poses, kinds=search_kinds,
+                                        scene.Ks[order], poses, kinds=search_kinds, fitted_poses=fitted_poses,
                                         objects=np.arange(num_objects) == k, keep=len(hyps) + 1,
                                         hypotheses={int(k): hyps}, replace=False, sh_degree=run.cfg.model.sh_degree,
                                         background=run.cfg.model.background, capacity=_render_capacity(run),

@@ -1090,9 +1090,12 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     For each object in ``objects`` [K] bool whose joint (``kinds`` [K]) is revolute with a `hinge_offset` ratio
     (``offsets`` [K]) over 2 and a largest turn of 5 degrees or more (`is_far_hinge`): candidates are the given
     poses, with ``hinge_trial_slide`` two slides (`slide_from_poses`: their chord, and along the part's principal
-    axis nearest it where that is over 2 degrees off the chord) and the four `rect_hinges` of the part's alive
-    members, each hinge with its best amount in every frame (`search_articulations` on `ref`, the round's
-    reference, raw parameters). The trial's labels are ``labels`` with the outlines relabelled
+    axis nearest it where that is over 2 degrees off the chord), with ``hinge_trial_search_slides`` the same two
+    slides with their amounts searched in the images (each frame from its slide's amount), and the
+    ``hinge_trial_edges`` of the four `rect_hinges` of the part's alive members that the images score best, each
+    hinge with its best amount in every frame (`search_articulations` on `ref`, the round's reference, raw
+    parameters, on the frames where the given poses displace the part). A candidate whose poses are another's (to
+    1e-6) takes that one's loss. The trial's labels are ``labels`` with the outlines relabelled
     by colour on `ref` (`_refine_by_colour`, with ``colour_radius`` > 0): with discovery's labels, whose lid takes
     in the rims of its box, the search turns the lid's true hinge only 25 of its 69 degrees, and 69 with these
     (docs/benchmarks.md, session 39). They serve the trial only; the labels returned by the round are unchanged.
@@ -1102,8 +1105,9 @@ def _hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarra
     ``hinge_trial_margin``; the better slide wins ties within it).
 
     Returns (poses [K, T, 4, 4], {object: {"candidates": [{"hypothesis", "kind", "axis", "pivot", "loss"}, ...]
-    (the given poses as hypothesis -1, the slides as -2 and -3), "given_loss", "replaced", "kind" (the chosen joint's, None
-    where kept), "axis", "offset" (None for a slide), "frames", "seconds"}}).
+    (the given poses as hypothesis -1, the slides as -2 and -3, the searched slides as -4 and -5, the edges as 0-3),
+    "given_loss", "replaced", "kind" (the chosen joint's, None where kept), "axis", "offset" (None for a slide),
+    "frames", "seconds"}}).
     """
     from fgjax.pipeline.articulation import displaced_frames, rect_hinges, search_articulations
     from fgjax.pipeline.phototrack import hinge_offset, is_far_hinge, largest_turn_deg

@@ -511,7 +511,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     monkeypatch.setattr(articulation, "search_articulations", fake_search)
     monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
     monkeypatch.setattr(stage2, "_posed_losses", fake_losses)
-    cfg = stage2.Stage2Config(hinge_trial=7, colour_radius=0.0)
+    cfg = stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_search_slides=False, hinge_trial_edges=4)
     far = np.array([hinge_offset(pts, [1.0, 0.0, 0.0], pts.mean(0) + [0.0, 0.0, 1.0])[1]])
     far[0] = 4.0
     logs = []
@@ -556,7 +556,8 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     # without ``hinge_trial_slide``: no slide is tried
     refits.clear()
     out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_slide=False),
+                                   stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_slide=False,
+                                                       hinge_trial_edges=4),
                                    np.ones(1, bool), log=logs.append)
     assert len(refits) == 5 and [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, 0, 1, 2, 3]
     np.testing.assert_array_equal(out[0], cands[1][3])
@@ -619,7 +620,8 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     monkeypatch.setattr(stage2, "refit_gaussians", lambda run_, sc_, o_, lab, *a, init=None, **k: labels_seen.append(lab)
                         or (init, lab))
     loss_of.update({1: 0.5})
-    stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, stage2.Stage2Config(hinge_trial=7),
+    stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
+                        stage2.Stage2Config(hinge_trial=7, hinge_trial_search_slides=False, hinge_trial_edges=4),
                         np.ones(1, bool), log=logs.append)
     assert len(coloured) == 1 and coloured[0] is ref and len(labels_seen) in (6, 7)  # the snapped slide may run
     assert all(lab is recoloured for lab in labels_seen)
@@ -721,6 +723,7 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
     poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(hinge_trial=0),
                                               None, log=lambda m: None)
     assert stage2.Stage2Config().hinge_trial == 150  # on by default (session 39)
+    assert stage2.Stage2Config().hinge_trial_search_slides and stage2.Stage2Config().hinge_trial_edges == 2  # session 41
     assert calls == [] and joints["hinge_trials"] == [None] and joints["joint_hinge_offsets"] == [4.0]
     np.testing.assert_array_equal(poses, given)
     assert refs == []

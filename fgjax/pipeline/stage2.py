@@ -1036,7 +1036,7 @@ def _trial_held(history: list[dict], num_objects: int) -> np.ndarray:
 
 def _trial_name(h: int, axis) -> str:
     """How the log names `_hinge_trial`'s candidate ``h`` (-1 the given poses, -2 the chord's slide, -3 the slide
-    along a principal axis, else an edge)."""
+    along a principal axis, -4 and -5 the same with their amounts searched, else an edge)."""
     if h == -1:
         return "the given poses"
     what = {-2: "slide", -3: "slide along a principal axis", -4: "slide, its amounts searched",

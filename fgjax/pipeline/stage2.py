@@ -251,7 +251,9 @@ class Stage2Config:
     drawer (seed 0) took the slide along its principal axis with the chord's amounts, which open it 1.4-1.5 times its
     true shift; with searched amounts it opens 0.66-0.89 times it, its re-fitted loss 0.01261 against the given poses'
     0.01378, and the held-out states rose 28.23 -> 29.05 dB (`ari_controlled` 0.925 -> 0.940); the demo's run, pose
-    noise and the close pair's seed 1 came out the same to every digit (docs/benchmarks.md, session 41)."""
+    noise and the close pair's seed 1 came out the same to every digit; the second pose-noise scene's drawer became
+    a slide with searched amounts in round 3 (re-fitted loss 0.00770 against 0.00814) and its held-out states fell
+    28.09 -> 27.78 dB (docs/benchmarks.md, session 41)."""
     hinge_trial_edges: int = 2
     """How many of the four edges `_hinge_trial` re-fits: those the images of the round's scene score best
     (`search_articulations`). In every trial logged in sessions 40-41 that chose an edge, it was the one the images scored

@@ -723,7 +723,8 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
     poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(hinge_trial=0),
                                               None, log=lambda m: None)
     assert stage2.Stage2Config().hinge_trial == 150  # on by default (session 39)
-    assert stage2.Stage2Config().hinge_trial_search_slides and stage2.Stage2Config().hinge_trial_edges == 2  # session 41
+    defaults = stage2.Stage2Config()
+    assert defaults.hinge_trial_search_slides and defaults.hinge_trial_edges == 2  # session 41
     assert calls == [] and joints["hinge_trials"] == [None] and joints["joint_hinge_offsets"] == [4.0]
     np.testing.assert_array_equal(poses, given)
     assert refs == []

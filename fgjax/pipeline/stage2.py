@@ -256,8 +256,8 @@ class Stage2Config:
     28.09 -> 27.78 dB (docs/benchmarks.md, session 41)."""
     hinge_trial_edges: int = 2
     """How many of the four edges `_hinge_trial` re-fits: those the images of the round's scene score best
-    (`search_articulations`). In every trial logged in sessions 40-41 that chose an edge, it was the one the images scored
-    best; two of the seven re-fits are saved for the searched slides' two."""
+    (`search_articulations`). In every trial logged in sessions 40-41 that chose an edge, it was the one the images
+    scored best; two of the seven re-fits are saved for the searched slides' two."""
     track_subset_margin: int = 2
     """The photometric tracker's steps draw only the changing Gaussians and the others whose tiles meet theirs,
     widened by this many tiles (`track_photometric`'s ``subset_margin``; a frame whose part leaves the margin is

@@ -16,7 +16,9 @@ from fgjax.gaussians import Gaussians
 from fgjax.pipeline.articulation import (
     articulated_pose,
     articulation_hypotheses,
+    camera_up,
     displaced_frames,
+    hinge_made_vertical,
     joint_from_poses,
     rect_hinges,
     search_articulations,
@@ -275,3 +277,65 @@ def test_search_articulations_with_given_hypotheses_returns_candidates_and_can_l
     for h in range(4):
         np.testing.assert_array_equal(cf[h + 1][3], cands[h][3])
         assert info_f[0]["scores"][h + 1] == info[0]["scores"][h]
+
+
+def _look_at(centre, target, up=(0.0, 0.0, 1.0)):
+    """World-to-camera [4, 4] (OpenCV: x right, y down, z forward) of a level camera at ``centre`` facing ``target``."""
+    z = np.asarray(target, np.float64) - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    v = np.eye(4)
+    v[:3, :3] = np.stack([x, y, z])
+    v[:3, 3] = -v[:3, :3] @ centre
+    return v
+
+
+def test_camera_up_is_the_vertical_of_level_cameras_looking_down():
+    """Level cameras on an orbit looking down 20-40 degrees at the origin: up is +z to round-off (the mean of their
+    up axes is 20-40 degrees off it), for any rotation of the whole rig, and its sign follows the cameras' up."""
+    rng = np.random.default_rng(0)
+    ang = np.linspace(0.0, 1.5, 12)  # a quarter orbit
+    h = rng.uniform(0.7, 1.7, 12)
+    vms = np.stack([_look_at(np.array([2 * np.cos(a), 2 * np.sin(a), z]), [0.0, 0.0, 0.0]) for a, z in zip(ang, h)])
+    up = camera_up(vms)
+    np.testing.assert_allclose(up, [0.0, 0.0, 1.0], atol=1e-9)
+    assert np.degrees(np.arccos(-vms[:, 1, :3].mean(0) @ up / np.linalg.norm(vms[:, 1, :3].mean(0)))) > 15
+    rot = np.asarray(geometry.so3_exp(jnp.asarray([0.3, -1.2, 0.4])), np.float64)
+    w = np.eye(4)
+    w[:3, :3] = rot  # the world turned: x_new = rot x
+    turned = vms @ np.linalg.inv(w)
+    np.testing.assert_allclose(camera_up(turned), rot @ [0.0, 0.0, 1.0], atol=1e-9)
+    flipped = vms.copy()
+    flipped[:, :2] *= -1  # each camera rolled by 180 degrees: upside down
+    np.testing.assert_allclose(camera_up(flipped), [0.0, 0.0, -1.0], atol=1e-9)
+
+
+def test_hinge_made_vertical_keeps_the_turns_and_the_hinge_at_the_part():
+    """A door (points about (0.3, 0, 0.5)) turning 0..1.2 rad about a hinge through (0, 0, 0.5) tilted 12 degrees off
+    +z: made vertical, its poses turn by the same angles about +z through the old hinge's point nearest the door's
+    centroid; a hinge 40 degrees off, poses that do not turn, or a turn the other way keep to the rules."""
+    rng = np.random.default_rng(1)
+    pts = rng.uniform([0.05, -0.02, 0.1], [0.55, 0.02, 0.9], (200, 3))
+    tilt = np.asarray(geometry.so3_exp(jnp.asarray([np.radians(12.0), 0.0, 0.0])), np.float64)
+    axis = tilt @ [0.0, 0.0, 1.0]
+    pivot = np.array([0.0, 0.0, 0.5])
+    turns = np.linspace(0.0, 1.2, 7)
+    poses = np.stack([np.asarray(articulated_pose(True, axis, pivot, a), np.float64) for a in turns])
+    out, new_axis, off = hinge_made_vertical(pts, poses, [0.0, 0.0, 2.0], 25.0)
+    assert abs(off - 12.0) < 1e-4 and out.dtype == poses.dtype
+    np.testing.assert_allclose(new_axis, [0.0, 0.0, 1.0], atol=1e-12)
+    got_axis, got_pivot = joint_from_poses(out, "revolute")
+    np.testing.assert_allclose(got_axis, [0.0, 0.0, 1.0], atol=1e-5)
+    c = pts.mean(0)
+    at = pivot + axis * ((c - pivot) @ axis)  # the old hinge's point nearest the centroid
+    np.testing.assert_allclose(got_pivot[:2], at[:2], atol=1e-5)
+    rv = np.asarray(geometry.so3_log(jnp.asarray(out[:, :3, :3])), np.float64)
+    np.testing.assert_allclose(rv[:, 2], turns, atol=1e-5)
+    np.testing.assert_allclose(out[:, :3, :3] @ at + out[:, :3, 3], np.broadcast_to(at, (7, 3)), atol=1e-5)
+    assert hinge_made_vertical(pts, poses, [0.0, 0.0, 1.0], 10.0) is None  # 12 degrees off: kept
+    assert hinge_made_vertical(pts, np.tile(np.eye(4), (3, 1, 1)), [0.0, 0.0, 1.0], 25.0) is None
+    back, ax_b, _ = hinge_made_vertical(pts, poses, [0.0, 0.0, -1.0], 25.0)  # up given the other way round
+    np.testing.assert_allclose(ax_b, [0.0, 0.0, 1.0], atol=1e-12)  # the hinge keeps its own sense
+    np.testing.assert_allclose(back, out, atol=1e-9)

@@ -725,9 +725,29 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
     assert stage2.Stage2Config().hinge_trial == 150  # on by default (session 39)
     defaults = stage2.Stage2Config()
     assert defaults.hinge_trial_search_slides and defaults.hinge_trial_edges == 2  # session 41
+    assert defaults.hinge_up_deg == 0.0  # off (session 42: measured on two runs only)
     assert calls == [] and joints["hinge_trials"] == [None] and joints["joint_hinge_offsets"] == [4.0]
     np.testing.assert_array_equal(poses, given)
     assert refs == []
+    # ``hinge_up_deg``: each round's revolute joint goes through `hinge_made_vertical` with the cameras' up
+    from fgjax.pipeline import articulation
+
+    seen = {}
+
+    def fake_vertical(points, poses_k, up, max_deg):
+        seen.update(n=len(points), up=np.asarray(up), max_deg=max_deg)
+        return cands[1][3], np.array([0.0, 0.0, 1.0]), 7.0
+
+    monkeypatch.setattr(articulation, "hinge_made_vertical", fake_vertical)
+    logs = []
+    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1,
+                                              stage2.Stage2Config(hinge_trial=0, hinge_up_deg=25.0), None,
+                                              log=logs.append)
+    np.testing.assert_array_equal(poses[0], cands[1][3])
+    assert joints["joint_axes"] == [[0.0, 0.0, 1.0]] and seen["max_deg"] == 25.0
+    assert seen["n"] == int(np.sum((labels == 0) & np.asarray(run.state.densify.alive)))
+    np.testing.assert_allclose(seen["up"], articulation.camera_up(scene.viewmats[order]), atol=1e-12)
+    assert any("made vertical" in m for m in logs)
 
 
 def test_refit_is_saved_and_the_controlled_scene_starts_from_it(tiny, tmp_path):
@@ -1489,7 +1509,9 @@ def test_validate_config_names_the_field():
                     ({"hinge_trial_slide": "yes"}, "hinge_trial_slide"), ({"hinge_trial_slide": 1}, "hinge_trial_slide"),
                     ({"control_rigid": "no"}, "control_rigid"), ({"control_rigid": 0}, "control_rigid"),
                     ({"hinge_trial_edges": 5}, "hinge_trial_edges"), ({"hinge_trial_edges": True}, "hinge_trial_edges"),
-                    ({"hinge_trial_search_slides": 1}, "hinge_trial_search_slides")):
+                    ({"hinge_trial_search_slides": 1}, "hinge_trial_search_slides"),
+                    ({"hinge_up_deg": 90.0}, "hinge_up_deg"), ({"hinge_up_deg": -1.0}, "hinge_up_deg"),
+                    ({"hinge_up_deg": True}, "hinge_up_deg"), ({"hinge_up_deg": float("nan")}, "hinge_up_deg")):
         with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
             stage2.validate_config(stage2.Stage2Config(**kw))
 

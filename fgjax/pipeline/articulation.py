@@ -49,7 +49,7 @@ from fgjax.pipeline.phototrack import blur_kernel, blur_with
 from fgjax.pipeline.track import transform_gaussians
 
 __all__ = ["articulation_hypotheses", "rect_hinges", "joint_from_poses", "slide_from_poses", "articulated_pose",
-           "displaced_frames", "search_articulations"]
+           "camera_up", "hinge_made_vertical", "displaced_frames", "search_articulations"]
 
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
 
@@ -181,6 +181,37 @@ def articulated_pose(revolute, axis, pivot, amount):
     rot = jnp.where(revolute, rot, jnp.eye(3, dtype=rot.dtype))
     t = jnp.where(revolute, pivot - jnp.matmul(rot, pivot, precision=HIGHEST), amount * axis)
     return geometry.make_pose(rot, t)
+
+
+def camera_up(viewmats) -> np.ndarray:
+    """[3] unit world "up" from world-to-camera ``viewmats`` [T, 4, 4] (OpenCV: x right, y down) held level: the
+    direction most nearly orthogonal to every camera's right axis (the last right singular vector of their stack),
+    signed towards the cameras' mean up (-y). On the synthetic scenes it is the true vertical to 0.2-0.4 degrees, where
+    the mean of the cameras' up axes is 18 degrees off it, as they look down (docs/benchmarks.md, session 42)."""
+    R = np.asarray(viewmats, np.float64)[:, :3, :3]
+    up = np.linalg.svd(R[:, 0, :], full_matrices=False)[2][-1]
+    return up if float(up @ -R[:, 1, :].mean(0)) >= 0 else -up
+
+
+def hinge_made_vertical(points, poses, up, max_deg: float):
+    """A hinge within ``max_deg`` degrees of ``up`` [3] turned onto it: (poses [T, 4, 4], axis [3], degrees it was
+    off), or None where ``poses`` [T, 4, 4] do not turn or their hinge (`joint_from_poses`) is farther off. The new
+    hinge passes through the point of the old one nearest the part's centroid (reference points [M, 3]), and each
+    frame turns by its old turn about the old axis (the component of its rotation vector along it)."""
+    j = joint_from_poses(poses, REVOLUTE)
+    if j is None:
+        return None
+    axis, pivot = j
+    u = np.asarray(up, np.float64) / np.linalg.norm(up)
+    off = float(np.degrees(np.arccos(min(abs(float(axis @ u)), 1.0))))
+    if off > max_deg:
+        return None
+    new_axis = u if float(axis @ u) >= 0 else -u
+    c = np.asarray(points, np.float64).reshape(-1, 3).mean(0)
+    at = pivot + axis * float((c - pivot) @ axis)
+    turns = _amounts(poses, REVOLUTE, axis)  # [T]
+    out = np.stack([np.asarray(articulated_pose(True, new_axis, at, a), np.float64) for a in turns])
+    return out.astype(np.asarray(poses).dtype), new_axis, off
 
 
 def _amounts(poses, kind: str, axis) -> np.ndarray:

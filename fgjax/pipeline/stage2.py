@@ -1885,8 +1885,8 @@ def validate_config(cfg: Stage2Config) -> None:
     if not isinstance(cfg.hinge_trial_search_slides, (bool, np.bool_)):
         raise ValueError(f"Stage2Config.hinge_trial_search_slides must be true or false, got "
                          f"{cfg.hinge_trial_search_slides!r}")
-    if not (isinstance(cfg.hinge_up_deg, (int, float, np.integer, np.floating)) and not isinstance(cfg.hinge_up_deg, bool)
-            and 0 <= cfg.hinge_up_deg < 90):
+    if not (isinstance(cfg.hinge_up_deg, (int, float, np.integer, np.floating))
+            and not isinstance(cfg.hinge_up_deg, bool) and 0 <= cfg.hinge_up_deg < 90):
         raise ValueError(f"Stage2Config.hinge_up_deg must be a number in [0, 90) (0: off), got {cfg.hinge_up_deg!r}")
     if not (isinstance(cfg.hinge_trial_edges, (int, np.integer)) and not isinstance(cfg.hinge_trial_edges, bool)
             and 0 <= cfg.hinge_trial_edges <= 4):

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import look_at
 from test_phototrack import _coloured_hinge, _images
 from test_track import K
 
@@ -279,26 +280,13 @@ def test_search_articulations_with_given_hypotheses_returns_candidates_and_can_l
         assert info_f[0]["scores"][h + 1] == info[0]["scores"][h]
 
 
-def _look_at(centre, target, up=(0.0, 0.0, 1.0)):
-    """World-to-camera [4, 4] (OpenCV: x right, y down, z forward) of a level camera at ``centre`` facing ``target``."""
-    z = np.asarray(target, np.float64) - centre
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    v = np.eye(4)
-    v[:3, :3] = np.stack([x, y, z])
-    v[:3, 3] = -v[:3, :3] @ centre
-    return v
-
-
 def test_camera_up_is_the_vertical_of_level_cameras_looking_down():
     """Level cameras on an orbit looking down 20-40 degrees at the origin: up is +z to round-off (the mean of their
     up axes is 20-40 degrees off it), for any rotation of the whole rig, and its sign follows the cameras' up."""
     rng = np.random.default_rng(0)
     ang = np.linspace(0.0, 1.5, 12)  # a quarter orbit
     h = rng.uniform(0.7, 1.7, 12)
-    vms = np.stack([_look_at(np.array([2 * np.cos(a), 2 * np.sin(a), z]), [0.0, 0.0, 0.0]) for a, z in zip(ang, h)])
+    vms = np.stack([look_at([2 * np.cos(a), 2 * np.sin(a), z]) for a, z in zip(ang, h)])  # level: world z up
     up = camera_up(vms)
     np.testing.assert_allclose(up, [0.0, 0.0, 1.0], atol=1e-9)
     assert np.degrees(np.arccos(-vms[:, 1, :3].mean(0) @ up / np.linalg.norm(vms[:, 1, :3].mean(0)))) > 15

@@ -298,6 +298,8 @@ def test_camera_up_is_the_vertical_of_level_cameras_looking_down():
     flipped = vms.copy()
     flipped[:, :2] *= -1  # each camera rolled by 180 degrees: upside down
     np.testing.assert_allclose(camera_up(flipped), [0.0, 0.0, -1.0], atol=1e-9)
+    one = camera_up(vms[:1])  # one camera: some unit direction orthogonal to its right axis, not that axis
+    assert abs(np.linalg.norm(one) - 1.0) < 1e-12 and abs(one @ vms[0, 0, :3]) < 1e-12
 
 
 def test_hinge_made_vertical_keeps_the_turns_and_the_hinge_at_the_part():
@@ -327,3 +329,5 @@ def test_hinge_made_vertical_keeps_the_turns_and_the_hinge_at_the_part():
     back, ax_b, _ = hinge_made_vertical(pts, poses, [0.0, 0.0, -1.0], 25.0)  # up given the other way round
     np.testing.assert_allclose(ax_b, [0.0, 0.0, 1.0], atol=1e-12)  # the hinge keeps its own sense
     np.testing.assert_allclose(back, out, atol=1e-9)
+    bare, _, _ = hinge_made_vertical(np.zeros((0, 3)), poses, [0.0, 0.0, 1.0], 25.0)  # no members: finite poses
+    assert np.all(np.isfinite(bare))

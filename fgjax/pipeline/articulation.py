@@ -189,7 +189,7 @@ def camera_up(viewmats) -> np.ndarray:
     signed towards the cameras' mean up (-y). On the synthetic scenes it is the true vertical to 0.2-0.4 degrees, where
     the mean of the cameras' up axes is 18 degrees off it, as they look down (docs/benchmarks.md, session 42)."""
     R = np.asarray(viewmats, np.float64)[:, :3, :3]
-    up = np.linalg.svd(R[:, 0, :], full_matrices=False)[2][-1]
+    up = np.linalg.svd(R[:, 0, :])[2][-1]  # full: one camera gives a direction orthogonal to its right axis
     return up if float(up @ -R[:, 1, :].mean(0)) >= 0 else -up
 
 
@@ -207,8 +207,8 @@ def hinge_made_vertical(points, poses, up, max_deg: float):
     if off > max_deg:
         return None
     new_axis = u if float(axis @ u) >= 0 else -u
-    c = np.asarray(points, np.float64).reshape(-1, 3).mean(0)
-    at = pivot + axis * float((c - pivot) @ axis)
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    at = pivot + axis * float((p.mean(0) - pivot) @ axis) if len(p) else pivot  # no points: the hinge's own point
     turns = _amounts(poses, REVOLUTE, axis)  # [T]
     out = np.stack([np.asarray(articulated_pose(True, new_axis, at, a), np.float64) for a in turns])
     return out.astype(np.asarray(poses).dtype), new_axis, off

@@ -15,8 +15,11 @@ from test_track import K
 from fgjax import geometry
 from fgjax.gaussians import Gaussians
 from fgjax.pipeline.articulation import (
+    LEVEL_AMBIGUITY,
+    LEVEL_TILT_DEG,
     articulated_pose,
     articulation_hypotheses,
+    camera_tilt,
     camera_up,
     displaced_frames,
     hinge_made_vertical,
@@ -300,6 +303,35 @@ def test_camera_up_is_the_vertical_of_level_cameras_looking_down():
     np.testing.assert_allclose(camera_up(flipped), [0.0, 0.0, -1.0], atol=1e-9)
     one = camera_up(vms[:1])  # one camera: some unit direction orthogonal to its right axis, not that axis
     assert abs(np.linalg.norm(one) - 1.0) < 1e-12 and abs(one @ vms[0, 0, :3]) < 1e-12
+
+
+def _rolled(vm, deg):
+    """World-to-camera ``vm`` [4, 4] rolled by ``deg`` degrees about its own view axis."""
+    roll = np.asarray(geometry.so3_exp(jnp.asarray([0.0, 0.0, np.radians(deg)])), np.float64)
+    out = vm.copy()
+    out[:3] = roll @ vm[:3]
+    return out
+
+
+def test_camera_tilt_measures_roll_and_an_up_the_cameras_do_not_fix():
+    """Level orbit cameras: tilt and ambiguity 0. Each rolled by +-3 degrees: an RMS tilt of about 2.7 degrees (the
+    roll seen from cameras looking 20-33 degrees down), over `LEVEL_TILT_DEG`, while up itself stays within a degree.
+    A dolly whose cameras turn by only +-2 degrees and roll by +-1: a small tilt, but an ambiguity of about 0.4, over
+    `LEVEL_AMBIGUITY`, and an up 6 degrees off. Fewer than three cameras: infinite ambiguity. (The synthetic scenes'
+    cameras: tilt 0.4-0.6 degrees, ambiguity 0.02-0.04.)"""
+    ang = np.linspace(0.0, 1.5, 12)
+    vms = np.stack([look_at([2 * np.cos(a), 2 * np.sin(a), 1.0 + 0.3 * np.sin(5 * a)]) for a in ang])
+    assert camera_tilt(vms) == pytest.approx((0.0, 0.0), abs=1e-6)
+    rolled = np.stack([_rolled(vm, 3.0 * (-1) ** t) for t, vm in enumerate(vms)])
+    tilt, _ = camera_tilt(rolled)
+    assert LEVEL_TILT_DEG < tilt < 3.0
+    assert camera_up(rolled)[2] > np.cos(np.radians(1.0))
+    dolly = np.stack([_rolled(look_at([2.0, 0.1 * t, 1.0], target=[0.0, 0.1 * t + 0.07 * (-1) ** t, 0.0]),
+                              (-1) ** (t // 2)) for t in range(6)])
+    tilt, amb = camera_tilt(dolly)
+    assert tilt < LEVEL_TILT_DEG and 0.3 < amb and amb > LEVEL_AMBIGUITY
+    assert camera_up(dolly)[2] < np.cos(np.radians(4.0))  # the up that the ambiguity warns of
+    assert camera_tilt(vms[:2]) == (0.0, float("inf"))
 
 
 def test_hinge_made_vertical_keeps_the_turns_and_the_hinge_at_the_part():

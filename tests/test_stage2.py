@@ -748,6 +748,15 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
     assert seen["n"] == int(np.sum((labels == 0) & np.asarray(run.state.densify.alive)))
     np.testing.assert_allclose(seen["up"], articulation.camera_up(scene.viewmats[order]), atol=1e-12)
     assert any("made vertical" in m for m in logs)
+    # cameras not held level (or an up they do not fix): hinges kept as tracked, and the log says why
+    monkeypatch.setattr(articulation, "camera_tilt", lambda vms: (articulation.LEVEL_TILT_DEG + 0.5, 0.01))
+    seen.clear()
+    logs = []
+    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1,
+                                              stage2.Stage2Config(hinge_trial=0, hinge_up_deg=25.0), None,
+                                              log=logs.append)
+    np.testing.assert_array_equal(poses, given)
+    assert seen == {} and any("not trusted" in m and "tilt 2.50" in m for m in logs)
 
 
 def test_refit_is_saved_and_the_controlled_scene_starts_from_it(tiny, tmp_path):

@@ -193,6 +193,24 @@ def camera_up(viewmats) -> np.ndarray:
     return up if float(up @ -R[:, 1, :].mean(0)) >= 0 else -up
 
 
+LEVEL_TILT_DEG = 2.0  # `camera_tilt`: the largest RMS tilt for cameras taken as held level (synthetic scenes 0.4-0.6)
+LEVEL_AMBIGUITY = 0.1  # `camera_tilt`: the largest ambiguity for a usable up (synthetic scenes 0.02-0.04)
+
+
+def camera_tilt(viewmats) -> tuple[float, float]:
+    """How well `camera_up` is determined by world-to-camera ``viewmats`` [T, 4, 4]: (tilt, ambiguity). The tilt is
+    the RMS angle in degrees of the cameras' right axes out of the plane normal to that up (0 for cameras held level;
+    roll and pose noise raise it). The ambiguity is the ratio of the smallest to the middle singular value of the
+    right axes' stack: near 0 where the cameras turn enough about up to fix it, 1 where any direction in a plane
+    would do (cameras all facing one way); infinite for fewer than three cameras, which are level by construction."""
+    right = np.asarray(viewmats, np.float64)[:, 0, :3]  # [T, 3]
+    if len(right) < 3:
+        return 0.0, float("inf")
+    s = np.linalg.svd(right, compute_uv=False)  # [3]
+    tilt = float(np.degrees(np.arcsin(min(1.0, s[2] / np.sqrt(len(right))))))
+    return tilt, float(s[2] / s[1]) if s[1] > 0 else float("inf")
+
+
 def hinge_made_vertical(points, poses, up, max_deg: float):
     """A hinge within ``max_deg`` degrees of ``up`` [3] turned onto it: (poses [T, 4, 4], axis [3], degrees it was
     off), or None where ``poses`` [T, 4, 4] do not turn or their hinge (`joint_from_poses`) is farther off. The new

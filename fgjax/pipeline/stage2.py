@@ -966,11 +966,17 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
     poses, kinds, costs, axes, offsets = joint_poses(pts, poses, vms, Ks, return_axes=True, return_offsets=True,
                                                      log=log)
     if cfg.hinge_up_deg > 0:
-        from fgjax.pipeline.articulation import camera_up, hinge_made_vertical
+        from fgjax.pipeline.articulation import LEVEL_AMBIGUITY, LEVEL_TILT_DEG, camera_tilt, camera_up, \
+            hinge_made_vertical
 
         up = camera_up(vms)
+        tilt, ambiguity = camera_tilt(vms)
+        level = tilt <= LEVEL_TILT_DEG and ambiguity <= LEVEL_AMBIGUITY
         alive = np.asarray(run.state.densify.alive, bool)
-        for k in np.flatnonzero((np.asarray(kinds) == "revolute") & ~fixed):
+        if not level and np.any((np.asarray(kinds) == "revolute") & ~fixed):
+            log(f"stage 2: the cameras' up is not trusted (tilt {tilt:.2f} degrees RMS, at most {LEVEL_TILT_DEG:g}; "
+                f"ambiguity {ambiguity:.3f}, at most {LEVEL_AMBIGUITY:g}): hinges kept as tracked (hinge_up_deg)")
+        for k in np.flatnonzero((np.asarray(kinds) == "revolute") & ~fixed & level):
             made = hinge_made_vertical(m0[(labels == k) & alive], poses[k], up, float(cfg.hinge_up_deg))
             if made is not None:
                 poses[k], axes[k] = made[0], made[1]

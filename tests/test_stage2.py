@@ -739,6 +739,9 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
         return cands[1][3], np.array([0.0, 0.0, 1.0]), 7.0
 
     monkeypatch.setattr(articulation, "hinge_made_vertical", fake_vertical)
+    far = phototrack.joint_poses  # the fake above: a hinge 4 radii off its part
+    monkeypatch.setattr(phototrack, "joint_poses", lambda pts_, poses, *a, **k: (
+        poses, ["revolute"], np.array([0.5]), np.array([[1.0, 0.0, 0.0]]), np.array([0.5])))
     logs = []
     poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1,
                                               stage2.Stage2Config(hinge_trial=0, hinge_up_deg=25.0), None,
@@ -757,6 +760,17 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
                                               log=logs.append)
     np.testing.assert_array_equal(poses, given)
     assert seen == {} and any("not trusted" in m and "tilt 2.50" in m for m in logs)
+    # a far hinge (4 radii off its part while it turns 5 degrees or more): kept as tracked, for the hinge trial
+    monkeypatch.undo()
+    monkeypatch.setattr(phototrack, "track_photometric", lambda *a, **k: (given.copy(), None))
+    monkeypatch.setattr(phototrack, "joint_poses", far)
+    monkeypatch.setattr(articulation, "hinge_made_vertical", fake_vertical)
+    assert phototrack.is_far_hinge(4.0, phototrack.largest_turn_deg(given[0]))
+    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1,
+                                              stage2.Stage2Config(hinge_trial=0, hinge_up_deg=25.0), None,
+                                              log=lambda m: None)
+    np.testing.assert_array_equal(poses, given)
+    assert seen == {} and joints["joint_axes"] == [[1.0, 0.0, 0.0]]
 
 
 def test_refit_is_saved_and_the_controlled_scene_starts_from_it(tiny, tmp_path):

@@ -968,6 +968,7 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
     if cfg.hinge_up_deg > 0:
         from fgjax.pipeline.articulation import LEVEL_AMBIGUITY, LEVEL_TILT_DEG, camera_tilt, camera_up, \
             hinge_made_vertical
+        from fgjax.pipeline.phototrack import is_far_hinge, largest_turn_deg
 
         up = camera_up(vms)
         tilt, ambiguity = camera_tilt(vms)
@@ -977,6 +978,8 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
             log(f"stage 2: the cameras' up is not trusted (tilt {tilt:.2f} degrees RMS, at most {LEVEL_TILT_DEG:g}; "
                 f"ambiguity {ambiguity:.3f}, at most {LEVEL_AMBIGUITY:g}): hinges kept as tracked (hinge_up_deg)")
         for k in np.flatnonzero((np.asarray(kinds) == "revolute") & ~fixed & level):
+            if is_far_hinge(offsets[k], largest_turn_deg(poses[k])):
+                continue  # a hinge far off its part is not trusted as a hinge at all (the hinge trial's)
             made = hinge_made_vertical(m0[(labels == k) & alive], poses[k], up, float(cfg.hinge_up_deg))
             if made is not None:
                 poses[k], axes[k] = made[0], made[1]

@@ -725,7 +725,7 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
     assert stage2.Stage2Config().hinge_trial == 150  # on by default (session 39)
     defaults = stage2.Stage2Config()
     assert defaults.hinge_trial_search_slides and defaults.hinge_trial_edges == 2  # session 41
-    assert defaults.hinge_up_deg == 0.0  # off (session 42: measured on two runs only)
+    assert defaults.hinge_up_deg == 25.0  # on (session 43: all five runs measured)
     assert calls == [] and joints["hinge_trials"] == [None] and joints["joint_hinge_offsets"] == [4.0]
     np.testing.assert_array_equal(poses, given)
     assert refs == []

@@ -254,13 +254,15 @@ class Stage2Config:
     noise and the close pair's seed 1 came out the same to every digit; the second pose-noise scene's drawer became
     a slide with searched amounts in round 3 (re-fitted loss 0.00770 against 0.00814) and its held-out states fell
     28.09 -> 27.78 dB (docs/benchmarks.md, session 41)."""
-    hinge_up_deg: float = 0.0
+    hinge_up_deg: float = 25.0
     """> 0: after each round's joint fit, a hinge within this many degrees of the cameras' up
-    (`fgjax.pipeline.articulation.camera_up`: cameras held level) is made vertical
-    (`articulation.hinge_made_vertical`), a prior that doors hang plumb; 0: off. At 25 (session 42, stage 2 at the
-    demo's settings): the second pose-noise scene's door, 19.6 degrees off in round 1 and 3.3 in round 2, gave held-out
-    states 29.08 dB against 27.78 (its trajectory error 0.008 against 0.017), and pose noise 29.74 against 29.15; the
-    other three runs were not measured, so it is off by default."""
+    (`fgjax.pipeline.articulation.camera_up`) is made vertical (`articulation.hinge_made_vertical`), a prior that
+    doors hang plumb; 0: off. Only where the cameras are held level and turn enough to fix up
+    (`articulation.camera_tilt` within `LEVEL_TILT_DEG` and `LEVEL_AMBIGUITY`), and not for a far hinge
+    (`phototrack.is_far_hinge`: the hinge trial's). Measured at 25 (sessions 42-43, stage 2 at the demo's settings,
+    held-out states against the defaults before): the second pose-noise scene 29.57 dB against 27.78 (its door 19.6
+    degrees off in round 1; its trajectory error 0.007 against 0.017), pose noise 29.47 against 29.15, the close pair
+    28.18 against 29.57 (seed 1); docs/benchmarks.md, session 43, has the rest."""
     hinge_trial_edges: int = 2
     """How many of the four edges `_hinge_trial` re-fits: those the images of the round's scene score best
     (`search_articulations`). In every trial logged in sessions 40-41 that chose an edge, it was the one the images

@@ -273,6 +273,40 @@ def test_gt_labels_of_gaussians_labels_the_gt_parts(tiny):
     assert got[-1] == -1
 
 
+def test_render_source_control_draws_the_controlled_scene(tiny, tmp_path, capsys):
+    """``fgjax render --source control`` writes the controlled scene at each camera's time (each object at its
+    trajectory there); ``--clusters --source stage1`` the stage-1 ids; a run without stage 2: exit 2, naming the
+    file it lacks."""
+    from fgjax.data.scene import Normalization
+    from fgjax.pipeline import stage2
+    from fgjax.pipeline.render import read_cameras
+
+    run_dir, data = tiny
+    cams_file = data / "transforms_test.json"
+    args = ["render", "--run", str(run_dir), "--cameras", str(cams_file)]
+    assert cli.main(args + ["--out", str(tmp_path / "ctl"), "--source", "control"]) == 0
+    assert cli.main(args + ["--out", str(tmp_path / "s1")]) == 0  # the default: the stage-1 model
+    run = stage2.load_stage2(run_dir)
+    meta = json.loads((run_dir / "model.json").read_text())
+    name, vm, K, t, w, h = read_cameras(cams_file, Normalization.from_dict(meta["normalization"]), meta["width"],
+                                        meta["height"])[0]
+    import imageio.v3 as iio
+
+    got = iio.imread(tmp_path / "ctl" / f"{name}.png")
+    want = stage2.render_controlled(run, stage2.cluster_vectors_at(run.s2, t), vm, K, w, h)
+    np.testing.assert_array_equal(got, stage2._to_u8(want))
+    assert np.any(got != iio.imread(tmp_path / "s1" / f"{name}.png"))
+    assert cli.main(args + ["--out", str(tmp_path / "ids"), "--clusters", "--source", "stage1"]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "ids" / f"{name}_ids.npy"),
+                                  stage2.render_clusters(run, vm, K, w, h, t=t, source="stage1"))
+    bare = tmp_path / "bare"
+    shutil.copytree(run_dir, bare, ignore=shutil.ignore_patterns(stage2.STAGE2_NAME))
+    capsys.readouterr()
+    assert cli.main(["render", "--run", str(bare), "--cameras", str(cams_file), "--out", str(tmp_path / "x"),
+                     "--source", "control"]) == 2
+    assert stage2.STAGE2_NAME in capsys.readouterr().err
+
+
 def test_render_clusters_with_given_labels(tiny):
     """``labels`` replaces the clustering: stage 2's own labels give the same map, no labels an all-static
     one, and object 1's members alone paint object 1 only where the full map does (the other objects'

@@ -177,6 +177,15 @@ def test_write_cluster_maps(tiny, tmp_path):
     assert stage2.write_cluster_maps(run_dir, cams, tmp_path / "ids", log=lambda m: None) == 0
     ids = np.load(tmp_path / "ids" / f"{cams[0][0]}_ids.npy")
     assert ids.shape == (meta["height"], meta["width"]) and (tmp_path / "ids" / f"{cams[0][0]}_ids.png").is_file()
+    # the default draws the controlled scene at the camera's time (what eval's ari_controlled scores); "stage1" the
+    # stage-1 model
+    run = stage2.load_stage2(run_dir)
+    name, vm, K, t, w, h = cams[0]
+    want = {src: stage2.render_clusters(run, vm, K, w, h, t=t, source=src) for src in ("control", "stage1")}
+    np.testing.assert_array_equal(ids, want["control"])
+    assert stage2.write_cluster_maps(run_dir, cams, tmp_path / "ids1", log=lambda m: None, source="stage1") == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "ids1" / f"{name}_ids.npy"), want["stage1"])
+    assert np.any(want["control"] != want["stage1"])  # the two scenes differ here, so the checks above can fail
     assert stage2.write_cluster_maps(tmp_path / "nope", cams, tmp_path / "ids") == 2
 
 

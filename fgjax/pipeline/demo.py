@@ -264,8 +264,9 @@ def _pipeline(out: Path, scene_dir: Path, s1cfg, s2cfg, *, say) -> None:
     s2 = stage2.run_stage2(run_dir, scene_dir, s2cfg, log=say)
     run = stage2.load_stage2(run_dir)
     vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height
-    ids = stage2.render_clusters(run, vm, K, w, h)
-    rgb0 = stage2.render_controlled(run, np.zeros((max(s2.num_objects, 1), 3)), vm, K, w, h)
+    v0 = np.zeros((max(s2.num_objects, 1), 3))  # v = 0 for every object
+    ids = stage2.render_clusters(run, vm, K, w, h, vectors=v0 if s2.num_objects else None)  # the scene beside it
+    rgb0 = stage2.render_controlled(run, v0, vm, K, w, h)
     tiles = [_label(_up(u8(train.images[0]), max(1, 240 // w)), "training frame 0"),
              _label(_up(u8(rgb0), max(1, 240 // w)), "stage 2, v = 0"),
              _label(_up(ids_to_color(ids), max(1, 240 // w)), f"{s2.num_objects} object(s) found")]

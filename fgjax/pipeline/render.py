@@ -3,7 +3,9 @@
 The camera file is in the nerfstudio / Blender / D-NeRF ``transforms`` format (OpenGL camera-to-world
 ``transform_matrix`` per frame, ``time`` in [0, 1], intrinsics per frame or at the top level: ``fl_x``...
 or ``camera_angle_x``; image files need not exist). Poses are mapped with the run's scene normalisation.
-Frames without ``w``/``h`` use the training image size.
+Frames without ``w``/``h`` use the training image size. ``--source control`` draws stage 2's controlled scene
+(each object at its learned trajectory at the camera's time) instead of the stage-1 model; ``--clusters`` writes
+per-pixel object ids instead of colour, from the controlled scene unless ``--source stage1``.
 """
 
 from __future__ import annotations
@@ -40,7 +42,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output folder for PNGs")
     p.add_argument("--clusters", action="store_true",
                    help="write per-pixel object-id maps (0 = static; needs stage 2) instead of colour")
+    p.add_argument("--source", choices=("control", "stage1"), default=None,
+                   help="the scene drawn: 'control', stage 2's controlled scene with each object at its learned "
+                        "trajectory at the camera's time, or 'stage1', the deformable stage-1 model at that time "
+                        "(default: control with --clusters, stage1 otherwise)")
     args = p.parse_args(argv)
+    source = args.source or ("control" if args.clusters else "stage1")
     import imageio.v3 as iio
 
     from fgjax.data.scene import Normalization
@@ -61,7 +68,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.clusters:
         from fgjax.pipeline.stage2 import write_cluster_maps
 
-        return write_cluster_maps(args.run, cams, args.out)
+        return write_cluster_maps(args.run, cams, args.out, source=source)
+    if source == "control":
+        from fgjax.pipeline.stage2 import write_controlled_frames
+
+        return write_controlled_frames(args.run, cams, args.out)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for name, vm, K, t, w, h in cams:

@@ -788,27 +788,56 @@ def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: f
     return np.where(np.asarray(alpha) >= alpha_threshold, ids, 0).astype(np.int64)
 
 
-def write_cluster_maps(run_dir: str | Path, cams, out: str | Path, log=print) -> int:
+def write_cluster_maps(run_dir: str | Path, cams, out: str | Path, log=print, source: str = "control") -> int:
     """``fgjax render --clusters``: per camera (name, viewmat, K, time, w, h) write OUT/{name}_ids.npy
-    (int32 object ids, 0 = static) and OUT/{name}_ids.png (colour-coded). Returns the exit status."""
+    (int32 object ids, 0 = static) and OUT/{name}_ids.png (colour-coded), drawn from ``source``
+    (`render_clusters`): "control", the controlled scene with each object at its trajectory at the camera's time
+    (what `fgjax eval` scores as ``ari_controlled``), or "stage1", the stage-1 model at that time (``ari``).
+    Returns the exit status."""
     import imageio.v3 as iio
 
     from fgjax.pipeline.demo import ids_to_color
-    from fgjax.train.checkpoint import CheckpointError
 
-    try:
-        run = load_stage2(run_dir)
-    except (FileNotFoundError, CheckpointError, Stage2Error) as e:
-        print(f"fgjax render: {e}", file=sys.stderr)
+    run = _load_for_render(run_dir)
+    if run is None:
         return 2
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     for name, vm, K, t, w, h in cams:
-        ids = render_clusters(run, vm, K, w, h, t=t)
+        ids = render_clusters(run, vm, K, w, h, t=t, source=source)
         np.save(out / f"{name}_ids.npy", ids.astype(np.int32))
         iio.imwrite(out / f"{name}_ids.png", ids_to_color(ids))
-    log(f"rendered {len(cams)} object-id maps ({run.s2.num_objects} object(s)) to {out}")
+    log(f"rendered {len(cams)} object-id maps ({run.s2.num_objects} object(s), {source}) to {out}")
     return 0
+
+
+def write_controlled_frames(run_dir: str | Path, cams, out: str | Path, log=print) -> int:
+    """``fgjax render --source control``: per camera (name, viewmat, K, time, w, h) write OUT/{name}.png, the
+    controlled scene with each object at its trajectory at the camera's time (`cluster_vectors_at`,
+    `render_controlled`). Returns the exit status."""
+    import imageio.v3 as iio
+
+    run = _load_for_render(run_dir)
+    if run is None:
+        return 2
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, vm, K, t, w, h in cams:
+        img = render_controlled(run, cluster_vectors_at(run.s2, float(t)), vm, K, w, h)
+        iio.imwrite(out / f"{name}.png", _to_u8(img))
+    log(f"rendered {len(cams)} cameras of the controlled scene ({run.s2.num_objects} object(s)) to {out}")
+    return 0
+
+
+def _load_for_render(run_dir: str | Path) -> LoadedRun | None:
+    """`load_stage2`, or None after printing why to stderr (a missing run, checkpoint or stage-2 result)."""
+    from fgjax.train.checkpoint import CheckpointError
+
+    try:
+        return load_stage2(run_dir)
+    except (FileNotFoundError, CheckpointError, Stage2Error) as e:
+        print(f"fgjax render: {e}", file=sys.stderr)
+        return None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -49,7 +49,8 @@ from fgjax.pipeline.phototrack import blur_kernel, blur_with
 from fgjax.pipeline.track import transform_gaussians
 
 __all__ = ["articulation_hypotheses", "rect_hinges", "joint_from_poses", "slide_from_poses", "articulated_pose",
-           "camera_up", "hinge_made_vertical", "displaced_frames", "search_articulations"]
+           "camera_up", "camera_tilt", "LEVEL_TILT_DEG", "LEVEL_AMBIGUITY", "hinge_made_vertical", "displaced_frames",
+           "search_articulations"]
 
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
 

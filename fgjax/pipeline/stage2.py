@@ -71,6 +71,7 @@ __all__ = [
     "render_clusters",
     "posed_base",
     "write_cluster_maps",
+    "write_controlled_frames",
     "cluster_vectors_at",
     "snap_vector",
     "main",

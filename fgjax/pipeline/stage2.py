@@ -795,6 +795,18 @@ def write_cluster_maps(run_dir: str | Path, cams, out: str | Path, log=print, so
     (`render_clusters`): "control", the controlled scene with each object at its trajectory at the camera's time
     (what `fgjax eval` scores as ``ari_controlled``), or "stage1", the stage-1 model at that time (``ari``).
     Returns the exit status."""
+    return _write_renders(run_dir, cams, out, log, clusters=True, source=source)
+
+
+def write_controlled_frames(run_dir: str | Path, cams, out: str | Path, log=print) -> int:
+    """``fgjax render --source control``: per camera (name, viewmat, K, time, w, h) write OUT/{name}.png, the
+    controlled scene with each object at its trajectory at the camera's time (`cluster_vectors_at`,
+    `render_controlled`). Returns the exit status."""
+    return _write_renders(run_dir, cams, out, log, clusters=False, source="control")
+
+
+def _write_renders(run_dir, cams, out, log, *, clusters: bool, source: str) -> int:
+    """`write_cluster_maps` (``clusters``) or `write_controlled_frames`: 2 where the run cannot be loaded."""
     import imageio.v3 as iio
 
     from fgjax.pipeline.demo import ids_to_color
@@ -805,28 +817,15 @@ def write_cluster_maps(run_dir: str | Path, cams, out: str | Path, log=print, so
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     for name, vm, K, t, w, h in cams:
-        ids = render_clusters(run, vm, K, w, h, t=t, source=source)
-        np.save(out / f"{name}_ids.npy", ids.astype(np.int32))
-        iio.imwrite(out / f"{name}_ids.png", ids_to_color(ids))
-    log(f"rendered {len(cams)} object-id maps ({run.s2.num_objects} object(s), {source}) to {out}")
-    return 0
-
-
-def write_controlled_frames(run_dir: str | Path, cams, out: str | Path, log=print) -> int:
-    """``fgjax render --source control``: per camera (name, viewmat, K, time, w, h) write OUT/{name}.png, the
-    controlled scene with each object at its trajectory at the camera's time (`cluster_vectors_at`,
-    `render_controlled`). Returns the exit status."""
-    import imageio.v3 as iio
-
-    run = _load_for_render(run_dir)
-    if run is None:
-        return 2
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    for name, vm, K, t, w, h in cams:
-        img = render_controlled(run, cluster_vectors_at(run.s2, float(t)), vm, K, w, h)
-        iio.imwrite(out / f"{name}.png", _to_u8(img))
-    log(f"rendered {len(cams)} cameras of the controlled scene ({run.s2.num_objects} object(s)) to {out}")
+        if clusters:
+            ids = render_clusters(run, vm, K, w, h, t=t, source=source)
+            np.save(out / f"{name}_ids.npy", ids.astype(np.int32))
+            iio.imwrite(out / f"{name}_ids.png", ids_to_color(ids))
+        else:
+            img = render_controlled(run, cluster_vectors_at(run.s2, float(t)), vm, K, w, h)
+            iio.imwrite(out / f"{name}.png", _to_u8(img))
+    what = "object-id maps" if clusters else "cameras of the controlled scene"
+    log(f"rendered {len(cams)} {what} ({run.s2.num_objects} object(s), {source}) to {out}")
     return 0
 
 

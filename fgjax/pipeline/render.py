@@ -51,28 +51,30 @@ def main(argv: list[str] | None = None) -> int:
     import imageio.v3 as iio
 
     from fgjax.data.scene import Normalization
+    from fgjax.pipeline import stage2
     from fgjax.pipeline.stage1 import load_run, render_frame
     from fgjax.train.checkpoint import CheckpointError
 
-    try:
-        cfg, state, spec, meta = load_run(args.run)
-    except (FileNotFoundError, CheckpointError) as e:
+    needs_stage2 = args.clusters or source == "control"
+    try:  # loaded once: stage 2's renders take the loaded run
+        if needs_stage2:
+            run = stage2.load_stage2(args.run)
+            meta = run.meta
+        else:
+            cfg, state, spec, meta = load_run(args.run)
+            state.static = meta["static"]
+    except (FileNotFoundError, CheckpointError, stage2.Stage2Error) as e:
         print(f"fgjax render: {e}", file=sys.stderr)
         return 2
-    state.static = meta["static"]
     try:
         cams = read_cameras(args.cameras, Normalization.from_dict(meta["normalization"]), meta["width"], meta["height"])
     except (ValueError, FileNotFoundError) as e:
         print(f"fgjax render: {e}", file=sys.stderr)
         return 2
     if args.clusters:
-        from fgjax.pipeline.stage2 import write_cluster_maps
-
-        return write_cluster_maps(args.run, cams, args.out, source=source)
-    if source == "control":
-        from fgjax.pipeline.stage2 import write_controlled_frames
-
-        return write_controlled_frames(args.run, cams, args.out)
+        return stage2.write_cluster_maps(run, cams, args.out, source=source)
+    if needs_stage2:
+        return stage2.write_controlled_frames(run, cams, args.out)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for name, vm, K, t, w, h in cams:

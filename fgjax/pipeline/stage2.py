@@ -789,19 +789,20 @@ def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: f
     return np.where(np.asarray(alpha) >= alpha_threshold, ids, 0).astype(np.int64)
 
 
-def write_cluster_maps(run_dir: str | Path, cams, out: str | Path, log=print, source: str = "control") -> int:
-    """``fgjax render --clusters``: per camera (name, viewmat, K, time, w, h) write OUT/{name}_ids.npy
-    (int32 object ids, 0 = static) and OUT/{name}_ids.png (colour-coded), drawn from ``source``
-    (`render_clusters`): "control", the controlled scene with each object at its trajectory at the camera's time
-    (what `fgjax eval` scores as ``ari_controlled``), or "stage1", the stage-1 model at that time (``ari``).
-    Returns the exit status."""
+def write_cluster_maps(run_dir: str | Path | LoadedRun, cams, out: str | Path, log=print,
+                       source: str = "control") -> int:
+    """``fgjax render --clusters``: from a run folder (or a run already loaded by `load_stage2`), per camera (name,
+    viewmat, K, time, w, h) write OUT/{name}_ids.npy (int32 object ids, 0 = static) and OUT/{name}_ids.png
+    (colour-coded), drawn from ``source`` (`render_clusters`): "control", the controlled scene with each object at
+    its trajectory at the camera's time (what `fgjax eval` scores as ``ari_controlled``), or "stage1", the stage-1
+    model at that time (``ari``). Returns the exit status."""
     return _write_renders(run_dir, cams, out, log, clusters=True, source=source)
 
 
-def write_controlled_frames(run_dir: str | Path, cams, out: str | Path, log=print) -> int:
-    """``fgjax render --source control``: per camera (name, viewmat, K, time, w, h) write OUT/{name}.png, the
-    controlled scene with each object at its trajectory at the camera's time (`cluster_vectors_at`,
-    `render_controlled`). Returns the exit status."""
+def write_controlled_frames(run_dir: str | Path | LoadedRun, cams, out: str | Path, log=print) -> int:
+    """``fgjax render --source control``: from a run folder (or a run already loaded by `load_stage2`), per camera
+    (name, viewmat, K, time, w, h) write OUT/{name}.png, the controlled scene with each object at its trajectory at
+    the camera's time (`cluster_vectors_at`, `render_controlled`). Returns the exit status."""
     return _write_renders(run_dir, cams, out, log, clusters=False, source="control")
 
 
@@ -811,7 +812,7 @@ def _write_renders(run_dir, cams, out, log, *, clusters: bool, source: str) -> i
 
     from fgjax.pipeline.demo import ids_to_color
 
-    run = _load_for_render(run_dir)
+    run = run_dir if isinstance(run_dir, LoadedRun) else _load_for_render(run_dir)
     if run is None:
         return 2
     out = Path(out)
@@ -1005,10 +1006,11 @@ def _photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.
         tilt, ambiguity = camera_tilt(vms)
         level = tilt <= LEVEL_TILT_DEG and ambiguity <= LEVEL_AMBIGUITY
         alive = np.asarray(run.state.densify.alive, bool)
-        if not level and np.any((np.asarray(kinds) == "revolute") & ~fixed):
+        hinges = (np.asarray(kinds) == "revolute") & ~fixed  # [K] the round's fitted hinges
+        if not level and np.any(hinges):
             log(f"stage 2: the cameras' up is not trusted (tilt {tilt:.2f} degrees RMS, at most {LEVEL_TILT_DEG:g}; "
                 f"ambiguity {ambiguity:.3f}, at most {LEVEL_AMBIGUITY:g}): hinges kept as tracked (hinge_up_deg)")
-        for k in np.flatnonzero((np.asarray(kinds) == "revolute") & ~fixed & level):
+        for k in np.flatnonzero(hinges & level):
             if is_far_hinge(offsets[k], largest_turn_deg(poses[k])):
                 continue  # a hinge far off its part is not trusted as a hinge at all (the hinge trial's)
             made = hinge_made_vertical(m0[(labels == k) & alive], poses[k], up, float(cfg.hinge_up_deg))

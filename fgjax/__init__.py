@@ -1,30 +1,58 @@
 """fgjax: annotation-free controllable 3D Gaussian splats from flow derivatives, in JAX.
 
-Public API (everything else is private to its module):
+Public API (docs/architecture.md describes the layout; everything else is private to its module):
 
-- ``fgjax.rasterization``: jit tile rasterizer (gsplat rules, custom VJP).
-- ``fgjax.spherical_harmonics``: view-dependent colour from SH coefficients (degree 0-3).
-- ``fgjax.flow``: camera velocity, motion field, reprojection flow, Gaussian flow, flow loss.
+- ``fgjax.rasterization``: jit tile rasterizer (gsplat rules, custom VJP); ``fgjax.spherical_harmonics``,
+  ``fgjax.gaussian_weights``, ``fgjax.count_intersections``.
+- ``fgjax.flow``: camera velocity, motion field, reprojection flow, Gaussian flow, flow losses.
 - ``fgjax.geometry``: SO(3)/SE(3), quaternions, OpenGL <-> OpenCV.
 - ``fgjax.estimate_flow``: OpenCV optical flow on uint8 RGB frames.
+- ``fgjax.load_config``, ``fgjax.Config``: named configurations (experiments/*.toml) and overrides.
+- ``fgjax.load_scene``: a dataset (nerfstudio / Blender / D-NeRF / Nerfies layouts).
+- ``fgjax.run_stage1``: stage 1 on a dataset into a run folder; ``fgjax.run_stage2``: the paper's stage 2;
+  ``fgjax.run_articulated``: the articulated variant; ``fgjax.load_stage2``, ``fgjax.render_controlled``,
+  ``fgjax.render_clusters``, ``fgjax.snap_vector``: use a finished run.
+
+Attributes load on first use, so ``import fgjax`` stays cheap and the command line starts fast.
 """
 
 from __future__ import annotations
 
+import importlib
+
 __version__ = "0.1.0"
 
+_LAZY = {
+    "rasterization": "fgjax.render.api",
+    "spherical_harmonics": "fgjax.render.api",
+    "gaussian_weights": "fgjax.render.api",
+    "count_intersections": "fgjax.render.api",
+    "estimate_flow": "fgjax.data.opticalflow",
+    "load_scene": "fgjax.data.loaders",
+    "load_config": "fgjax.config",
+    "Config": "fgjax.config",
+    "Stage2Config": "fgjax.config",
+    "ArticulateConfig": "fgjax.config",
+    "run_stage1": "fgjax.method",
+    "run_stage2": "fgjax.method",
+    "load_stage2": "fgjax.method",
+    "render_controlled": "fgjax.method",
+    "render_clusters": "fgjax.method",
+    "snap_vector": "fgjax.method",
+    "run_articulated": "fgjax.articulate",
+}
+_MODULES = ("flow", "geometry", "method", "articulate", "cluster", "metrics")
 
-def __getattr__(name):  # lazy: `import fgjax` stays cheap, and the CLI starts fast
-    if name in ("rasterization", "spherical_harmonics", "gaussian_weights", "count_intersections"):
-        from fgjax.render import api
+__all__ = ["__version__", *_LAZY, *_MODULES]
 
-        return getattr(api, name)
-    if name == "estimate_flow":
-        from fgjax.data.opticalflow import estimate_flow
 
-        return estimate_flow
-    if name in ("flow", "geometry"):
-        import importlib
-
+def __getattr__(name):
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    if name in _MODULES:
         return importlib.import_module(f"fgjax.{name}")
     raise AttributeError(f"module 'fgjax' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(__all__)

@@ -1,6 +1,6 @@
 """fgjax command line: a thin dispatcher.
 
-Each sub-command lives in the module that owns it and exposes ``main(argv) -> int``;
+Each sub-command is a module of `fgjax.apps` (or `fgjax.bench`) exposing ``main(argv) -> int``;
 this file only maps names to those modules, so that ``fgjax --help`` stays fast
 (nothing heavy is imported until a command runs).
 """
@@ -13,14 +13,14 @@ import sys
 
 # command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("fgjax.pipeline.demo", "run the whole pipeline on the built-in synthetic scene"),
-    "synth": ("fgjax.data.synth", "generate a synthetic articulated scene with ground truth"),
-    "flow": ("fgjax.data.opticalflow", "estimate optical flow over a sequence (cached)"),
-    "train": ("fgjax.pipeline.stage1", "stage 1: deformable Gaussian training"),
-    "stage2": ("fgjax.pipeline.stage2", "discovery, clustering and control network on a trained run"),
-    "render": ("fgjax.pipeline.render", "render cameras (or --clusters object ids) from a trained run"),
-    "control": ("fgjax.pipeline.control", "move a discovered object and render"),
-    "eval": ("fgjax.pipeline.evaluate", "evaluate a run against ground truth"),
+    "demo": ("fgjax.apps.demo", "run the whole pipeline on the built-in synthetic scene"),
+    "synth": ("fgjax.apps.synth", "generate a synthetic articulated scene with ground truth"),
+    "flow": ("fgjax.apps.flow", "estimate optical flow over a sequence (cached)"),
+    "train": ("fgjax.apps.train", "stage 1: deformable Gaussian training"),
+    "stage2": ("fgjax.apps.stage2", "discovery, clustering and control network on a trained run"),
+    "render": ("fgjax.apps.render", "render cameras (or --clusters object ids) from a trained run"),
+    "control": ("fgjax.apps.control", "move a discovered object and render"),
+    "eval": ("fgjax.apps.evaluate", "evaluate a run against ground truth"),
 }
 
 BENCHES: dict[str, tuple[str, str]] = {
@@ -68,6 +68,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(_usage())
+        return 0
+    if argv[0] in ("--version", "-V"):
+        from fgjax import __version__
+
+        print(f"fgjax {__version__}")
         return 0
     cmd, rest = argv[0], argv[1:]
     if cmd == "bench":

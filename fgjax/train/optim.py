@@ -9,13 +9,14 @@ and higher orders 2.5e-3 / 20, pose deltas 1e-4 -> 1e-6. Adam eps = 1e-15 as in 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import optax
 
-__all__ = ["OptimSpec", "make_optimizer", "param_labels", "exp_decay", "active_sh_degree"]
+__all__ = ["OptimSpec", "make_optimizer", "param_labels", "exp_decay", "active_sh_degree", "guarded_update", "guarded_step"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,3 +102,19 @@ def active_sh_degree(step: int, increase_every: int, max_degree: int) -> int:
     if increase_every <= 0:
         return max_degree
     return min(max_degree, step // increase_every)
+
+
+def guarded_update(loss_fn, opt, p, st, i):
+    """(params, opt_state, loss, skipped): one `opt` step on ``loss_fn(params, i) -> (loss, overflow)``; a step
+    whose render overflowed the tile capacity or whose loss is not finite leaves params and state unchanged."""
+    (loss, over), gr = jax.value_and_grad(loss_fn, has_aux=True)(p, i)
+    up, st2 = opt.update(gr, st, p)
+    new = optax.apply_updates(p, up)
+    bad = over | ~jnp.isfinite(loss)
+    keep = lambda a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(bad, y, x), a, b)
+    return keep(new, p), keep(st2, st), loss, bad
+
+
+def guarded_step(loss_fn, opt):
+    """jitted (params, opt_state, i) -> `guarded_update`."""
+    return jax.jit(functools.partial(guarded_update, loss_fn, opt))

@@ -7,7 +7,7 @@ u - u_cam that discovery reads is mostly pose error (docs/benchmarks.md). The fl
 constrains the cameras directly, before any Gaussian exists.
 
 Model. Frames are taken in time order; ``flows[i]`` maps frame ``prev[i]``'s pixels to frame i
-(`fgjax.pipeline.stage1.estimate_training_flows`). A track starts at a pixel x of a host frame h and
+(`fgjax.method.stage1.estimate_training_flows`). A track starts at a pixel x of a host frame h and
 follows the chained flow through the next `length` frames (bilinear lookups; it stops where the flow is
 unknown or leaves the image). It is one static point with inverse depth rho in camera h:
 X_h = K_h^-1 (x, 1) / rho, seen in frame j at pi(K_j, R x~ + rho t) with (R, t) = T_j T_h^-1 and
@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from fgjax.data.opticalflow import forward_backward_mask
 from fgjax.geometry import matmul, se3_exp
 
 __all__ = ["FlowTracks", "flow_tracks", "bundle_adjust", "BundleResult"]
@@ -200,8 +201,7 @@ def bundle_adjust(viewmats: np.ndarray, Ks: np.ndarray, flows: np.ndarray, prev:
         backward: [T, H, W, 2] optional: backward[i] is the flow from frame i to frame prev[i], on frame i's
             grid. When given, the tracks stop where a forward flow fails the round trip by ``fb_px`` pixels or more
             (`fgjax.data.opticalflow.forward_backward_mask` with alpha 0 and beta ``fb_px``^2): occlusions and flow
-            smoothed across depth edges. On the pose-noise scene (0.5 degree, 1%) this took the rotations from
-            0.218 to 0.160 degree off the truth at 0.1 px (docs/benchmarks.md, session 35).
+            smoothed across depth edges.
 
     Returns:
         `BundleResult`; with no usable track the written poses come back unchanged.
@@ -218,8 +218,6 @@ def bundle_adjust(viewmats: np.ndarray, Ks: np.ndarray, flows: np.ndarray, prev:
     nt = len(vm)
     flows = np.asarray(flows)
     if backward is not None:
-        from fgjax.data.opticalflow import forward_backward_mask
-
         backward = np.asarray(backward)
         if backward.shape != flows.shape:
             raise ValueError(f"bundle_adjust: backward flows must have the forward flows' shape {list(flows.shape)}, "

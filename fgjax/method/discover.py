@@ -26,6 +26,8 @@ Nothing here knows of stage-1 models: `discover` takes the deformed Gaussians pe
 from __future__ import annotations
 
 import functools
+import time
+from pathlib import Path
 from typing import Literal, NamedTuple
 
 import jax
@@ -34,16 +36,26 @@ import numpy as np
 from jaxtyping import Bool, Float
 
 from fgjax import cluster
+from fgjax import flow as fl
+from fgjax.config import Stage2Config
+from fgjax.data.loaders import viewmat_to_c2w
+from fgjax.data.opticalflow import estimate_flow
+from fgjax.data.scene import Scene
+from fgjax.gaussians import activate
+from fgjax.method.camera import camera_correction
+from fgjax.method.result import LoadedRun, with_geometry
+from fgjax.render.api import gaussian_weights, rasterization
+from fgjax.viz import to_u8
 
 __all__ = [
     "residual_flow",
     "binarize",
-    "guide_masks",
     "camera_flow_from_depth",
     "Scores",
     "accumulate_scores",
     "Discovery",
     "discover",
+    "discover_run",
 ]
 
 
@@ -109,52 +121,6 @@ def binarize(
     return out[0] if single else out
 
 
-def guide_masks(
-    masks: Bool[np.ndarray, "T H W"],
-    images: Float[np.ndarray, "T H W 3"],
-    radius: int,
-    eps: float = 0.01,
-) -> Bool[np.ndarray, "T H W"]:
-    """Moving-pixel masks snapped to the frames' edges: a guided filter (He, Sun and Tang, 2010) of each
-    binary mask with its frame as the guide, thresholded at 0.5.
-
-    Optical flow is smooth across motion boundaries, so |u - u_cam| spills a few pixels past a moving
-    part onto the static surface beside it, and discovery back-projects that spill onto static Gaussians.
-    The filter is locally an affine function of the guide's colour fitted to the mask: where the spill
-    crosses no edge of the image it is averaged away, and where the part's outline is an edge the mask
-    follows it. ``radius`` 0 returns the masks unchanged.
-
-    Args:
-        masks: [T, H, W] (or [H, W]) bool.
-        images: [T, H, W, 3] (or [H, W, 3]) frames in [0, 1], the frame each mask is on.
-        radius: window radius in pixels (>= 0).
-        eps: regularisation of the local fit, in squared intensity units of [0, 1] images (> 0): larger
-            is closer to a box filter, smaller follows fainter edges.
-
-    Returns:
-        bool masks of the input's shape.
-    """
-    m = np.asarray(masks, dtype=bool)
-    im = np.asarray(images, dtype=np.float64)
-    single = m.ndim == 2
-    m, im = (m[None], im[None]) if single else (m, im)
-    if m.ndim != 3 or im.shape != (*m.shape, 3):
-        raise ValueError(f"guide_masks: masks must be [T, H, W] and images [T, H, W, 3] of the same T, H, W; got "
-                         f"{list(np.shape(masks))} and {list(np.shape(images))}")
-    if int(radius) != radius or radius < 0:
-        raise ValueError(f"guide_masks: radius must be an integer >= 0, got {radius!r}")
-    if not (np.isfinite(eps) and eps > 0):
-        raise ValueError(f"guide_masks: eps must be finite and > 0, got {eps!r}")
-    if radius == 0:
-        return np.asarray(masks, dtype=bool).copy()
-    import cv2
-
-    guide = (np.clip(np.nan_to_num(im), 0.0, 1.0) * 255.0).round().astype(np.uint8)  # [T, H, W, 3]
-    out = np.stack([cv2.ximgproc.guidedFilter(g, f.astype(np.float32), int(radius), float(eps) * 255.0**2) > 0.5
-                    for g, f in zip(guide, m)])
-    return out[0] if single else out
-
-
 def camera_flow_from_depth(
     depth: Float[np.ndarray, "H W"],
     K: Float[np.ndarray, "3 3"],
@@ -169,8 +135,6 @@ def camera_flow_from_depth(
     valid) as numpy; valid is False where the depth is not positive (and, for reprojection, where
     the point falls behind camera t).
     """
-    from fgjax import flow as fl
-
     depth = np.asarray(depth, dtype=np.float64)
     if depth.ndim != 2:
         raise ValueError(f"camera_flow_from_depth: depth must have shape [H, W], got {depth.shape}")
@@ -189,8 +153,6 @@ def camera_flow_from_depth(
 @functools.partial(jax.jit, static_argnames=("width", "height", "capacity"))
 def _pair_weights(means, quats, scales, opacities, viewmat, K, mask, *, width, height, capacity):
     """(w_i(mask), w_i(ones)) for one frame: two backward passes of the rasterizer."""
-    from fgjax.render.api import gaussian_weights
-
     kw = {} if capacity is None else {"capacity": capacity}
     moving = gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height, mask, **kw)
     total = gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height,
@@ -314,9 +276,6 @@ def discover(
     valid: Bool[np.ndarray, "T H W"] | None = None,
     threshold_px: float | Literal["otsu"] | None = "otsu",
     min_px: float = 0.5,
-    images: Float[np.ndarray, "T H W 3"] | None = None,
-    guide_radius: int = 0,
-    guide_eps: float = 0.01,
     score_threshold: float | Literal["otsu"] = "otsu",
     min_score: float = 0.02,
     min_total: float = 0.0,
@@ -337,8 +296,6 @@ def discover(
         camera_flows: [T, H, W, 2] camera flow of frame t-1 (`camera_flow_from_depth`).
         valid: [T, H, W] pixels where both flows are trusted (None: all finite ones).
         threshold_px, min_px: see `binarize`.
-        images: [T, H, W, 3] frames t-1 in [0, 1]; needed only with ``guide_radius > 0``.
-        guide_radius, guide_eps: the masks are snapped to the frames' edges by `guide_masks` (0: not).
         score_threshold, min_score: see `fgjax.cluster.select_dynamic`.
         min_total: Gaussians painting fewer pixel-equivalents than this over all frames are not
             selected (never seen, nothing to say about them).
@@ -352,10 +309,6 @@ def discover(
     masks = binarize(residual_flow(flows, camera_flows), threshold_px, valid=valid, min_px=min_px)
     if masks.ndim != 3:
         raise ValueError(f"discover: flows must have shape [T, H, W, 2], got {np.shape(flows)}")
-    if guide_radius > 0:
-        if images is None:
-            raise ValueError("discover: guide_radius > 0 needs the frames (images)")
-        masks = guide_masks(masks, images, guide_radius, guide_eps)
     sc = accumulate_scores(means, quats, scales, opacities, viewmats, K, masks, eps=eps, capacity=capacity,
                            per_frame=per_frame)
     ok = sc.total > min_total
@@ -365,3 +318,72 @@ def discover(
         thr = float(score_threshold)
     dyn = cluster.select_dynamic(sc.score, thr, min_score=min_score, valid=ok)
     return Discovery(dynamic=dyn, scores=sc, masks=masks, threshold=float(thr))
+
+
+def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Path, *, per_frame: bool = False,
+                 log=print):
+    """Step 5 on a stage-1 run (`discover` on every training pair in time order).
+
+    For each pair (t-1, t): the stage-1 Gaussians deformed to time t-1 are rendered from camera t-1 for their
+    expected depth; the camera flow is `camera_flow_from_depth` of that depth (with ``cfg.camera_correction``, camera
+    t's pose first corrected from the static flow, `fgjax.method.camera.camera_correction`); the optical flow
+    t-1 -> t comes from `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``).
+
+    Returns:
+        (`Discovery` with D restricted to alive Gaussians, deformed centres [T, N, 3] in time order, times [T],
+        (order [T] of the training frames by time, flows [T-1, H, W, 2], camera flows [T-1, H, W, 2])).
+        ``per_frame``: keep the per-pair score terms (`Scores`), which the articulated variant reads.
+    """
+
+    order = np.argsort(scene.times, kind="stable")
+    times = scene.times[order]
+    alive = run.state.densify.alive
+    w, h = scene.width, scene.height
+    means_t, quats_t, centres = [], [], []
+    depths, alphas = [], []
+    g = run.state.params["gaussians"]
+    for i in order:
+        m, q, ls = run.deformed(float(scene.times[i]))
+        centres.append(np.asarray(m))
+        params = with_geometry(run.state.params, m, q, ls)
+        qa, sa, oa = activate(params["gaussians"], alive)
+        means_t.append(np.asarray(m))
+        quats_t.append(np.asarray(qa))
+        _, alpha, info = rasterization(m, qa, sa, oa, jnp.zeros((m.shape[0], 1), jnp.float32),
+                                       jnp.asarray(scene.viewmats[i], jnp.float32),
+                                       jnp.asarray(scene.Ks[i], jnp.float32), w, h, render_depth=True,
+                                       tile_size=run.cfg.train.tile_size)
+        depths.append(np.asarray(info["depth"]))
+        alphas.append(np.asarray(alpha))
+    _, sa, oa = activate(g, alive)
+    c2w = viewmat_to_c2w(scene.viewmats[order])
+    flows, cams, valid = [], [], []
+    correct = cfg.camera_correction == "on" or (cfg.camera_correction == "auto" and "pose" in run.state.params)
+    rms_all: list[float] = []
+    t_flow = time.perf_counter()
+    for j in range(len(order) - 1):
+        a, b = order[j], order[j + 1]
+        flows.append(estimate_flow(to_u8(scene.images[a]), to_u8(scene.images[b]), cfg.flow_method,
+                                   cache_dir=cache_dir))
+        trusted = alphas[j] >= cfg.min_alpha  # pixels with a rendered depth to trust
+        c2w_b = c2w[j + 1]
+        if correct:
+            vm_b, rms, _ = camera_correction(depths[j], trusted, flows[-1], scene.viewmats[a], scene.viewmats[b],
+                                             scene.Ks[a])
+            c2w_b = viewmat_to_c2w(vm_b[None])[0]
+            rms_all.append(rms)
+        cf, ok = camera_flow_from_depth(depths[j], scene.Ks[a], c2w[j], c2w_b)
+        cams.append(cf)
+        valid.append(ok & trusted)
+    log(f"stage 2: optical flow of {len(flows)} pairs ({time.perf_counter() - t_flow:.1f} s)"
+        + (f"; camera poses corrected from the static flow (median inlier RMS {np.nanmedian(rms_all):.2f} px)"
+           if correct and rms_all and np.any(np.isfinite(rms_all)) else ""))
+    n = len(order) - 1
+    thr = cfg.threshold_px if cfg.threshold_px == "otsu" else float(cfg.threshold_px)
+    # the deformed scales differ from canonical ones only by ds; discovery uses the canonical ones
+    disc = discover(np.stack(means_t[:n]), np.stack(quats_t[:n]), np.asarray(sa), np.asarray(oa),
+                    scene.viewmats[order][:n], scene.Ks[order][:n], np.stack(flows), np.stack(cams),
+                    valid=np.stack(valid), threshold_px=thr, min_px=cfg.min_px,
+                    score_threshold=cfg.score_threshold, min_score=cfg.min_score, per_frame=per_frame)
+    dyn = disc.dynamic & np.asarray(alive)
+    return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))

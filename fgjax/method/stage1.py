@@ -1,6 +1,7 @@
-"""Stage 1: deformable 4D Gaussian training (DESIGN.md section 1, step 1) and the ``fgjax train`` command.
+"""Stage 1: deformable 4D Gaussian training (DESIGN.md section 1, step 1).
 
-Library entry point: ``train_stage1(cfg, scene, out_dir, ...)``. One jitted step renders a batch of
+Library entry points: ``train_stage1(cfg, scene, out_dir, ...)``, and ``run(cfg, data_dir, out)`` which loads the
+scene, trains, evaluates and writes the run folder (``fgjax train``). One jitted step renders a batch of
 training cameras (one by one on one device; vmapped and data-parallel over a ``jax.sharding`` mesh when
 several devices exist),
 with the deformation field applied (or not: the warm-up and a detected static scene use a separately
@@ -10,33 +11,43 @@ between steps over fixed-capacity arrays. Checkpoints hold everything needed to 
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
 import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import imageio.v3 as iio
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from fgjax import metrics
 from fgjax.config import Config, ConfigError, load_config, to_toml
+from fgjax.data.loaders import load_scene
+from fgjax.data.opticalflow import estimate_flow
+from fgjax.flow import gaussian_flow_loss
 from fgjax.gaussians import Gaussians, activate, init_from_points, knn_graph
 from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
-from fgjax.models.deform import DeformSpec, deform_apply, deform_init
+from fgjax.io import write_video as write_frames
+from fgjax.method.init_points import first_view_colors, flow_point_cloud, random_points, scene_box
+from fgjax.method.poses import bundle_adjust
+from fgjax.models.deform import DeformSpec, deform_init
+from fgjax.models.model import deformed_gaussians, refined_viewmats, render_params, scene_extent
+from fgjax.render.api import _round_capacity, count_intersections
 from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
 from fgjax.train.losses import isometry_loss, photometric_loss, scale_change_loss, scale_regularizer
 from fgjax.train.optim import OptimSpec, active_sh_degree, make_optimizer
 
-__all__ = ["train_stage1", "TrainState", "render_params", "scene_box", "main", "deform_spec_from_config", "FlowBatch",
-           "estimate_training_flows", "previous_frames"]
+__all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "FlowBatch",
+           "estimate_training_flows", "previous_frames", "load_run", "render_frame", "evaluate", "template_state",
+           "refined_viewmats"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -58,62 +69,6 @@ class TrainState:
     frame_err: np.ndarray | None = None  # [T] last measured MSE per frame (NaN: not yet), with train.error_sampling
 
 
-def scene_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """A box the cameras look into: centred on the least-squares closest point to all optical axes,
-    half-size the median camera distance to it (no depth, no SfM points needed)."""
-    r = viewmats[:, :3, :3]
-    c = -np.einsum("tji,tj->ti", r, viewmats[:, :3, 3])  # camera centres
-    d = r[:, 2, :]  # optical axes (world)
-    a = np.zeros((3, 3))
-    b = np.zeros(3)
-    for ci, di in zip(c, d):
-        p = np.eye(3) - np.outer(di, di)
-        a += p
-        b += p @ ci
-    if np.linalg.cond(a) < 1e8:
-        centre = np.linalg.solve(a, b)
-    else:  # all axes parallel: a point in front of the cameras
-        centre = c.mean(0) + d.mean(0)
-    rad = float(np.median(np.linalg.norm(c - centre, axis=-1)))
-    rad = max(rad, 1e-3)
-    return centre - rad, centre + rad
-
-
-def _visible_any(points, viewmats, Ks, width, height):
-    vis = np.zeros(len(points), bool)
-    for vm, K in zip(viewmats, Ks):
-        p = points @ vm[:3, :3].T + vm[:3, 3]
-        z = p[:, 2]
-        ok = z > 0.05
-        u = K[0, 0] * p[:, 0] / np.where(ok, z, 1) + K[0, 2]
-        v = K[1, 1] * p[:, 1] / np.where(ok, z, 1) + K[1, 2]
-        vis |= ok & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    return vis
-
-
-def _random_points(rng, want: int, lo, hi, scene) -> np.ndarray:
-    pts = np.zeros((0, 3))
-    for _ in range(20):
-        cand = lo + rng.uniform(size=(want * 2, 3)) * (hi - lo)
-        pts = np.concatenate([pts, cand[_visible_any(cand, scene.viewmats, scene.Ks, scene.width, scene.height)]])
-        if len(pts) >= want:
-            break
-    return pts[:want]
-
-
-def _first_view_colors(pts, scene) -> np.ndarray:
-    """Colour of each point: the pixel of the first camera that sees it (a cheap, depth-free guess)."""
-    cols = np.full((len(pts), 3), 0.5)
-    vm, K = scene.viewmats[0], scene.Ks[0]
-    p = pts @ vm[:3, :3].T + vm[:3, 3]
-    z = np.where(p[:, 2] > 0.05, p[:, 2], np.inf)
-    u = np.floor(K[0, 0] * p[:, 0] / z + K[0, 2]).astype(np.int64)
-    v = np.floor(K[1, 1] * p[:, 1] / z + K[1, 2]).astype(np.int64)
-    ok = np.isfinite(z) & (u >= 0) & (u < scene.width) & (v >= 0) & (v < scene.height)
-    cols[ok] = scene.images[0][v[ok], u[ok]]
-    return cols
-
-
 def init_gaussians(cfg: Config, scene, key, log=print, cache_dir=None) -> tuple[Gaussians, jax.Array]:
     """Initial Gaussians: points triangulated from optical flow (``model.init = "flow"``, with a fraction of
     random points), or random points in the scene box that some training camera sees."""
@@ -128,17 +83,15 @@ def init_gaussians(cfg: Config, scene, key, log=print, cache_dir=None) -> tuple[
         log(f"model.init = flow: {scene.num_frames} frame(s) of {scene.width}x{scene.height} are too few or too "
             "small for optical flow; using random points")
     if cfg.model.init == "flow" and flow_ok:
-        from fgjax.pipeline.init_points import flow_point_cloud
-
         pc = flow_point_cloud(scene, gap=cfg.model.init_flow_gap, cache_dir=cache_dir, log=log)
         c, r = 0.5 * (lo + hi), 0.5 * (hi - lo)
         inside = np.all(np.abs(pc["points"] - c) <= 2.0 * r, axis=-1)  # drop far-off mismatches
         n_flow = min(int(inside.sum()), int(round(want * (1.0 - cfg.model.init_random_fraction))))
         sel = rng.choice(np.flatnonzero(inside), size=n_flow, replace=False) if n_flow else np.zeros(0, int)
         pts, cols = pc["points"][sel], pc["colors"][sel]
-    rnd = _random_points(rng, want - len(pts), lo, hi, scene)
+    rnd = random_points(rng, want - len(pts), lo, hi, scene)
     pts = np.concatenate([pts, rnd])
-    cols = np.concatenate([cols, _first_view_colors(rnd, scene)])
+    cols = np.concatenate([cols, first_view_colors(rnd, scene)])
     cap = max(cfg.model.capacity, len(pts))
     return init_from_points(pts, cols, capacity=cap, sh_degree=cfg.model.sh_degree,
                             init_opacity=cfg.model.init_opacity, scale_factor=cfg.model.init_scale)
@@ -154,59 +107,9 @@ def deform_spec_from_config(cfg: Config, aabb) -> DeformSpec:
     )
 
 
-def scene_extent(viewmats: np.ndarray) -> float:
-    """3DGS's camera extent: 1.1 x the largest distance of a camera centre from their mean."""
-    c = -np.einsum("tji,tj->ti", viewmats[:, :3, :3], viewmats[:, :3, 3])
-    return 1.1 * float(max(np.max(np.linalg.norm(c - c.mean(0), axis=-1)), 1e-3))
-
-
 # ---------------------------------------------------------------------------------------------
 # rendering with the model
 # ---------------------------------------------------------------------------------------------
-
-
-def _deformed(params, alive, t, spec: DeformSpec | None):
-    g: Gaussians = params["gaussians"]
-    means, quats, log_scales = g.means, g.quats, g.log_scales
-    if spec is not None:
-        dx, dq, ds = deform_apply(spec, params["deform"], jax.lax.stop_gradient(means), t)
-        means, quats, log_scales = means + dx, quats + dq, log_scales + ds
-    g2 = Gaussians(means, log_scales, quats, g.opacity_logits, g.sh)
-    q, s, o = activate(g2, alive)
-    return means, q, s, o, log_scales
-
-
-def render_params(
-    params, alive, viewmat, K, t, *, spec: DeformSpec | None, sh_degree: int, width: int, height: int,
-    background, capacity: int | None, tile_size: int = 8, delta2d=None, render_depth: bool = False, sh_mask=None,
-    active=None,
-):
-    """Render the model at time t from one camera: (image [H, W, 3], alpha, info, geometry) with geometry =
-    {"means": deformed centres [N, 3], "log_scales": deformed log-scales [N, 3]}.
-
-    ``delta2d`` [N, 2] (zeros) shifts each Gaussian by that many pixels on screen (a camera-space
-    offset proportional to depth); its gradient is the screen-space gradient densification needs.
-    ``active`` [N] bool: composite only the tiles these Gaussians reach (`fgjax.rasterization`'s ``active``).
-    """
-    from fgjax.render.api import rasterization, spherical_harmonics
-
-    means, q, s, o, log_scales = _deformed(params, alive, t, spec)
-    geometry = {"means": means, "log_scales": log_scales}
-    rot = viewmat[:3, :3]
-    if delta2d is not None:
-        z = matmul(means, rot[2]) + viewmat[2, 3]  # [N]
-        off_cam = jnp.stack([delta2d[:, 0] * z / K[0, 0], delta2d[:, 1] * z / K[1, 1], jnp.zeros_like(z)], -1)
-        means = means + matmul(off_cam, rot)  # R^T off
-    campos = -matmul(rot.T, viewmat[:3, 3])
-    sh = params["gaussians"].sh
-    if sh_mask is not None:  # SH-degree schedule without recompiling: zero the inactive coefficients
-        sh = sh * sh_mask[:, None]
-    colors = jnp.maximum(spherical_harmonics(sh_degree, means - campos, sh) + 0.5, 0.0)
-    img, alpha, info = rasterization(
-        means, q, s, o, colors, viewmat, K, width, height, background=background, capacity=capacity,
-        tile_size=tile_size, render_depth=render_depth, active=active,
-    )
-    return img, alpha, info, geometry
 
 
 # ---------------------------------------------------------------------------------------------
@@ -248,13 +151,11 @@ class FlowBatch(NamedTuple):
 def _flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
     """L_uGS of one camera (``fgjax.flow.gaussian_flow_loss``): the model deformed to t-1 and t, both seen
     by camera t-1. Returns (weighted loss, overflow flag)."""
-    from fgjax.flow import gaussian_flow_loss
-
     vm_prev = fl.viewmat_prev
     if ss.pose:
         vm_prev = matmul(se3_exp(params["pose"][fl.idx_prev]), vm_prev)
-    m0, q0, s0, o0, _ = _deformed(params, alive, fl.t_prev, ss.spec)
-    m1 = _deformed(params, alive, t, ss.spec)[0]
+    m0, q0, s0, o0, _ = deformed_gaussians(params, alive, fl.t_prev, ss.spec)
+    m1 = deformed_gaussians(params, alive, t, ss.spec)[0]
     loss, overflow = gaussian_flow_loss(m0, q0, s0, o0, m1, vm_prev, viewmat, K, fl.flow, ss.width, ss.height,
                                         threshold=ss.flow_threshold if ss.flow_threshold > 0 else None,
                                         capacity=ss.capacity, tile_size=ss.tile_size)
@@ -342,8 +243,6 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
 
 
 def _compute_capacity(params, alive, viewmats, Ks, width, height, tile_size, margin) -> int:
-    from fgjax.render.api import _round_capacity, count_intersections
-
     g = params["gaussians"]
     q, s, o = activate(g, alive)
     worst = 0
@@ -368,8 +267,6 @@ def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str 
     grid: [T, H, W, 2] float32, NaN for the first frame (``fgjax.data.opticalflow.estimate_flow``, cached
     on disk under `cache_dir`). ``backward``: the reverse, from each frame to its predecessor on the frame's
     own grid (the round trip of ``pose.bundle_fb_px``)."""
-    from fgjax.data.opticalflow import estimate_flow
-
     prev = previous_frames(scene.times)
     imgs = (np.clip(np.asarray(scene.images), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     out = np.full((scene.num_frames, scene.height, scene.width, 2), np.nan, np.float32)
@@ -426,7 +323,6 @@ def _mesh_shardings(batch: int, devices=None):
     devs = jax.devices() if devices is None else list(devices)
     if len(devs) < 2 or batch % len(devs) != 0:
         return None, None
-    from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
     mesh = Mesh(np.asarray(devs), ("cams",))
     return NamedSharding(mesh, PartitionSpec("cams")), NamedSharding(mesh, PartitionSpec())
@@ -436,8 +332,6 @@ def _bundle_adjusted(cfg: Config, scene, cache_dir, log):
     """(scene with the bundle-adjusted cameras, their pose deltas [T, 6]) (``pose.bundle``): the initial
     Gaussians are placed with the corrected cameras, and training starts from the deltas, so that
     `refined_viewmats` and everything downstream see the corrected poses."""
-    from fgjax.pipeline.poses import bundle_adjust
-
     flows = estimate_training_flows(scene, cfg.flow.method, cache_dir=cache_dir, log=log)
     p = cfg.pose
     back = None if p.bundle_fb_px <= 0 else estimate_training_flows(scene, cfg.flow.method, cache_dir=cache_dir,
@@ -763,19 +657,6 @@ def _maybe_grow_capacity(state: TrainState, viewmats, Ks, w, h, t, log, force: b
 # ---------------------------------------------------------------------------------------------
 
 
-def refined_viewmats(params, viewmats: np.ndarray) -> np.ndarray:
-    """The training cameras as stage 1 last saw them: se3_exp(delta_i) @ viewmat_i [T, 4, 4] (OpenCV
-    world-to-camera) when the run refined poses (``pose.enabled``), else ``viewmats`` unchanged."""
-    if "pose" not in params:
-        return np.asarray(viewmats)
-
-    deltas = np.asarray(params["pose"], np.float64)  # [T, 6]
-    vm = np.asarray(viewmats, np.float64)
-    if deltas.shape[0] != vm.shape[0]:
-        raise ValueError(f"the run refined {deltas.shape[0]} camera poses but the scene has {vm.shape[0]} frames")
-    return (np.asarray(se3_exp(deltas)) @ vm).astype(vm.dtype)  # se3_exp is batched: [T, 4, 4]
-
-
 def render_frame(state: TrainState, spec: DeformSpec, cfg: Config, viewmat, K, t, width, height):
     """Render the trained model (deformation unless the scene is static) at time t: image [H, W, 3] numpy.
 
@@ -792,8 +673,6 @@ def render_frame(state: TrainState, spec: DeformSpec, cfg: Config, viewmat, K, t
 def evaluate(state: TrainState, spec, cfg: Config, test_scene, masks=None, out_dir: Path | None = None,
              names=None) -> dict[str, Any]:
     """PSNR, SSIM (and masked PSNR of the dynamic region where masks exist) over the test views."""
-    from fgjax import metrics
-
     ps, ss, mps = [], [], []
     for i in range(test_scene.num_frames):
         img = render_frame(state, spec, cfg, test_scene.viewmats[i], test_scene.Ks[i], test_scene.times[i],
@@ -804,8 +683,6 @@ def evaluate(state: TrainState, spec, cfg: Config, test_scene, masks=None, out_d
         if masks is not None and np.any(masks[i]):
             mps.append(float(metrics.masked_psnr(img, gt, masks[i])))
         if out_dir is not None:
-            import imageio.v3 as iio
-
             out_dir.mkdir(parents=True, exist_ok=True)
             name = (names[i] if names else f"{i:03d}").replace("/", "_")
             iio.imwrite(out_dir / f"{name}.png", (img * 255 + 0.5).astype(np.uint8))
@@ -819,8 +696,6 @@ def evaluate(state: TrainState, spec, cfg: Config, test_scene, masks=None, out_d
 def _stage1_test_views(data_dir: Path, cfg: Config, normalization):
     """Held-out test views evaluated by time (the synthetic scenes' "state" frames are skipped), plus
     dynamic-region masks where the dataset has them (scene masks, or the synthetic gt object ids)."""
-    from fgjax.data.loaders import load_scene
-
     try:
         test = load_scene(data_dir, "test", normalize=normalization, downscale=cfg.data.downscale)
     except (FileNotFoundError, ValueError):
@@ -847,8 +722,6 @@ def _stage1_test_views(data_dir: Path, cfg: Config, normalization):
 
 def write_video(state, spec, cfg: Config, scene, path: Path, frames: int) -> Path:
     """Time sweep t = 0..1 from the first training camera, as mp4 (GIF without ffmpeg; `fgjax.io.write_video`)."""
-    from fgjax.io import write_video as write_frames
-
     imgs = [(render_frame(state, spec, cfg, scene.viewmats[0], scene.Ks[0], t, scene.width, scene.height) * 255
              + 0.5).astype(np.uint8) for t in np.linspace(0, 1, frames)]
     return write_frames(imgs, path, fps=15)
@@ -859,21 +732,8 @@ def write_video(state, spec, cfg: Config, scene, path: Path, frames: int) -> Pat
 # ---------------------------------------------------------------------------------------------
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="fgjax train", description="Stage 1: deformable Gaussian training.")
-    p.add_argument("--data", required=True, help="dataset folder (nerfstudio/Blender/D-NeRF/...)")
-    p.add_argument("--out", required=True, help="run folder (config, checkpoint, metrics, renders)")
-    p.add_argument("--config", default=None, help="TOML config (e.g. experiments/default.toml)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config key, e.g. --set train.steps=3000 (repeatable)")
-    p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
-    return p
-
-
 def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print) -> dict[str, Any]:
     """Load, train, evaluate and write RUN/{config.toml, checkpoint.npz, metrics.json, test/*.png, sweep.mp4}."""
-    from fgjax.data.loaders import load_scene
-
     scene = load_scene(data_dir, "train", downscale=cfg.data.downscale)
     test, masks, names = _stage1_test_views(data_dir, cfg, scene.normalization)
     log(f"train: {scene.num_frames} frames {scene.width}x{scene.height}; "
@@ -893,22 +753,3 @@ def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print)
         log(f"time sweep: {v}")
     return {**res, "metrics": metrics}
 
-
-def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
-    try:
-        cfg = load_config(args.config, args.overrides)
-    except ConfigError as e:
-        print(f"fgjax train: {e}", file=sys.stderr)
-        return 2
-    out = Path(args.out)
-    try:
-        run(cfg, Path(args.data), out, resume=args.resume)
-    except ckpt.CheckpointError as e:
-        print(f"fgjax train: {e}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

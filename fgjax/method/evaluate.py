@@ -4,7 +4,7 @@ Only this module reads ground truth; the pipeline never does. When DATA/gt/meta.
 (`fgjax.data.synth`), RUN/metrics.json gets a ``"control"`` entry (written atomically, other entries
 kept):
 
-- ``ari``: adjusted Rand index of per-pixel object ids (`stage2.render_clusters` with the stage-1
+- ``ari``: adjusted Rand index of per-pixel object ids (`fgjax.method.result.render_clusters` with the stage-1
   model at the frame's time, 0 = static included) against gt object ids, over the test frames of
   kind "view" (pixels with gt id >= 0). It measures the discovery and clustering: which Gaussians of
   the reconstruction belong to which object.
@@ -17,8 +17,7 @@ kept):
 - ``ari_controlled_true_motion`` and ``ari_controlled_true_motion_gt_labels``: ``ari_controlled`` with each
   matched cluster moved rigidly by the gt motion of its object instead of by the control network, with the
   discovered labels and with the labels from the gt (radius 0.06): what perfect tracking, then perfect
-  tracking and clustering, would give these "view" frames. On session 30's demo run 0.873 -> 0.881 with
-  the discovered labels and 0.919 -> 0.942 with the gt's: the labels, not the motion, hold the ARI back.
+  tracking and clustering, would give these "view" frames.
 - ``state_psnr``: PSNR of controlled renders of the held-out "state" test frames. Each discovered
   cluster is matched to the gt object under most of its pixels in the training frames (majority
   vote: evaluation only). A control vector is the displacement of the cluster's centroid (its
@@ -27,13 +26,11 @@ kept):
   training frame to the held-out state (`fgjax.data.synth.object_transform`) applied to the
   cluster's reference centroid; the vector is snapped to the cluster's trajectory and fed to the
   control network.
-- ``state_psnr_centre``: the same with the displacement of the gt object's centre instead (session
-  2-3's protocol). For a rotating part this differs from the centroid's displacement whenever the
+- ``state_psnr_centre``: the same with the displacement of the gt object's centre instead. For a rotating part this differs from the centroid's displacement whenever the
   cluster covers the part unevenly, so it mixes an error of the protocol into the control error.
 - ``state_mse_by_object`` and ``state_pixels_by_object``: where ``state_psnr`` loses, per gt object id (0 =
   static): {id: [per state frame]}: the id's pixels' squared error as a share of the frame's MSE (the shares
-  sum to it: `error_by_object`), and the fraction of the pixels they are. On session 21's demo run the lid,
-  2% of the pixels, carried 19-37% of the error (docs/benchmarks.md, session 21).
+  sum to it: `error_by_object`), and the fraction of the pixels they are.
 - ``state_mse_static_swept`` and ``state_pixels_static_swept``: the static pixels' share split in two,
   {"swept": [per state frame], "rest": [...]}: "swept" are the static pixels within 4 px of a part in the
   state frame or in the training frame it was made from (the same camera; `swept_mask`), which a part uncovers
@@ -56,15 +53,12 @@ kept):
   ``camera_alignment`` = {scale, rotation_deg, translation}; the identity, to round-off, when the
   cameras were not refined), and the training frames' metrics use the run's own cameras.
   ``state_psnr_unaligned`` and ``view_psnr_stage1_unaligned`` keep the exact test cameras; ``view_psnr_stage1``
-  is stage 1 on the "view" test frames with the aligned ones. On session 23's pose-noise run the
-  alignment (scale 0.996, 0.016 degree, a shift of 0.0097 scene units) took stage 1's test views from
-  28.82 to 29.84 dB, the clean scene's 29.90 (docs/benchmarks.md).
+  is stage 1 on the "view" test frames with the aligned ones.
 - ``state_psnr_run_cameras`` (and ``_per_frame``): ``state_psnr`` with each state frame seen through the
   camera the run used for the training frame it was made from (`run_camera`; the synthetic scenes' state
   frames are training cameras at other object states, so this is the run's own estimate of the camera,
   per-frame error included, where the alignment above removes only the error common to all frames). The
-  difference is what the cameras' per-frame error costs the held-out states: on session 25's pose-noise run
-  0.09-0.15 dB (26.11 -> 26.20, 26.71 -> 26.85), none on a run whose cameras are exact.
+  difference is what the cameras' per-frame error costs the held-out states (none where the cameras are exact).
 - ``motion_preference`` (per matched cluster): does the image loss prefer the learned motion or the true
   one? On up to 8 training frames where the gt motion moves the cluster's centroid by more than 0.01
   (scene units) from the reference, the controlled scene's reference with only this cluster moved, once
@@ -82,15 +76,25 @@ kept):
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
-import sys
 from pathlib import Path
 
+import cv2
+import imageio.v3 as iio
 import numpy as np
+from sklearn.neighbors import NearestNeighbors
 
-__all__ = ["main", "align_cameras", "run_camera", "apply_alignment", "camera_errors", "error_by_object", "evaluate_control", "gt_labels_of_gaussians",
+from fgjax import metrics
+from fgjax.data.loaders import load_scene
+from fgjax.data.scene import Normalization
+from fgjax.data.synth import SynthObject, object_transform
+from fgjax.io import atomic_write
+from fgjax.method import result
+from fgjax.method.stage1 import refined_viewmats, render_frame
+from fgjax.metrics import rotation_angle_deg
+
+__all__ = ["write_control_metrics", "align_cameras", "run_camera", "apply_alignment", "camera_errors", "error_by_object", "evaluate_control", "gt_labels_of_gaussians",
            "gt_motion_scene", "gt_objects", "gt_point_motion"]
 
 
@@ -98,8 +102,6 @@ def gt_motion_scene(obj, s_from: float, s_to: float, norm) -> np.ndarray:
     """The gt rigid motion [4, 4] (x -> R x + t) of synthetic object `obj` (`fgjax.data.synth.SynthObject`)
     from state `s_from` to state `s_to`, in the run's scene units (`norm`: the run's `Normalization`,
     x_scene = scale (x_world - centre)): R is unchanged and t = scale (R c + t_world - c)."""
-    from fgjax.data.synth import object_transform
-
     mo = object_transform(obj, float(s_to)) @ np.linalg.inv(object_transform(obj, float(s_from)))
     out = np.eye(4)
     out[:3, :3] = mo[:3, :3]
@@ -119,7 +121,6 @@ def camera_errors(viewmats, true) -> tuple[float, float]:
     """Mean rotation error (degrees) and mean camera-centre distance (the viewmats' units) of world-to-camera
     `viewmats` [T, 4, 4] against `true` [T, 4, 4]."""
     a, b = np.asarray(viewmats, np.float64), np.asarray(true, np.float64)
-    from fgjax.metrics import rotation_angle_deg
 
     rel = a[:, :3, :3] @ np.transpose(b[:, :3, :3], (0, 2, 1))
     ca = -np.einsum("tji,tj->ti", a[:, :3, :3], a[:, :3, 3])
@@ -178,8 +179,6 @@ def apply_alignment(viewmats, s: float, rot, t) -> np.ndarray:
 
 def gt_objects(meta: dict) -> dict:
     """The synthetic objects of a scene's gt/meta.json, by label: {label: `fgjax.data.synth.SynthObject`}."""
-    from fgjax.data.synth import SynthObject
-
     return {int(o["label"]): SynthObject(**{f: (np.asarray(v, np.float64) if isinstance(v, list) else v)
                                             for f, v in o.items()}) for o in meta.get("objects", [])}
 
@@ -190,10 +189,6 @@ def gt_labels_of_gaussians(means, gt_dir: Path, objs: dict, states, norm, match:
     [K_gt] of the objects `objs`, `gt_objects`) labelled with the cluster index (0-based, -1 = static) that
     `match` (cluster -> gt label) gives the gt object of its nearest gt Gaussian (gt_dir/canonical.npz),
     when that one lies within `radius` (scene units) and is on a moving part; [N] int."""
-    from sklearn.neighbors import NearestNeighbors
-
-    from fgjax.data.synth import object_transform
-
     z = np.load(gt_dir / "canonical.npz")
     pts, lab = np.asarray(z["means"], np.float64), np.asarray(z["labels"], np.int64)  # world, state 0
     for label, obj in objs.items():
@@ -211,11 +206,6 @@ def gt_labels_of_gaussians(means, gt_dir: Path, objs: dict, states, norm, match:
 def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = None) -> dict:
     """The metrics above (a dict); raises FileNotFoundError without ground truth. With `maps_dir`, each held-out
     state frame's render, image and error (`error_map_image`) go to maps_dir/state_NNN.png (NNN its test index)."""
-    from fgjax import metrics
-    from fgjax.data.loaders import load_scene
-    from fgjax.data.scene import Normalization
-    from fgjax.pipeline import stage2
-
     gt = data_dir / "gt"
     meta = json.loads((gt / "meta.json").read_text())
     norm = Normalization.from_dict(run.meta["normalization"])
@@ -227,7 +217,6 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
     ids_test = np.load(gt / "test" / "object_id.npy")
     ids_train = np.load(gt / "train" / "object_id.npy")
     res: dict = {"num_objects_found": s2.num_objects, "num_objects_gt": len(meta.get("objects", []))}
-    from fgjax.pipeline.stage1 import refined_viewmats, render_frame
 
     used = np.asarray(refined_viewmats(run.state.params, train.viewmats), np.float64)
     test_exact = test
@@ -246,12 +235,12 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
             np.asarray(test.viewmats).dtype))
     train = dataclasses.replace(train, viewmats=used.astype(np.asarray(train.viewmats).dtype))  # the run's own cameras
     def view_aris(source: str, labels=None) -> list[float]:
-        """ARI of each "view" test frame's rendered ids (`stage2.render_clusters`) against the gt ids."""
+        """ARI of each "view" test frame's rendered ids (`fgjax.method.result.render_clusters`) against the gt ids."""
         out = []
         for i, kd in enumerate(kinds):
             if kd != "view":
                 continue
-            pred = stage2.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height,
+            pred = result.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height,
                                           t=test.times[i], source=source, labels=labels)
             ok = ids_test[i] >= 0
             out.append(float(metrics.ari(ids_test[i][ok], pred[ok])))
@@ -273,7 +262,7 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
     k = s2.num_objects
     votes = np.zeros((k + 1, int(ids_train.max()) + 1 if ids_train.size else 1))
     for i in np.linspace(0, train.num_frames - 1, min(train.num_frames, 8)).round().astype(int):
-        pred = stage2.render_clusters(run, train.viewmats[i], train.Ks[i], train.width, train.height,
+        pred = result.render_clusters(run, train.viewmats[i], train.Ks[i], train.width, train.height,
                                       t=train.times[i])
         ok = ids_train[i] >= 0
         np.add.at(votes, (pred[ok], ids_train[i][ok]), 1)
@@ -310,10 +299,6 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
             res["trajectory_error_per_object"] = errs
     ps, ps_c, ps1, by_obj, ps_exact, ps_run, swept = [], [], [], [], [], [], []
     if maps_dir is not None:
-        import imageio.v3 as iio
-
-        from fgjax.io import atomic_write
-
         maps_dir = Path(maps_dir)
         maps_dir.mkdir(parents=True, exist_ok=True)
     for i, kd in enumerate(kinds):
@@ -326,7 +311,7 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
             if j < 1:
                 continue
             d = norm.lengths_to_scene(c_test[i, j - 1] - c_train[ref, j - 1])
-            vecs_c[c] = stage2.snap_vector(s2, c, d)[0]
+            vecs_c[c] = result.snap_vector(s2, c, d)[0]
             obj = objs.get(j)
             s_test = meta["test_frames"][i].get("states")
             if obj is None or s_test is None:
@@ -334,9 +319,9 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
                 continue
             s_ref = float(states_train[ref, j - 1]) if states_train is not None else 0.0
             d = gt_point_motion(obj, s_ref, s_test[j - 1], s2.traj[c, 0], norm) - s2.traj[c, 0]
-            vecs[c] = stage2.snap_vector(s2, c, d)[0]
+            vecs[c] = result.snap_vector(s2, c, d)[0]
         for v, out in ((vecs, ps), (vecs_c, ps_c)):
-            img = stage2.render_controlled(run, v[:k] if k else v, test.viewmats[i], test.Ks[i], test.width,
+            img = result.render_controlled(run, v[:k] if k else v, test.viewmats[i], test.Ks[i], test.width,
                                            test.height)
             out.append(float(metrics.psnr(img, test.images[i])))
             if out is ps:
@@ -348,11 +333,11 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
                     emap = error_map_image(img, test.images[i])
                     atomic_write(maps_dir / f"state_{i:03d}.png", lambda f: iio.imwrite(f, emap, extension=".png"))
         if test_exact is not test:
-            img = stage2.render_controlled(run, vecs[:k] if k else vecs, test_exact.viewmats[i], test.Ks[i],
+            img = result.render_controlled(run, vecs[:k] if k else vecs, test_exact.viewmats[i], test.Ks[i],
                                            test.width, test.height)
             ps_exact.append(float(metrics.psnr(img, test.images[i])))
         if true_train is not None and src is not None and 0 <= int(src) < len(used):
-            img = stage2.render_controlled(run, vecs[:k] if k else vecs,
+            img = result.render_controlled(run, vecs[:k] if k else vecs,
                                            run_camera(test_exact.viewmats[i], true_train[int(src)], used[int(src)],
                                                       res["camera_alignment"]["scale"]),
                                            test.Ks[i], test.width, test.height)
@@ -419,8 +404,6 @@ def swept_mask(ids_state, ids_source, radius: int = 4) -> np.ndarray:
         raise ValueError(f"swept_mask: ids_source must have shape {list(a.shape)}, got {list(b.shape)}")
     m = ((a > 0) | (b > 0)).astype(np.uint8)
     if radius > 0:
-        import cv2
-
         m = cv2.dilate(m, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8))
     return m.astype(bool)
 
@@ -436,9 +419,7 @@ def error_map_image(img, image, gain: float = 4.0) -> np.ndarray:
 def _render_posed(run, labels, poses, viewmat, K, width: int, height: int) -> np.ndarray:
     """Image [H, W, 3] in [0, 1] of the controlled scene's reference (`LoadedRun.base`, no control network)
     with each cluster's Gaussians (`labels` [N], -1 static) moved by its pose (`poses` [K, 4, 4])."""
-    from fgjax.pipeline import stage2
-
-    img, _, _ = run.render_geometry(*stage2.posed_base(run, labels, poses), viewmat, K, width, height,
+    img, _, _ = run.render_geometry(*result.posed_base(run, labels, poses), viewmat, K, width, height,
                                     params=run.control_params())
     return np.clip(np.asarray(img), 0.0, 1.0)
 
@@ -448,8 +429,6 @@ def _motion_preference(run, train, objs: dict, match: dict[int, int], states, re
     """``motion_preference`` (module docstring): {cluster (1-based, str): {frames, l1_learned, l1_true,
     l1_true_gt_labels, true_wins, true_wins_gt_labels}} over training frames `train` with gt `states`
     [T, K_gt] (``ref``: the reference frame's row); ``lab_gt`` [N]: the reference's labels from the gt."""
-    from fgjax.pipeline import stage2
-
     s2 = run.s2
     out: dict = {}
     for c, j in sorted(match.items()):
@@ -467,8 +446,8 @@ def _motion_preference(run, train, objs: dict, match: dict[int, int], states, re
         for i in frames:
             image = np.asarray(train.images[i], np.float64)
             vec = np.zeros((s2.num_objects, 3))
-            vec[c] = stage2.cluster_vectors_at(s2, float(train.times[i]))[c]
-            learned = stage2.render_controlled(run, vec, train.viewmats[i], train.Ks[i], train.width, train.height)
+            vec[c] = result.cluster_vectors_at(s2, float(train.times[i]))[c]
+            learned = result.render_controlled(run, vec, train.viewmats[i], train.Ks[i], train.width, train.height)
             poses = np.tile(np.eye(4), (s2.num_objects, 1, 1))
             poses[c] = gt_motion_scene(objs[j], s_ref, float(states[i, j - 1]), norm)
             row = [float(np.abs(learned - image).mean())]
@@ -497,11 +476,8 @@ def _true_motion_aris(run, test, ids_test, meta: dict, kinds, objs: dict, match:
                       lab_gt) -> dict:
     """``ari_controlled_true_motion`` and ``ari_controlled_true_motion_gt_labels`` (module docstring): the ARI of
     each "view" test frame's ids with every matched cluster moved by the gt motion of its object from the
-    reference state `s_ref` [K_gt] to the frame's (`stage2.render_clusters` with ``poses``), the discovered
+    reference state `s_ref` [K_gt] to the frame's (`fgjax.method.result.render_clusters` with ``poses``), the discovered
     labels and then ``lab_gt`` [N]; means over the frames."""
-    from fgjax import metrics
-    from fgjax.pipeline import stage2
-
     s2 = run.s2
     out: dict = {"ari_controlled_true_motion": [], "ari_controlled_true_motion_gt_labels": []}
     for i, kd in enumerate(kinds):
@@ -511,7 +487,7 @@ def _true_motion_aris(run, test, ids_test, meta: dict, kinds, objs: dict, match:
         poses = _gt_poses(s2.num_objects, match, objs, s_ref, states, norm)
         ok = ids_test[i] >= 0
         for key, labels in zip(out, (None, lab_gt)):
-            pred = stage2.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height, poses=poses,
+            pred = result.render_clusters(run, test.viewmats[i], test.Ks[i], test.width, test.height, poses=poses,
                                           labels=labels)
             out[key].append(float(metrics.ari(ids_test[i][ok], pred[ok])))
     return {key: float(np.mean(v)) for key, v in out.items() if v}
@@ -524,8 +500,6 @@ def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], 
     ``state_psnr_true_motion_labels`` takes them from the gt (`gt_labels_of_gaussians`, radius 0.03): the
     first is what perfect tracking would give, the second what perfect tracking and clustering would
     (``lab_gt`` [N]: the reference's labels from the gt)."""
-    from fgjax import metrics
-
     s2 = run.s2
     label_sets = {"state_psnr_true_motion": np.asarray(s2.labels), "state_psnr_true_motion_labels": lab_gt}
     out: dict = {key: [] for key in label_sets}
@@ -539,34 +513,16 @@ def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], 
     return {key: float(np.mean(v)) for key, v in out.items() if v}
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="fgjax eval", description="Evaluate a run against ground truth.")
-    p.add_argument("--run", required=True, help="run folder with stage-2 results")
-    p.add_argument("--data", default=None, help="dataset folder (default: the one stage 2 recorded)")
-    p.add_argument("--maps", default=None, metavar="DIR",
-                   help="also write each held-out state's render | image | error x4 to DIR/state_NNN.png")
-    args = p.parse_args(argv)
-    from fgjax.pipeline import stage2
-    from fgjax.train.checkpoint import CheckpointError
-
-    try:
-        run = stage2.load_stage2(args.run)
-    except (FileNotFoundError, CheckpointError, stage2.Stage2Error) as e:
-        print(f"fgjax eval: {e}", file=sys.stderr)
-        return 2
-    data = Path(args.data) if args.data else Path(run.s2.meta.get("data_dir", ""))
+def write_control_metrics(run, data_dir: Path | None = None, maps_dir: Path | None = None, log=print) -> dict | None:
+    """`evaluate_control` of a loaded run (`fgjax.method.result.load_stage2`) written into RUN/metrics.json under
+    "control" (atomically; the other entries kept). ``data_dir`` defaults to the dataset stage 2 recorded. Returns
+    the metrics, or None when the dataset has no ground truth (gt/meta.json)."""
+    data = Path(data_dir) if data_dir is not None else Path(run.s2.meta.get("data_dir", ""))
     if not (data / "gt" / "meta.json").is_file():
-        print(f"fgjax eval: no ground truth at {data / 'gt'}; nothing to evaluate", file=sys.stderr)
-        return 0
-    res = evaluate_control(run, data, maps_dir=Path(args.maps) if args.maps else None)
-    path = Path(args.run) / "metrics.json"
+        return None
+    res = evaluate_control(run, data, log=log, maps_dir=maps_dir)
+    path = Path(run.run_dir) / "metrics.json"
     old = json.loads(path.read_text()) if path.is_file() else {}
     old["control"] = res
-    stage2._atomic_bytes(path, lambda f: f.write(json.dumps(old, indent=1).encode()))
-    print(json.dumps({k: v for k, v in res.items() if not k.endswith("per_view") and not k.endswith("per_frame")}))
-    print(f"wrote {path}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    atomic_write(path, lambda f: f.write(json.dumps(old, indent=1).encode()))
+    return res

@@ -1,10 +1,9 @@
 """One articulation per part over all its frames, chosen by the images: a discrete search over hinges and slides.
 
-The photometric tracker (`fgjax.pipeline.phototrack`) fits six degrees of freedom per frame, and `joint_poses`
-then fits one joint to those poses. A single image does not pin a part's pose: on the default scene the lid, started
-at its true pose in every frame, ends 10-48 degrees off at poses that render closer to the images than the truth,
-while along its true hinge the true turn renders closest (docs/benchmarks.md, session 27). So here the joint itself
-is chosen by the images:
+The photometric tracker (`fgjax.articulate.phototrack`) fits six degrees of freedom per frame, and `joint_poses`
+then fits one joint to those poses. A single image does not pin a part's pose (six free parameters can render closer
+to one image than the truth), while along the true joint the true amount renders closest. So here the joint itself is
+chosen by the images:
 
 1. Hypotheses (`articulation_hypotheses`): from a part's reference points, its principal axes and their 5th-95th
    percentile extents; a hinge along each axis through each of the four edges of the box around the others
@@ -19,13 +18,7 @@ is chosen by the images:
 3. The best hypothesis replaces the part's poses only where its score is below that of the poses as given
    (rendered as they are): the search never makes the images worse on the frames it scores.
 
-What it found (docs/benchmarks.md, session 33; `Stage2Config.joint_search`, off by default): on the default scene's
-demo run, searched in round 1 (stage 1's reference, a blur of the parts' states) the images chose wrong joints (the
-door a horizontal hinge, the lid a vertical slide); searched from round 2 on (the re-fitted scene) the fitted joint won
-for every part, so the search only refined the amounts. The lid's nearest hypothesis is 29 degrees off its true
-hinge (the principal axes of its members, false ones included, are not its sides), but that is not what fails:
-given the true hinge as a hypothesis too, the re-fitted scene renders the fitted joint (42 degrees off) closer
-(0.0034 against 0.0044 a frame).
+The hinge trial (`fgjax.articulate.trial`) uses this search for the amounts of its candidate joints.
 
 Only the part searched moves; the others are drawn at their given poses in each frame. The frame without the part
 is rendered once (its tiles reached by no member are pasted from it, as in the tracker).
@@ -43,10 +36,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from fgjax import geometry
+from fgjax.articulate.phototrack import blur_kernel, blur_with
 from fgjax.gaussians import Gaussians
 from fgjax.geometry import HIGHEST
-from fgjax.pipeline.phototrack import blur_kernel, blur_with
-from fgjax.pipeline.track import transform_gaussians
+from fgjax.models.model import render_params
+from fgjax.models.posed import transform_gaussians
 
 __all__ = ["articulation_hypotheses", "rect_hinges", "joint_from_poses", "slide_from_poses", "articulated_pose",
            "camera_up", "camera_tilt", "LEVEL_TILT_DEG", "LEVEL_AMBIGUITY", "hinge_made_vertical", "displaced_frames",
@@ -88,9 +82,8 @@ def rect_hinges(points, step_deg: float = 1.0) -> list[tuple[str, np.ndarray, np
     plane, the rectangle of least area whose sides run from the 2nd to the 98th percentile of the points along
     them is found over directions ``step_deg`` apart; the hinges run along its sides, through the 5th and 95th
     percentiles across them, at the median along n. `articulation_hypotheses`' hinges follow the principal axes,
-    and a square part's in-plane axes are arbitrary: on the synthetic scenes' lids the nearest of those is 13-34
-    degrees off the true hinge, the nearest of these 2-7.3 degrees off and within 0.065 of it (docs/benchmarks.md,
-    session 39). The 5th-95th percentile rectangle of a uniform square is 6-9 degrees off its sides (its
+    and a square part's in-plane axes are arbitrary, while a rectangle's sides follow its edges. The 5th-95th
+    percentile rectangle of a uniform square is 6-9 degrees off its sides (its
     projections' tails thin as it turns); the 1st-99th is pulled off by 5% of stray points."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     if len(p) < 3:
@@ -150,9 +143,7 @@ def slide_from_poses(points, poses, *, snap: bool = False):
     stack; a slide starts at rest), signed so that the largest amount is positive, and the amounts are d_t along
     it. Exact for the poses of a slide; for a turn about a far line (a slide fitted as a turn) it keeps the chord
     and drops the turn. ``snap``: the axis is instead the principal axis of the points nearest that direction (a
-    drawer slides along one of its box's axes; on the close pair's drawer the chord of its tracked poses was 19-29
-    degrees off its true slide, its nearest principal axis 7: docs/benchmarks.md, session 40; with fewer than 3
-    points, the chord). `articulated_pose` (``revolute`` false) gives the slide's poses."""
+    drawer slides along one of its box's axes; with fewer than 3 points, the chord). `articulated_pose` (``revolute`` false) gives the slide's poses."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     P = np.asarray(poses, np.float64)
     if len(p) == 0 or P.ndim != 3 or P.shape[1:] != (4, 4):
@@ -187,8 +178,8 @@ def articulated_pose(revolute, axis, pivot, amount):
 def camera_up(viewmats) -> np.ndarray:
     """[3] unit world "up" from world-to-camera ``viewmats`` [T, 4, 4] (OpenCV: x right, y down) held level: the
     direction most nearly orthogonal to every camera's right axis (the last right singular vector of their stack),
-    signed towards the cameras' mean up (-y). On the synthetic scenes it is the true vertical to 0.2-0.4 degrees, where
-    the mean of the cameras' up axes is 18 degrees off it, as they look down (docs/benchmarks.md, session 42)."""
+    signed towards the cameras' mean up (-y). Unlike the mean of the cameras' up axes, it does not tilt when the
+    cameras look down."""
     R = np.asarray(viewmats, np.float64)[:, :3, :3]
     up = np.linalg.svd(R[:, 0, :])[2][-1]  # full: one camera gives a direction orthogonal to its right axis
     return up if float(up @ -R[:, 1, :].mean(0)) >= 0 else -up
@@ -290,8 +281,6 @@ def search_articulations(gaussians, alive, labels, num_objects: int, images, vie
         "candidates" ({index: (kind, axis [3], pivot [3], poses [T, 4, 4])}: each hypothesis scored on all the frames
         with its best amounts there; the given poses elsewhere).
     """
-    from fgjax.pipeline.stage1 import render_params
-
     poses = np.asarray(poses, np.float32).copy()
     labels = np.asarray(labels, np.int64)
     alive_np = np.asarray(alive, bool)

@@ -1,6 +1,6 @@
 """``fgjax demo`` (``make demo``): the built-in synthetic scene and pictures of its ground truth.
 
-The demo generates the default synthetic articulated scene (`fgjax.data.synth`) into ``OUT/scene``,
+The demo generates the default synthetic articulated scene (`fgjax.synth`) into ``OUT/scene``,
 then (unless ``--synth-only``) runs optical flow -> stage 1 -> discovery -> stage 2 -> control -> eval
 on it (``OUT/run``; ``OUT/control_sheet.png``: a training frame, the controlled scene at v = 0, the
 per-pixel object ids and each object moved; ``OUT/control.mp4``: each object swept through its range
@@ -12,16 +12,17 @@ while the others stay still; ``OUT/run/metrics.json``). Ground-truth pictures:
 - ``OUT/demo.mp4``: the training sequence next to its flow visualisation (imageio + ffmpeg;
   ``OUT/demo.gif`` when mp4 writing fails).
 
-``--quick`` makes a smaller scene (96x72, 24 frames) and uses experiments/demo_quick.toml, for a smoke run.
-``--set KEY=VALUE`` (repeatable) overrides a setting of the pipeline: ``stage2.FIELD=VALUE`` a `Stage2Config`
-field on top of the demo's own stage-2 settings (e.g. ``--set stage2.track_rest=false``), ``SECTION.KEY=VALUE``
-a stage-1 config key on top of experiments/default.toml (e.g. ``--set train.steps=3000``). Every override is
-checked before anything is written, and a bad one exits with status 2 and names the key.
+The settings of both stages come from one named configuration: experiments/articulated.toml, or
+experiments/demo_quick.toml with ``--quick`` (a smaller scene, 96x72 and 24 frames, for a smoke run), or ``--config
+FILE``. ``--set SECTION.KEY=VALUE`` (repeatable) overrides one key, e.g. ``--set train.steps=3000``, ``--set
+stage2.eps=0.08`` or ``--set articulate.track_rest=false``. Every override is checked before anything is written,
+and a bad one exits with status 2 and names the key.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -31,39 +32,21 @@ import cv2
 import imageio.v3 as iio
 import numpy as np
 
+from fgjax.articulate.pipeline import run_articulated
+from fgjax.config import Config, load_config
 from fgjax.data import synth
+from fgjax.data.loaders import load_scene
+from fgjax.data.opticalflow import estimate_flow
 from fgjax.io import write_video
+from fgjax.method import stage1
+from fgjax.method.evaluate import write_control_metrics
+from fgjax.method.result import cluster_vectors_at, load_stage2, render_clusters, render_controlled
+from fgjax.method.stage2 import run_stage2
+from fgjax.viz import depth_to_color, ids_to_color
 
-__all__ = ["main", "contact_sheet", "depth_to_color", "ids_to_color", "write_video"]
+__all__ = ["main", "contact_sheet", "pipeline_configs"]
 
-_ID_COLORS = np.array(
-    [[70, 70, 70], [230, 60, 50], [50, 140, 230], [240, 200, 40], [160, 80, 220], [60, 200, 110], [240, 130, 190]],
-    dtype=np.uint8,
-)
-
-
-def depth_to_color(depth: np.ndarray, valid: np.ndarray | None = None, *, near: float | None = None,
-                   far: float | None = None) -> np.ndarray:
-    """[H, W] depth -> [H, W, 3] uint8 RGB (turbo colour map of inverse depth; invalid black)."""
-    depth = np.asarray(depth, dtype=np.float64)
-    ok = depth > 0 if valid is None else (np.asarray(valid, bool) & (depth > 0))
-    if not np.any(ok):
-        return np.zeros((*depth.shape, 3), np.uint8)
-    near = float(depth[ok].min()) if near is None else near
-    far = float(depth[ok].max()) if far is None else far
-    inv = np.where(ok, 1.0 / np.where(ok, depth, 1.0), 0.0)
-    lo, hi = 1.0 / far, 1.0 / near
-    x = np.clip((inv - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
-    bgr = cv2.applyColorMap(np.round(x * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
-    rgb = bgr[..., ::-1]
-    return np.where(ok[..., None], rgb, 0).astype(np.uint8)
-
-
-def ids_to_color(ids: np.ndarray) -> np.ndarray:
-    """[H, W] object ids (-1 invalid, 0 static, k object) -> [H, W, 3] uint8 RGB."""
-    ids = np.asarray(ids)
-    out = _ID_COLORS[np.clip(ids, 0, None) % len(_ID_COLORS)]
-    return np.where((ids < 0)[..., None], 0, out).astype(np.uint8)
+EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
 
 
 def _up(img: np.ndarray, s: int) -> np.ndarray:
@@ -173,14 +156,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--synth-only", action="store_true",
                    help="only the synthetic scene and its ground-truth pictures (no training)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a setting (repeatable): stage2.FIELD=VALUE for stage 2 (e.g. stage2.track_rest=false), "
-                        "SECTION.KEY=VALUE for stage 1 (e.g. train.steps=3000)")
+    p.add_argument("--config", default=None, help="named configuration (default: experiments/articulated.toml, "
+                   "or experiments/demo_quick.toml with --quick)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override a setting (repeatable), e.g. train.steps=3000, stage2.eps=0.08, "
+                        "articulate.track_rest=false")
     args = p.parse_args(argv)
     out = Path(args.out)
     try:
-        cfg = _scene_config(args)
-        s1cfg, s2cfg = pipeline_configs(out / "flow_cache", quick=args.quick, overrides=args.overrides)
+        scfg = _scene_config(args)
+        cfg = pipeline_configs(out / "flow_cache", quick=args.quick, overrides=args.overrides, config=args.config)
     except ValueError as e:
         print(f"fgjax demo: error: {e}", file=sys.stderr)
         return 2
@@ -191,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     t0 = time.perf_counter()
     say = lambda msg: print(msg, file=sys.stderr, flush=True)
-    synth.generate(cfg, scene_dir, overwrite=True, progress=say)
+    synth.generate(scfg, scene_dir, overwrite=True, progress=say)
     say(f"demo: drawing ({time.perf_counter() - t0:.1f} s)")
     sheet_path = out / "contact_sheet.png"
     iio.imwrite(sheet_path, contact_sheet(scene_dir))
@@ -200,58 +185,25 @@ def main(argv: list[str] | None = None) -> int:
     print(f"contact sheet: {sheet_path}")
     print(f"video:         {video_path}")
     if not args.synth_only:
-        _pipeline(out, scene_dir, s1cfg, s2cfg, say=say)
+        _pipeline(out, scene_dir, cfg, say=say)
     say(f"demo: done in {time.perf_counter() - t0:.1f} s")
     return 0
 
 
-def pipeline_configs(flow_cache: Path, *, quick: bool, overrides: list[str]):
-    """The demo's stage-1 `Config` and `Stage2Config`, with ``--set`` `overrides` applied (``stage2.FIELD=VALUE``
-    to stage 2, ``SECTION.KEY=VALUE`` to stage 1). Raises ValueError (`fgjax.config.ConfigError` is one) naming
-    the key of a bad override, before any work is done."""
-    from fgjax.config import load_config
-    from fgjax.pipeline import stage2
-
-    s1_items, s2_items = [], []
-    for o in overrides:  # stage2.FIELD=VALUE -> FIELD=VALUE for stage 2; the rest as they are for stage 1
-        if o.split("=", 1)[0].strip().startswith("stage2."):
-            s2_items.append(o.split(".", 1)[1])
-        else:
-            s1_items.append(o)
-    toml = Path(__file__).resolve().parents[2] / "experiments" / ("demo_quick.toml" if quick else "default.toml")
-    s1cfg = load_config(toml if toml.exists() else None, (["train.video_frames=0"] if quick else []) + s1_items)
-    # the quick demo: the flow tracking and fewer steps; both skip the control network's photometric phase
-    # (from the re-fitted scene it did not lower the loss: 0.0121 -> 0.0122 in the full demo; in the quick one
-    # 20 steps took 16 s of its 3 minutes, 0.0408 -> 0.0390; tests/test_stage2.py covers the phase); the full
-    # demo: stage 2's defaults less 20% of the photometric tracking's steps, to stay under 15 minutes
-    # (docs/benchmarks.md, session 9),
-    # and session 9's re-fit (300 steps, the first 150 relabelling: 75 s in session 9; the default's 600 of 600
-    # took 93 s in session 10, not timed side by side). The quick demo keeps the flow tracker's pair-by-pair poses
-    # (no joint fits): on its 24 frames the fits took 23 s of stage 2's 65 s and gave no better control (state
-    # PSNR 22.68 against 23.68 dB without; docs/benchmarks.md, session 20). The full demo's second round of tracking
-    # and re-fitting (stage 2's default) tracks with 20 steps a frame, from the first round's poses: 27.73 dB
-    # against 27.55 with 40 and 26.56 with one round, on one stage-1 run (session 22); halving the re-fits
-    # (150 steps each) lost the gain (26.59 dB), and so did 20 steps in the first round (25.36). The third round
-    # (stage 2's default) tracks only the objects whose joint has not converged (`Stage2Config.track_converged_deg`;
-    # on the default scene the lid alone, about 60 s: 28.51 dB; docs/benchmarks.md, session 23)
-    s2cfg = stage2.Stage2Config(flow_cache=str(flow_cache), auto_eps=quick, photo_steps=0,
-                                **({"distill_steps": 100, "refit_steps": 100, "track_photo": 0, "track_joints": "off",
-                                    "relabel_steps": 0, "local_threshold": 0.4, "track_rounds": 1} if quick else
-                                   {"track_photo": 40, "track_photo_next": 20, "distill_steps": 300,
-                                    "refit_steps": 300, "relabel_steps": 150, "track_rounds": 3}))
-    s2cfg = stage2.config_from_overrides(s2_items, base=s2cfg, prefix="stage2.")
-    stage2.validate_config(s2cfg)
-    return s1cfg, s2cfg
+def pipeline_configs(flow_cache: Path, *, quick: bool, overrides: list[str], config: str | None = None) -> Config:
+    """The demo's configuration: experiments/demo_quick.toml (``quick``) or experiments/articulated.toml, or the file
+    ``config``, with the ``--set SECTION.KEY=VALUE`` `overrides` applied (stage 1's sections, ``stage2.*`` and
+    ``articulate.*``) and the flow cache in ``flow_cache``. Raises `fgjax.config.ConfigError` naming the key or file,
+    before any work is done."""
+    toml = config or EXPERIMENTS / ("demo_quick.toml" if quick else "articulated.toml")
+    cfg = load_config(toml, overrides)
+    return dataclasses.replace(cfg, stage2=dataclasses.replace(cfg.stage2, flow_cache=str(flow_cache)))
 
 
-def _pipeline(out: Path, scene_dir: Path, s1cfg, s2cfg, *, say) -> None:
+def _pipeline(out: Path, scene_dir: Path, cfg: Config, *, say) -> None:
     """Optical flow -> stage 1 -> discovery/stage 2 -> control (sweep videos, cluster map) -> eval."""
-    from fgjax.data.loaders import load_scene
-    from fgjax.data.opticalflow import estimate_flow
-    from fgjax.pipeline import evaluate, stage1, stage2
-
     t0 = time.perf_counter()
-    cache = Path(s2cfg.flow_cache)
+    cache = Path(cfg.stage2.flow_cache)
     train = load_scene(scene_dir, "train")
     u8 = lambda x: (np.clip(x, 0, 1) * 255 + 0.5).astype(np.uint8)
     order = np.argsort(train.times, kind="stable")
@@ -259,14 +211,17 @@ def _pipeline(out: Path, scene_dir: Path, s1cfg, s2cfg, *, say) -> None:
         estimate_flow(u8(train.images[a]), u8(train.images[b]), "dis_deepflow", cache_dir=cache)
     say(f"demo: optical flow of {len(order) - 1} pairs ({time.perf_counter() - t0:.1f} s)")
     run_dir = out / "run"
-    stage1.run(s1cfg, scene_dir, run_dir, log=say)
+    stage1.run(cfg, scene_dir, run_dir, log=say)
     say(f"demo: stage 1 done ({time.perf_counter() - t0:.1f} s)")
-    s2 = stage2.run_stage2(run_dir, scene_dir, s2cfg, log=say)
-    run = stage2.load_stage2(run_dir)
+    if cfg.stage2.variant == "articulated":
+        s2 = run_articulated(run_dir, scene_dir, cfg.stage2, cfg.articulate, log=say)
+    else:
+        s2 = run_stage2(run_dir, scene_dir, cfg.stage2, log=say)
+    run = load_stage2(run_dir)
     vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height
     v0 = np.zeros((max(s2.num_objects, 1), 3))  # v = 0 for every object
-    ids = stage2.render_clusters(run, vm, K, w, h, vectors=v0 if s2.num_objects else None)  # the scene beside it
-    rgb0 = stage2.render_controlled(run, v0, vm, K, w, h)
+    ids = render_clusters(run, vm, K, w, h, vectors=v0 if s2.num_objects else None)  # the scene beside it
+    rgb0 = render_controlled(run, v0, vm, K, w, h)
     tiles = [_label(_up(u8(train.images[0]), max(1, 240 // w)), "training frame 0"),
              _label(_up(u8(rgb0), max(1, 240 // w)), "stage 2, v = 0"),
              _label(_up(ids_to_color(ids), max(1, 240 // w)), f"{s2.num_objects} object(s) found")]
@@ -275,8 +230,8 @@ def _pipeline(out: Path, scene_dir: Path, s1cfg, s2cfg, *, say) -> None:
         raw = []
         for t in np.concatenate([np.linspace(0, 1, 9), np.linspace(1, 0, 9)[1:]]):
             vec = np.zeros((s2.num_objects, 3))
-            vec[k] = stage2.cluster_vectors_at(s2, s2.traj_times[0] + t * (s2.traj_times[-1] - s2.traj_times[0]))[k]
-            raw.append(u8(stage2.render_controlled(run, vec, vm, K, w, h)))
+            vec[k] = cluster_vectors_at(s2, s2.traj_times[0] + t * (s2.traj_times[-1] - s2.traj_times[0]))[k]
+            raw.append(u8(render_controlled(run, vec, vm, K, w, h)))
             frames.append(_pad16(_up(raw[-1], max(1, 320 // w))))
         tiles.append(_label(_up(raw[8], max(1, 240 // w)), f"object {k + 1} moved"))  # t = 1: end of its range
     sheet = out / "control_sheet.png"
@@ -285,8 +240,12 @@ def _pipeline(out: Path, scene_dir: Path, s1cfg, s2cfg, *, say) -> None:
     print(f"control sheet: {sheet}")
     if frames:
         print(f"control video: {write_video(frames, out / 'control.mp4')}")
-    if evaluate.main(["--run", str(run_dir)]) == 0:
-        print(f"metrics:       {run_dir / 'metrics.json'}")
+    res = write_control_metrics(run, scene_dir)
+    print(f"metrics:       {run_dir / 'metrics.json'}")
+    if res:
+        print(f"objects found: {res['num_objects_found']} of {res['num_objects_gt']}; ARI {res['ari']:.3f}, "
+              f"ARI of the controlled scene {res['ari_controlled']:.3f}; held-out states "
+              f"{res.get('state_psnr', float('nan')):.2f} dB; stage-1 test views {res['view_psnr_stage1']:.2f} dB")
     say(f"demo: pipeline done ({time.perf_counter() - t0:.1f} s)")
 
 

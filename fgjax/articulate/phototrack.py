@@ -1,10 +1,9 @@
 """Photometric tracking: the objects' rigid poses fitted to the training images by rendering them.
 
-Flow-based tracking (`fgjax.pipeline.track`) measures each part's motion through the optical flow of the
+Flow-based tracking (`fgjax.articulate.track`) measures each part's motion through the optical flow of the
 pixels it paints. Parts that turn towards or away from the camera (a door about its hinge, a lid lifting)
 barely move in one pair's flow, and the estimators miss large displacements of fine, periodic textures,
-so the tracked turns come out far too small (docs/benchmarks.md, session 6: 9 against 76 degrees). Here
-the poses are fitted by analysis by synthesis instead:
+so flow-tracked turns come out far too small. Here the poses are fitted by analysis by synthesis instead:
 
 1. Frames in time order. Object k's pose in frame n starts from its pose in frame n-1, extrapolated at
    constant velocity or not, or from an earlier fit's pose when one is given (whichever renders closest
@@ -20,13 +19,13 @@ the poses are fitted by analysis by synthesis instead:
    join it, and a mislabelled Gaussian drags the pose towards a compromise. Each candidate (a Gaussian
    within ``radius`` of a cluster, members included) is therefore rendered twice, moved with its nearest
    cluster (opacity sigma(o) pi) and static (opacity sigma(o) (1 - pi)), as in the re-fit's relabelling
-   (`fgjax.pipeline.stage2.refit_gaussians`). pi = sigmoid(l), l starting at +2 for members and -2 for
+   (`fgjax.articulate.refit.refit_gaussians`). pi = sigmoid(l), l starting at +2 for members and -2 for
    the others, is trained with the poses and carried from frame to frame, so it collects the evidence of
    every frame in which its cluster is fitted. It only weights the tracking; the labels are not changed.
    A frame composites, at every step, only the tiles that its fitted objects and their candidates reach;
    the rest of the image (the objects not fitted at their poses included) is drawn once per frame.
 4. `joint_poses` then replaces each object's per-frame poses by one articulation (revolute or
-   prismatic, `fgjax.pipeline.track.fit_joint` on its reference points' projected positions): a
+   prismatic, `fgjax.articulate.track.fit_joint` on its reference points' projected positions): a
    single image pins a pose poorly, all frames together pin an axis.
 
 Conventions: OpenCV cameras (world-to-camera `viewmats` [T, 4, 4], `Ks` [T, 3, 3]); poses [K, T, 4, 4]
@@ -41,12 +40,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from sklearn.neighbors import NearestNeighbors
 
 from fgjax import geometry
+from fgjax.articulate.track import JOINT_KINDS, fit_joint
 from fgjax.gaussians import Gaussians, activate
 from fgjax.geometry import HIGHEST
+from fgjax.method.camera import project_rows
 from fgjax.metrics import filter_valid, rotation_angle_deg
-from fgjax.pipeline.track import JOINT_KINDS, _project_rows, fit_joint, transform_gaussians
+from fgjax.models.model import render_params
+from fgjax.models.posed import transform_gaussians
 from fgjax.render.project import project_gaussians
 from fgjax.render.tiles import tile_ranges
 
@@ -70,9 +73,8 @@ def blur_kernel(sigma: float, radius: int | None = None) -> np.ndarray:
 
 def blur_with(img, k):
     """Image [H, W, C] convolved separably with the symmetric 1-D kernel `k` [2R + 1] (a jax array, traceable),
-    zero padding: `fgjax.metrics.filter_valid` on the zero-padded image (products with banded matrices; two
-    1-D ``lax.conv_general_dilated`` took 32 ms instead of 2 ms for value and gradient at 160x120, R = 12,
-    docs/benchmarks.md, session 13)."""
+    zero padding: `fgjax.metrics.filter_valid` on the zero-padded image (products with banded matrices, faster on
+    the CPU than two 1-D ``lax.conv_general_dilated``)."""
     r = (k.shape[0] - 1) // 2
     x = jnp.pad(jnp.moveaxis(img, -1, 0), ((0, 0), (r, r), (r, r)))  # [C, H + 2R, W + 2R]
     return jnp.moveaxis(filter_valid(x, k.astype(img.dtype)), 0, -1)
@@ -97,8 +99,6 @@ def pose_delta(x, centres, scale):
 def relabel_candidates(means: np.ndarray, labels: np.ndarray, alive: np.ndarray, radius: float):
     """(candidate indices [C], their nearest cluster [C]): the alive Gaussians within `radius` of a member
     of some cluster (members included, each with its own cluster)."""
-    from sklearn.neighbors import NearestNeighbors
-
     members = np.flatnonzero(labels >= 0)
     nn = NearestNeighbors(n_neighbors=1).fit(means[members])
     d, j = nn.kneighbors(means)
@@ -272,8 +272,6 @@ def settle_at_rest(gaussians: Gaussians, alive, labels, num_objects: int, images
     Returns:
         (poses [K, T, 4, 4], the spans (k, a, b) put at rest: frames a..b-1 of object k).
     """
-    from fgjax.pipeline.stage1 import render_params
-
     poses = np.asarray(poses, np.float32).copy()
     labels = np.asarray(labels, np.int64)
     t_all = poses.shape[1] if poses.ndim == 4 else 0
@@ -365,8 +363,6 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
         frames), "gaussians" (of the two-copy scene), "fitted_again" (frames fitted again with every Gaussian),
         "spans_at_rest" (``rest_check``'s spans put at rest), "frame_seconds" (list, each fitted frame's wall time; the first compiles) and "seconds".
     """
-    from fgjax.pipeline.stage1 import render_params
-
     labels = np.asarray(labels, np.int64)
     t_all = len(viewmats)
     poses = np.tile(np.eye(4, dtype=np.float32), (num_objects, t_all, 1, 1))
@@ -588,8 +584,8 @@ def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, ima
 
 
 # A far hinge lies more than FAR_HINGE_RADII of its part's radii off it (`hinge_offset`) while the part turns
-# FAR_HINGE_TURN_DEG degrees or more: likely a shift fitted as a turn (`joint_poses`' warning; the hinge trial of
-# `fgjax.pipeline.stage2`).
+# FAR_HINGE_TURN_DEG degrees or more: likely a shift fitted as a turn (`joint_poses`' warning;
+# `fgjax.articulate.trial.hinge_trial`).
 FAR_HINGE_RADII = 2.0
 FAR_HINGE_TURN_DEG = 5.0
 
@@ -639,21 +635,15 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
     minimises) of every point's reprojection residual. The revolute joint wins when its cost
     is below ``revolute_margin`` times the prismatic one's (a turn about a far pivot mimics a slide), else
     the prismatic one. (An inlier RMS would not do: a part moves far in only a few frames, and a wrong
-    joint's large residuals there count as outliers, which that RMS leaves out: the default scene's door,
-    turning 70 degrees but moving more than 2 px in only 4 of its 60 frames, had the same inlier RMS as a
-    hinge and as a slide; docs/benchmarks.md, session 18.)
+    joint's large residuals there count as outliers, which that RMS leaves out.)
 
     The chosen joint's cost also tells whether the tracking worked: a joint explains well tracked poses to
-    about 1 px^2 (0.6-1.6 on the default scene's parts), and every lost part seen had a cost over 4
-    (docs/benchmarks.md, sessions 19-20: a door whose per-frame poses turn about a wrong axis, or stay open
-    after it closed). Over ``warn_cost`` (px^2) a warning is logged.
+    about 1 px^2, while a lost part (poses turning about a wrong axis, or staying open after it closed) costs
+    several. Over ``warn_cost`` (px^2) a warning is logged.
 
     A revolute joint whose turn reaches ``warn_turn_deg`` about an axis more than ``warn_offset`` times the part's
     radius from its centre (`hinge_offset`) is also warned of: doors and lids turn about their own edges, and a
-    turn about a far line is a shift in disguise. On the synthetic scenes this is how the lid's tracking fails: its
-    final poses turn 10-17 degrees about an axis 2.2-5.3 radii away (a lift and a tilt) where the truth is 69
-    degrees about its back edge, while the doors' hinges lie 0.4-0.6 radii from their centres (docs/benchmarks.md,
-    session 38).
+    turn about a far line is a shift in disguise (a lift and a tilt fitted as a small turn about a distant axis).
     Returns (poses [K, T, 4, 4], kinds [K], costs [K]: the chosen joint's robust cost, nan where kept), and with
     ``return_axes`` also axes [K, 3]: the chosen joint's unit axis (revolute) or direction (prismatic), nan where kept;
     with ``return_offsets`` then offsets [K]: a revolute joint's `hinge_offset` ratio (the axis' distance from the
@@ -673,7 +663,7 @@ def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_
             kinds.append("kept")
             continue
         moved = np.einsum("tij,mj->tmi", poses[k, :, :3, :3], pts) + poses[k, :, None, :3, 3]  # [T, M, 3]
-        uv, ok = _project_rows(jnp.asarray(moved), jnp.asarray(vms), jnp.asarray(Kn))
+        uv, ok = project_rows(jnp.asarray(moved), jnp.asarray(vms), jnp.asarray(Kn))
         tgt = np.asarray(uv)
         w = np.asarray(ok, np.float64)
         rv = np.asarray(geometry.so3_log(jnp.asarray(poses[k, :, :3, :3])))  # [T, 3]

@@ -18,7 +18,14 @@ import argparse
 import sys
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
+
+from fgjax.data.cameras import read_cameras
+from fgjax.data.scene import Normalization
+from fgjax.io import write_video
+from fgjax.method import result as stage2
+from fgjax.train.checkpoint import CheckpointError
 
 __all__ = ["main", "parse_vector", "default_cameras"]
 
@@ -39,9 +46,6 @@ def parse_vector(text: str) -> np.ndarray:
 
 def default_cameras(run, cameras: str | None):
     """[(name, viewmat, K, time, w, h)] from `cameras` or the first training camera of the run's data."""
-    from fgjax.data.scene import Normalization
-    from fgjax.pipeline.render import read_cameras
-
     norm = Normalization.from_dict(run.meta["normalization"])
     w, h = run.meta["width"], run.meta["height"]
     if cameras is not None:
@@ -64,10 +68,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sweep", action="store_true", help="write a video moving the object through its range")
     p.add_argument("--frames", type=int, default=24, help="video frames for --sweep (default: %(default)s)")
     args = p.parse_args(argv)
-    import imageio.v3 as iio
-
-    from fgjax.pipeline import stage2
-    from fgjax.train.checkpoint import CheckpointError
 
     err = lambda m: print(f"fgjax control: {m}", file=sys.stderr)
     try:
@@ -100,7 +100,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"object {args.object}: vector {vec.tolist()} snapped to {np.round(v, 5).tolist()} "
               f"(trajectory time {t:.4f})")
         return 0
-    from fgjax.io import write_video
 
     name, vm, K, _, w, h = cams[0]
     frames = []

@@ -18,7 +18,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["triangulate_midpoint", "pixel_rays", "free_space_violations", "flow_point_cloud"]
+from fgjax.data.opticalflow import estimate_flow, forward_backward_mask
+
+__all__ = ["triangulate_midpoint", "pixel_rays", "free_space_violations", "flow_point_cloud", "scene_box", "visible_any",
+           "random_points", "first_view_colors"]
 
 
 def pixel_rays(viewmat: np.ndarray, K: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -117,8 +120,6 @@ def flow_point_cloud(scene, *, gap: int = 4, stride: int = 2, method: str = "dis
         {"points" [M, 3], "colors" [M, 3] in [0, 1], "times" [M] and "frames" [M] (time and index of the frame
         each point was seen in), "pixels" [M, 2] (its pixel there, K's coordinates), "pairs", "kept_fraction"}.
     """
-    from fgjax.data.opticalflow import estimate_flow, forward_backward_mask
-
     order = np.argsort(np.asarray(scene.times), kind="stable")
     t = len(order)
     gap = max(1, min(int(gap), t - 1))
@@ -176,3 +177,59 @@ def flow_point_cloud(scene, *, gap: int = 4, stride: int = 2, method: str = "dis
         f"({100 * frac:.1f}% of pixels; {n_ghost} in earlier free space dropped) in {time.time() - t0:.1f} s")
     return {"points": points, "colors": colors, "times": ptimes, "frames": cat(src, (0,)).astype(np.int64),
             "pixels": cat(pxs, (0, 2)), "pairs": pairs, "kept_fraction": frac}
+
+
+def scene_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """A box the cameras look into: centred on the least-squares closest point to all optical axes,
+    half-size the median camera distance to it (no depth, no SfM points needed)."""
+    r = viewmats[:, :3, :3]
+    c = -np.einsum("tji,tj->ti", r, viewmats[:, :3, 3])  # camera centres
+    d = r[:, 2, :]  # optical axes (world)
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for ci, di in zip(c, d):
+        p = np.eye(3) - np.outer(di, di)
+        a += p
+        b += p @ ci
+    if np.linalg.cond(a) < 1e8:
+        centre = np.linalg.solve(a, b)
+    else:  # all axes parallel: a point in front of the cameras
+        centre = c.mean(0) + d.mean(0)
+    rad = float(np.median(np.linalg.norm(c - centre, axis=-1)))
+    rad = max(rad, 1e-3)
+    return centre - rad, centre + rad
+
+
+def visible_any(points, viewmats, Ks, width, height):
+    vis = np.zeros(len(points), bool)
+    for vm, K in zip(viewmats, Ks):
+        p = points @ vm[:3, :3].T + vm[:3, 3]
+        z = p[:, 2]
+        ok = z > 0.05
+        u = K[0, 0] * p[:, 0] / np.where(ok, z, 1) + K[0, 2]
+        v = K[1, 1] * p[:, 1] / np.where(ok, z, 1) + K[1, 2]
+        vis |= ok & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    return vis
+
+
+def random_points(rng, want: int, lo, hi, scene) -> np.ndarray:
+    pts = np.zeros((0, 3))
+    for _ in range(20):
+        cand = lo + rng.uniform(size=(want * 2, 3)) * (hi - lo)
+        pts = np.concatenate([pts, cand[visible_any(cand, scene.viewmats, scene.Ks, scene.width, scene.height)]])
+        if len(pts) >= want:
+            break
+    return pts[:want]
+
+
+def first_view_colors(pts, scene) -> np.ndarray:
+    """Colour of each point: the pixel of the first camera that sees it (a cheap, depth-free guess)."""
+    cols = np.full((len(pts), 3), 0.5)
+    vm, K = scene.viewmats[0], scene.Ks[0]
+    p = pts @ vm[:3, :3].T + vm[:3, 3]
+    z = np.where(p[:, 2] > 0.05, p[:, 2], np.inf)
+    u = np.floor(K[0, 0] * p[:, 0] / z + K[0, 2]).astype(np.int64)
+    v = np.floor(K[1, 1] * p[:, 1] / z + K[1, 2]).astype(np.int64)
+    ok = np.isfinite(z) & (u >= 0) & (u < scene.width) & (v >= 0) & (v < scene.height)
+    cols[ok] = scene.images[0][v[ok], u[ok]]
+    return cols

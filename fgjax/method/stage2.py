@@ -1,0 +1,151 @@
+"""Stage 2, the paper's chain (DESIGN.md section 1, steps 5-7): discovery -> DBSCAN -> trajectories -> control network.
+
+Library entry point: ``run_stage2(run_dir, data_dir, cfg)`` writes RUN/stage2.npz and RUN/stage2.json
+(`fgjax.method.result`). The chain never reads ground truth (no ``gt/``): only the training images, poses and times.
+
+1. **Discovery** (`fgjax.method.discover.discover_run`): |u - u_cam| per training pair, binarised and back-projected
+   through the rasterizer's contribution weights; D is Otsu's cut of the per-Gaussian scores.
+2. **Clustering** (`select_objects`): DBSCAN (or HDBSCAN) on the canonical centres of D; clusters under
+   ``min_fraction`` of D are dropped; the rest are numbered by decreasing size.
+3. **Trajectories** ς(t, k): the mean deformed centre of cluster k at each training time (time order), from the
+   stage-1 deformation field. The reference time t0 is the first training time; v_c(t, k) = ς(t, k) - ς(t0, k).
+4. **Control network** (`fgjax.method.control.train_control`): distilled from the deformed geometry, then fine-tuned
+   photometrically with beta L_uGS.
+
+The articulated variant (`fgjax.articulate.run_articulated`) composes the same pieces with rigid tracking in
+between; `prepare_run`, `select_objects`, `deformed_geometry` and `finish` are shared.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from jaxtyping import Bool, Float, Int
+
+from fgjax import cluster
+from fgjax.config import Stage2Config, validate_stage2
+from fgjax.data.loaders import load_scene
+from fgjax.data.scene import Normalization, Scene
+from fgjax.method.control import train_control
+from fgjax.method.discover import Discovery, discover_run
+from fgjax.method.result import (
+    FORMAT_VERSION,
+    STAGE2_NAME,
+    LoadedRun,
+    Stage2Error,
+    Stage2Result,
+    load_stage2,
+    save_stage2,
+)
+from fgjax.models.model import refined_viewmats
+
+__all__ = ["run_stage2", "prepare_run", "select_objects", "deformed_geometry", "finish"]
+
+
+def prepare_run(run_dir: Path, data_dir: Path, log=print) -> tuple[LoadedRun, Scene]:
+    """The stage-1 run (without stage-2 results) and its training scene, normalised as the run was; the cameras
+    replaced by stage 1's refined ones where it refined them.
+
+    Raises:
+        Stage2Error: the images' size differs from the run's, or fewer than 2 training frames.
+    """
+    run = load_stage2(run_dir, require_stage2=False)
+    scene = load_scene(data_dir, "train", normalize=Normalization.from_dict(run.meta["normalization"]),
+                       downscale=run.cfg.data.downscale)
+    if (scene.width, scene.height) != (run.meta["width"], run.meta["height"]):
+        raise Stage2Error(f"{data_dir}: images are {scene.width}x{scene.height} but the run was trained on "
+                          f"{run.meta['width']}x{run.meta['height']}")
+    if scene.num_frames < 2:
+        raise Stage2Error(f"{data_dir}: stage 2 needs at least 2 training frames, got {scene.num_frames}")
+    if "pose" in run.state.params:  # discovery's u_cam and the tracking need the cameras stage 1 refined
+        try:
+            vms = refined_viewmats(run.state.params, scene.viewmats)
+        except ValueError as e:
+            raise Stage2Error(f"{data_dir}: {e}") from None
+        scene = dataclasses.replace(scene, viewmats=vms.astype(scene.viewmats.dtype))
+        log("stage 2: using stage 1's refined camera poses")
+    return run, scene
+
+
+def select_objects(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stage2Config, *,
+                   log=print) -> tuple[Int[np.ndarray, " N"], cluster.ClusterReport]:
+    """Step 6: DBSCAN (or HDBSCAN, ``cfg.cluster_method``) on the canonical centres of D, the size cut
+    (``cfg.min_fraction`` of D). Returns (labels [N] in -1..K-1, largest cluster first; the cluster report)."""
+    idx = np.flatnonzero(disc.dynamic)
+    lab_d = cluster.cluster_dynamic(canonical[idx], cfg.cluster_method, eps=cfg.eps, min_samples=cfg.min_samples,
+                                    min_fraction=cfg.min_fraction, auto_eps=cfg.auto_eps)
+    labels = np.full(len(canonical), -1, np.int64)
+    labels[idx] = lab_d
+    report = cluster.cluster_report(lab_d)
+    log(f"stage 2: {len(idx)} dynamic Gaussians (score threshold {disc.threshold:.3f}); {report}")
+    return labels, report
+
+
+def deformed_geometry(run: LoadedRun, times: Float[np.ndarray, " T"]
+                      ) -> tuple[Float[np.ndarray, "T N 4"], Float[np.ndarray, "T N 3"]]:
+    """(raw quats [T, N, 4], log-scales [T, N, 3]) of the stage-1 model at each of ``times``."""
+    qs, ls = [], []
+    for t in times:
+        _, q, s = run.deformed(float(t))
+        qs.append(np.asarray(q))
+        ls.append(np.asarray(s))
+    return np.stack(qs), np.stack(ls)
+
+
+def finish(run_dir: Path, data_dir: Path, run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"],
+           labels: Int[np.ndarray, " N"], dynamic: Bool[np.ndarray, " N"], disc: Discovery, geometry, flows,
+           cfg: Stage2Config, meta: dict[str, Any], t_start: float, *, refit=None, log=print) -> Stage2Result:
+    """Steps 3-4 and the result: trajectories ς(t, k) from ``geometry`` (means [T, N, 3], raw quats [T, N, 4],
+    log-scales [T, N, 3] in time order), the control network trained on them, RUN/stage2.npz written."""
+    report = cluster.cluster_report(labels[dynamic | (labels >= 0)])
+    times = scene.times[order]
+    centres = geometry[0]
+    traj = cluster.trajectories(centres, labels) if report.n_clusters else np.zeros((0, len(times), 3))
+    control, stats = train_control(run, scene, order, labels, traj, cfg, geometry, flows, log, refit=refit)
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "data_dir": str(data_dir.resolve()),
+        "config": dataclasses.asdict(cfg),
+        "num_dynamic": int(disc.dynamic.sum()),
+        "score_threshold": disc.threshold,
+        "num_objects": report.n_clusters,
+        "cluster_sizes": list(report.sizes),
+        "num_noise": report.n_noise,
+        "moving_pixel_fraction": float(disc.masks.mean()),
+        "flow_loss": bool(stats.get("photometric", {}).get("flow_weight", 0.0) > 0),
+        **meta,
+        "time_s": time.perf_counter() - t_start,
+        **stats,
+    }
+    res = Stage2Result(labels, dynamic, disc.scores.score, traj, times, control, meta, refit)
+    save_stage2(run_dir, res)
+    log(f"stage 2: wrote {run_dir / STAGE2_NAME} ({meta['time_s']:.1f} s)")
+    return res
+
+
+def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = Stage2Config(), *,
+               log=print) -> Stage2Result:
+    """The paper's stage 2 on a trained stage-1 run; writes RUN/stage2.npz and RUN/stage2.json.
+
+    Args:
+        run_dir: stage-1 run folder (`fgjax train`).
+        data_dir: the dataset the run was trained on (only the training split is read; never gt/).
+        cfg: `Stage2Config` (``cfg.variant`` is not read here: this is the paper's chain).
+
+    Returns:
+        `Stage2Result`.
+    """
+    validate_stage2(cfg)  # before any work is done
+    t_start = time.perf_counter()
+    run_dir, data_dir = Path(run_dir), Path(data_dir)
+    run, scene = prepare_run(run_dir, data_dir, log)
+    cache = Path(cfg.flow_cache) if cfg.flow_cache else run_dir / "flow_cache"
+    disc, centres, times, (order, flows, _) = discover_run(run, scene, cfg, cache, log=log)
+    labels, _ = select_objects(np.asarray(run.state.params["gaussians"].means), disc, cfg, log=log)
+    qs, ls = deformed_geometry(run, times)
+    return finish(run_dir, data_dir, run, scene, order, labels, disc.dynamic, disc, (centres, qs, ls), flows, cfg,
+                  {"variant": "paper"}, t_start, log=log)

@@ -1,1 +1,0 @@
-"""fgjax.pipeline."""

@@ -1,0 +1,43 @@
+"""Pictures of arrays: images to uint8, depth and per-pixel object ids to colour (numpy only)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+__all__ = ["to_u8", "ids_to_color", "depth_to_color"]
+
+
+def to_u8(img: np.ndarray) -> np.ndarray:
+    """Image in [0, 1] (float, any shape) -> uint8, rounded to nearest, clipped."""
+    return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+_ID_COLORS = np.array(
+    [[70, 70, 70], [230, 60, 50], [50, 140, 230], [240, 200, 40], [160, 80, 220], [60, 200, 110], [240, 130, 190]],
+    dtype=np.uint8,
+)
+
+
+def depth_to_color(depth: np.ndarray, valid: np.ndarray | None = None, *, near: float | None = None,
+                   far: float | None = None) -> np.ndarray:
+    """[H, W] depth -> [H, W, 3] uint8 RGB (turbo colour map of inverse depth; invalid black)."""
+    depth = np.asarray(depth, dtype=np.float64)
+    ok = depth > 0 if valid is None else (np.asarray(valid, bool) & (depth > 0))
+    if not np.any(ok):
+        return np.zeros((*depth.shape, 3), np.uint8)
+    near = float(depth[ok].min()) if near is None else near
+    far = float(depth[ok].max()) if far is None else far
+    inv = np.where(ok, 1.0 / np.where(ok, depth, 1.0), 0.0)
+    lo, hi = 1.0 / far, 1.0 / near
+    x = np.clip((inv - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    bgr = cv2.applyColorMap(np.round(x * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    rgb = bgr[..., ::-1]
+    return np.where(ok[..., None], rgb, 0).astype(np.uint8)
+
+
+def ids_to_color(ids: np.ndarray) -> np.ndarray:
+    """[H, W] object ids (-1 invalid, 0 static, k object) -> [H, W, 3] uint8 RGB."""
+    ids = np.asarray(ids)
+    out = _ID_COLORS[np.clip(ids, 0, None) % len(_ID_COLORS)]
+    return np.where((ids < 0)[..., None], 0, out).astype(np.uint8)

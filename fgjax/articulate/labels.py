@@ -10,11 +10,13 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Float, Int
 from scipy.special import expit
 
 from fgjax import cluster
 from fgjax.articulate.phototrack import settle_at_rest
 from fgjax.config import ArticulateConfig
+from fgjax.data.scene import Scene
 from fgjax.gaussians import SH_C0, Gaussians, activate
 from fgjax.method.result import LoadedRun, render_capacity
 from fgjax.models.posed import transform_gaussians
@@ -25,7 +27,7 @@ __all__ = ["posed_geometry", "opaque", "joined", "fill_hulls", "drop_isolated", 
            "fade_ghosts"]
 
 
-def posed_geometry(base, labels: np.ndarray, poses: np.ndarray):
+def posed_geometry(base, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"]):
     """The reference geometry `base` (means, raw quats, log-scales) with each object moved by its pose, per
     time: (means [T, N, 3], raw quats [T, N, 4], log-scales [T, N, 3])."""
 
@@ -52,8 +54,8 @@ def joined(before: np.ndarray, after: np.ndarray) -> list[int]:
     return [int(np.sum((after == k) & (before != k))) for k in range(int(after.max(initial=-1)) + 1)]
 
 
-def fill_hulls(labels: np.ndarray, gs: Gaussians, alive, min_opacity: float, max_growth: float = np.inf,
-                log=print) -> np.ndarray:
+def fill_hulls(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, min_opacity: float, max_growth: float = np.inf,
+                log=print) -> Int[np.ndarray, " N"]:
     """`ArticulateConfig.hull_fill`: `fgjax.cluster.fill_hulls` on the reference scene ``gs`` (its centres, and
     its members with opacity >= ``min_opacity`` as each hull's core); labels [N] -> labels [N]. Logs how many
     joined each cluster."""
@@ -64,7 +66,7 @@ def fill_hulls(labels: np.ndarray, gs: Gaussians, alive, min_opacity: float, max
     return new
 
 
-def drop_isolated(labels: np.ndarray, gs: Gaussians, alive, factor: float, log=print) -> tuple[np.ndarray, list[int]]:
+def drop_isolated(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, factor: float, log=print) -> tuple[Int[np.ndarray, " N"], list[int]]:
     """`ArticulateConfig.isolated_factor`: `fgjax.cluster.drop_isolated` on the reference scene ``gs`` (centres of the
     alive Gaussians). Returns (labels [N], how many left each cluster [K]) and logs the counts."""
     new = cluster.drop_isolated(np.asarray(gs.means, np.float64), labels, factor, np.asarray(alive, bool))
@@ -77,8 +79,8 @@ def drop_isolated(labels: np.ndarray, gs: Gaussians, alive, factor: float, log=p
 COLOUR_MIN_OPACITY = 0.1  # `refine_by_colour`: fainter Gaussians' colours do not count (nor change label)
 
 
-def refine_by_colour(labels: np.ndarray, gs: Gaussians, alive, cfg: ArticulateConfig, seed: int,
-                      log=print) -> tuple[np.ndarray, list]:
+def refine_by_colour(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, cfg: ArticulateConfig, seed: int,
+                      log=print) -> tuple[Int[np.ndarray, " N"], list]:
     """`ArticulateConfig.colour_radius`: `fgjax.cluster.refine_by_colour` on the reference scene ``gs`` (centres and DC
     colours of the alive Gaussians with opacity >= 0.1). Returns (labels [N], the per-cluster report) and logs it."""
 
@@ -94,7 +96,7 @@ def refine_by_colour(labels: np.ndarray, gs: Gaussians, alive, cfg: ArticulateCo
     return new, report
 
 
-def settle(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, poses: np.ndarray, moving,
+def settle(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], moving,
             log=print) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """`ArticulateConfig.settle_rest`: `fgjax.articulate.phototrack.settle_at_rest` on the scene ``ref`` (stage 1's)
     with ``labels`` [N], the training frames in time order (`order`)."""
@@ -105,8 +107,8 @@ def settle(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, pos
                           tile_size=run.cfg.train.tile_size, log=log)
 
 
-def fill_hinges(labels: np.ndarray, gs: Gaussians, alive, poses: np.ndarray, cfg: ArticulateConfig,
-                 log=print) -> tuple[np.ndarray, list]:
+def fill_hinges(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, poses: Float[np.ndarray, "K T 4 4"], cfg: ArticulateConfig,
+                 log=print) -> tuple[Int[np.ndarray, " N"], list]:
     """`ArticulateConfig.hinge_fill`: `fgjax.cluster.fill_hinges` on the reference scene ``gs`` (centres; the core:
     alive members with opacity >= ``cfg.hull_opacity``) with the hinges of ``poses`` [K, T, 4, 4]
     (`fgjax.cluster.hinge_axes`). Returns (labels [N], hinges: per cluster {"axis", "pivot", "angle_deg"} or
@@ -152,7 +154,7 @@ class TileOverflow(ValueError):
     """A render overflowed its tile capacity, so the per-Gaussian weights it gave would be incomplete."""
 
 
-def seen_through(gs: Gaussians, alive, labels: np.ndarray, poses: np.ndarray, viewmats, Ks, width: int, height: int,
+def seen_through(gs: Gaussians, alive, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], viewmats, Ks, width: int, height: int,
                  *, capacity: int | None = None, tile_size: int = 16) -> np.ndarray:
     """Per Gaussian, the fraction of the weight it paints over the frames (sum over pixels p of T_p alpha_p, as in
     `fgjax.render.api.gaussian_weights`) that falls where the parts' members cover the pixel: [N] in [0, 1] (0 for
@@ -208,7 +210,7 @@ def seen_through(gs: Gaussians, alive, labels: np.ndarray, poses: np.ndarray, vi
     return np.clip(np.where(np.asarray(alive, bool), ratio, 0.0), 0.0, 1.0)
 
 
-def prune_seen_through(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, run: LoadedRun, scene, order,
+def prune_seen_through(gs: Gaussians, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"],
                         max_ratio: float, log=print) -> tuple[Gaussians, int]:
     """`ArticulateConfig.through_prune`: the alive static Gaussians of ``gs`` whose `seen_through` share over the
     training frames (time order ``order``, the parts at ``poses``) exceeds ``max_ratio`` get opacity ~0
@@ -228,7 +230,7 @@ def prune_seen_through(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, run
     return gs, int(pruned.sum())
 
 
-def fade_ghosts(gs: Gaussians, labels: np.ndarray, poses: np.ndarray, alive, cfg: ArticulateConfig,
+def fade_ghosts(gs: Gaussians, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], alive, cfg: ArticulateConfig,
                  log=print) -> Gaussians:
     """`ArticulateConfig.ghost_radius`: the opacity of alive static Gaussians of ``gs`` near the volume the parts
     sweep under ``poses`` [K, T, 4, 4] (`fgjax.cluster.near_swept`) capped at ``cfg.ghost_opacity``."""

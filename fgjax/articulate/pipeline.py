@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import Bool, Float
+from jaxtyping import Bool, Float, Int
 
 from fgjax import cluster
 from fgjax.articulate.articulation import (
@@ -113,8 +113,8 @@ def select_parts(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stag
 
 
 
-def tracked_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int, flows,
-                   cfg: ArticulateConfig, moving=None, log=print, seed: int = 0) -> tuple[np.ndarray, dict]:
+def tracked_poses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], num_objects: int, flows,
+                   cfg: ArticulateConfig, moving=None, log=print, seed: int = 0) -> tuple[Float[np.ndarray, "K T 4 4"], dict]:
     """(poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow (or the
     images, ``cfg.track_photo``) against the reference scene `ref` (stage 1 at t0, raw parameters), the joint
     fits' kinds and costs (`photometric_poses`; {} for the flow tracking)).
@@ -143,9 +143,9 @@ def photo_level_steps(n: int) -> tuple[int, int, int]:
     return max(1, round(0.4 * n)), max(1, round(0.4 * n)), max(1, n - 2 * round(0.4 * n))
 
 
-def photometric_poses(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
+def photometric_poses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], num_objects: int,
                        cfg: ArticulateConfig, moving, log=print, init_poses=None, fixed=None,
-                       prev_joints: dict | None = None, seed: int = 0) -> tuple[np.ndarray, dict]:
+                       prev_joints: dict | None = None, seed: int = 0) -> tuple[Float[np.ndarray, "K T 4 4"], dict]:
     """`tracked_poses` by `fgjax.articulate.phototrack` (``cfg.track_photo`` steps per frame; with
     ``init_poses``, ``cfg.track_photo_next`` where set) from the reference scene `ref` (raw parameters;
     ``init_poses`` [K, T, 4, 4]: an earlier round's poses, a further start of each frame): (poses [K, T, 4, 4],
@@ -311,8 +311,8 @@ def run_articulated(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config
                   t_start, refit=refit, log=log)
 
 
-def label_passes(run: LoadedRun, scene: Scene, order, reference: Gaussians, refit: Gaussians, labels: np.ndarray,
-                 poses: np.ndarray, moving, acfg: ArticulateConfig, seed: int, rounds: int, log=print):
+def label_passes(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], reference: Gaussians, refit: Gaussians, labels: Int[np.ndarray, " N"],
+                 poses: Float[np.ndarray, "K T 4 4"], moving, acfg: ArticulateConfig, seed: int, rounds: int, log=print):
     """After the last round: hull and hinge fills, isolated members, colour outlines, still spans settled at rest,
     static Gaussians seen through the parts pruned, then ``acfg.hull_refit_steps`` of re-fit under the new labels.
     Returns (re-fitted scene, labels [N], poses [K, T, 4, 4], a record of what each pass changed)."""

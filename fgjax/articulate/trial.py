@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from jaxtyping import Float, Int
 
 from fgjax.articulate.articulation import (
     displaced_frames,
@@ -18,6 +19,7 @@ from fgjax.articulate.labels import refine_by_colour
 from fgjax.articulate.phototrack import hinge_offset, is_far_hinge, largest_turn_deg
 from fgjax.articulate.refit import posed_losses, refit_gaussians
 from fgjax.config import ArticulateConfig
+from fgjax.data.scene import Scene
 from fgjax.gaussians import Gaussians
 from fgjax.method.result import LoadedRun, render_capacity
 
@@ -86,9 +88,9 @@ def trial_slides(points, poses, min_deg: float = 2.0) -> list[tuple]:
     return out
 
 
-def hinge_trial(run: LoadedRun, scene, order, ref: Gaussians, labels: np.ndarray, num_objects: int,
-                 poses: np.ndarray, kinds, offsets, cfg: ArticulateConfig, objects, seed: int = 0,
-                 log=print) -> tuple[np.ndarray, dict]:
+def hinge_trial(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], num_objects: int,
+                 poses: Float[np.ndarray, "K T 4 4"], kinds, offsets, cfg: ArticulateConfig, objects, seed: int = 0,
+                 log=print) -> tuple[Float[np.ndarray, "K T 4 4"], dict]:
     """Each far hinge (``ArticulateConfig.hinge_trial``) tried against hinges along its part's own edges and against
     slides, by re-fits.
 

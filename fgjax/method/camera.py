@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from fgjax import geometry
 from fgjax.geometry import HIGHEST, full_precision, matmul
@@ -26,7 +27,8 @@ from fgjax.method.init_points import pixel_rays
 __all__ = ["project_rows", "rigid_increment", "bucket_size", "pixel_points", "fit_pixels", "camera_correction"]
 
 
-def project_rows(moved, viewmat, K):
+def project_rows(moved: Float[ArrayLike, "*batch M 3"], viewmat: Float[ArrayLike, "*batch 4 4"],
+                 K: Float[ArrayLike, "*batch 3 3"]) -> tuple[Float[Array, "*batch M 2"], Bool[Array, "*batch M"]]:
     """Pixels [..., M, 2] of world points `moved` [..., M, 3] in cameras `viewmat` [..., 4, 4], `K` [..., 3, 3]
     (points at or behind z = 1e-3 give 0 and are flagged False)."""
     pc = jnp.einsum("...mj,...ij->...mi", moved, viewmat[..., :3, :3], precision=HIGHEST) + viewmat[..., None, :3, 3]
@@ -49,7 +51,9 @@ def _residuals(xi, args):
 
 @functools.partial(jax.jit, static_argnames=("irls",))
 @full_precision  # the solver's normal equations too (no TF32 on GPUs)
-def rigid_increment(pts, target, weights, viewmat, K, *, irls: int = 2, huber_px: float = 1.0):
+def rigid_increment(pts: Float[ArrayLike, "M 3"], target: Float[ArrayLike, "M 2"], weights: Float[ArrayLike, " M"],
+                    viewmat: Float[ArrayLike, "4 4"], K: Float[ArrayLike, "3 3"], *, irls: int = 2,
+                    huber_px: float = 1.0) -> tuple[Float[Array, "4 4"], Float[Array, ""]]:
     """Rigid motion (about the weighted centroid) moving world points `pts` [M, 3] onto pixels `target`
     [M, 2] of camera (`viewmat`, `K`): returns (Delta [4, 4] world transform, RMS pixel error of the inliers).
 
@@ -111,8 +115,10 @@ def fit_pixels(xy, depth, flow, viewmat0, K0, viewmat1, K1, **kw):
     return rigid_increment(pts, target, w, jnp.asarray(viewmat1), jnp.asarray(K1), **kw)
 
 
-def camera_correction(depth, valid, flow, viewmat0, viewmat1, K, *, huber_px: float = 1.0, irls: int = 5,
-                      min_pixels: int = 100, max_pixels: int = 4096) -> tuple[np.ndarray, float, int]:
+def camera_correction(depth: Float[ArrayLike, "H W"], valid: Bool[ArrayLike, "H W"], flow: Float[ArrayLike, "H W 2"],
+                      viewmat0: Float[ArrayLike, "4 4"], viewmat1: Float[ArrayLike, "4 4"], K: Float[ArrayLike, "3 3"],
+                      *, huber_px: float = 1.0, irls: int = 5, min_pixels: int = 100,
+                      max_pixels: int = 4096) -> tuple[Float[np.ndarray, "4 4"], float, int]:
     """Camera t's pose corrected so that the static scene explains the observed flow t-1 -> t.
 
     With noisy poses, u_cam (the flow the camera alone causes) inherits the pose error, about one pixel

@@ -28,6 +28,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from fgjax import cluster
 from fgjax.gaussians import Gaussians, activate
@@ -114,7 +115,9 @@ def _deformed_fn(spec, static: bool):
     return jax.jit(f)
 
 
-def with_geometry(params, means, quats, log_scales):
+def with_geometry(params: dict, means: Float[ArrayLike, "N 3"], quats: Float[ArrayLike, "N 4"],
+                  log_scales: Float[ArrayLike, "N 3"]) -> dict:
+    """``params`` with its Gaussians' centres, raw quaternions and log-scales replaced (opacities and SH kept)."""
     g: Gaussians = params["gaussians"]
     return {**params, "gaussians": Gaussians(means, log_scales, quats, g.opacity_logits, g.sh)}
 
@@ -142,8 +145,10 @@ def reference_scene(run: LoadedRun, t: float) -> Gaussians:
     return Gaussians(m, ls, q, g.opacity_logits, g.sh)
 
 
-def controlled_gaussians(control: ControlNet, base, canonical, labels, vectors, rigid: bool = False):
-    """Geometry of the controlled scene (module docstring, step 4).
+def controlled_gaussians(control: ControlNet, base: tuple, canonical: Float[ArrayLike, "N 3"], labels: Int[ArrayLike, " N"],
+                         vectors: Float[ArrayLike, "K 3"], rigid: bool = False
+                         ) -> tuple[Float[Array, "N 3"], Float[Array, "N 4"], Float[Array, "N 3"]]:
+    """Geometry of the controlled scene (module docstring).
 
     Args:
         control: `ControlNet`.
@@ -298,7 +303,7 @@ def save_stage2(run_dir: Path, s2: Stage2Result) -> Path:
     return p
 
 
-def cluster_vectors_at(s2: Stage2Result, t: float) -> np.ndarray:
+def cluster_vectors_at(s2: Stage2Result, t: float) -> Float[np.ndarray, "K 3"]:
     """[K, 3] v_c(t, k) = ς(t, k) - ς(t0, k), linear in time between the stored samples."""
     tt = s2.traj_times
     out = np.zeros((s2.num_objects, 3))
@@ -308,7 +313,7 @@ def cluster_vectors_at(s2: Stage2Result, t: float) -> np.ndarray:
     return out
 
 
-def snap_vector(s2: Stage2Result, k: int, vector) -> tuple[np.ndarray, float]:
+def snap_vector(s2: Stage2Result, k: int, vector: Float[ArrayLike, "3"]) -> tuple[Float[np.ndarray, "3"], float]:
     """Snap a user displacement for object k (0-based) to its trajectory: (vector on ς(·, k), time)."""
     if not 0 <= k < s2.num_objects:
         raise ValueError(f"object {k + 1} out of range: the run has {s2.num_objects} object(s) (1..{s2.num_objects})")
@@ -316,7 +321,8 @@ def snap_vector(s2: Stage2Result, k: int, vector) -> tuple[np.ndarray, float]:
     return snap.point - s2.traj[k, 0], snap.t
 
 
-def render_controlled(run: LoadedRun, vectors, viewmat, K, width: int, height: int) -> np.ndarray:
+def render_controlled(run: LoadedRun, vectors: Float[ArrayLike, "K 3"], viewmat: Float[ArrayLike, "4 4"],
+                      K: Float[ArrayLike, "3 3"], width: int, height: int) -> Float[np.ndarray, "H W 3"]:
     """Image [H, W, 3] of the controlled scene for per-cluster vectors [K, 3] (used as given, not snapped)."""
     s2 = run.s2
     if s2 is None:
@@ -330,7 +336,8 @@ def render_controlled(run: LoadedRun, vectors, viewmat, K, width: int, height: i
     return np.clip(np.asarray(img), 0.0, 1.0)
 
 
-def posed_base(run: LoadedRun, labels, poses):
+def posed_base(run: LoadedRun, labels: Int[ArrayLike, " N"], poses: Float[ArrayLike, "K 4 4"]
+               ) -> tuple[Float[Array, "N 3"], Float[Array, "N 4"], Float[Array, "N 3"]]:
     """(means [N, 3], raw quats [N, 4], log-scales [N, 3]) of the controlled scene's reference (`LoadedRun.base`)
     with each object's Gaussians (``labels`` [N], -1 static) moved rigidly by its pose (``poses`` [K, 4, 4],
     x -> R x + t in scene units; finite); no control network."""
@@ -348,9 +355,10 @@ def posed_base(run: LoadedRun, labels, poses):
     return m, q, ls0
 
 
-def render_clusters(run: LoadedRun, viewmat, K, width: int, height: int, *, t: float | None = None,
-                    vectors=None, source: str = "stage1", alpha_threshold: float = 0.5, labels=None,
-                    poses=None) -> np.ndarray:
+def render_clusters(run: LoadedRun, viewmat: Float[ArrayLike, "4 4"], K: Float[ArrayLike, "3 3"], width: int,
+                    height: int, *, t: float | None = None, vectors: Float[ArrayLike, "K 3"] | None = None,
+                    source: str = "stage1", alpha_threshold: float = 0.5, labels: Int[ArrayLike, " N"] | None = None,
+                    poses: Float[ArrayLike, "K 4 4"] | None = None) -> Int[np.ndarray, "H W"]:
     """Per-pixel object ids [H, W] int (0 = static or background, k = cluster k - 1 + 1).
 
     One-hot cluster features (channel 0 for every Gaussian outside the clusters, channel k for

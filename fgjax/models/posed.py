@@ -11,6 +11,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from fgjax import geometry
 from fgjax.geometry import HIGHEST
@@ -18,7 +19,7 @@ from fgjax.geometry import HIGHEST
 __all__ = ["quat_multiply", "transform_gaussians", "fit_group_poses", "label_onehot"]
 
 
-def quat_multiply(a, b):
+def quat_multiply(a: Float[ArrayLike, "*batch 4"], b: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Hamilton product a * b of wxyz quaternions [..., 4] (rotation b first, then a)."""
     aw, ax, ay, az = jnp.moveaxis(jnp.asarray(a), -1, 0)
     bw, bx, by, bz = jnp.moveaxis(jnp.asarray(b), -1, 0)
@@ -26,7 +27,8 @@ def quat_multiply(a, b):
                       aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
 
 
-def transform_gaussians(means, quats, labels, poses):
+def transform_gaussians(means: Float[ArrayLike, "N 3"], quats: Float[ArrayLike, "N 4"], labels: Int[ArrayLike, " N"],
+                        poses: Float[ArrayLike, "K 4 4"]) -> tuple[Float[Array, "N 3"], Float[Array, "N 4"]]:
     """Move each labelled Gaussian rigidly by its object's pose: (means [N, 3], raw quats [N, 4]).
 
     ``poses`` [K, 4, 4] world-space rigid transforms (x -> R x + t); ``labels`` [N] in -1..K-1 (-1: not
@@ -41,7 +43,8 @@ def transform_gaussians(means, quats, labels, poses):
     return jnp.where(moved[:, None], m, means), jnp.where(moved[:, None], q, quats)
 
 
-def fit_group_poses(src, dst, labels, num_objects: int, min_points: int = 3):
+def fit_group_poses(src: Float[ArrayLike, "N 3"], dst: Float[ArrayLike, "N 3"], labels: Int[ArrayLike, " N"],
+                    num_objects: int, min_points: int = 3) -> Float[Array, "K 4 4"]:
     """Each object's best rigid motion of its points: poses [K, 4, 4] (x -> R x + t, world space) minimising
     sum_i |R src_i + t - dst_i|^2 over the points with ``labels`` [N] == k (Kabsch: t from the centroids, R from
     the SVD of their cross-covariance, its determinant made +1). ``src``, ``dst``: [N, 3]; labels in -1..K-1
@@ -77,7 +80,7 @@ def _fit_group_poses(src, dst, labels, num_objects, min_points):
     return geometry.make_pose(rot, t)
 
 
-def label_onehot(labels, num_objects: int) -> np.ndarray:
+def label_onehot(labels: Int[ArrayLike, " N"], num_objects: int) -> Float[np.ndarray, "N K+1"]:
     """Per-Gaussian features [N, K + 1] float32 for rendering object masks: channel 0 for the static
     Gaussians (label -1), channel k + 1 for object k."""
     labels = np.asarray(labels)

@@ -32,9 +32,9 @@ import cv2
 import imageio.v3 as iio
 import numpy as np
 
+from fgjax import synth
 from fgjax.articulate.pipeline import run_articulated
 from fgjax.config import Config, load_config
-from fgjax.data import synth
 from fgjax.data.loaders import load_scene
 from fgjax.data.opticalflow import estimate_flow
 from fgjax.io import write_video
@@ -42,9 +42,9 @@ from fgjax.method import stage1
 from fgjax.method.evaluate import write_control_metrics
 from fgjax.method.result import cluster_vectors_at, load_stage2, render_clusters, render_controlled
 from fgjax.method.stage2 import run_stage2
-from fgjax.viz import depth_to_color, ids_to_color
+from fgjax.viz import depth_to_color, ids_to_color, to_u8
 
-__all__ = ["main", "contact_sheet", "pipeline_configs"]
+__all__ = ["main", "contact_sheet", "pipeline_configs", "sweep_times", "changed_share"]
 
 EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
 
@@ -200,6 +200,56 @@ def pipeline_configs(flow_cache: Path, *, quick: bool, overrides: list[str], con
     return dataclasses.replace(cfg, stage2=dataclasses.replace(cfg.stage2, flow_cache=str(flow_cache)))
 
 
+def sweep_times(s2, k: int, n: int = 9) -> np.ndarray:
+    """[n] times from the reference time t0 to the time where object ``k``'s trajectory is farthest from its
+    reference position (`fgjax.method.result.cluster_vectors_at`): the sweep moves it through its whole range."""
+    disp = np.linalg.norm(s2.traj[k] - s2.traj[k, :1], axis=-1)  # [T]
+    return np.linspace(s2.traj_times[0], s2.traj_times[int(np.argmax(disp))], n)
+
+
+def changed_share(a: np.ndarray, b: np.ndarray, mask: np.ndarray, threshold: int = 20) -> float:
+    """Share of the pixels in ``mask`` [H, W] where the uint8 images ``a`` and ``b`` [H, W, 3] differ by more than
+    ``threshold`` in some channel (0 where the mask is empty)."""
+    diff = np.abs(a.astype(np.int16) - b.astype(np.int16)).max(-1) > threshold  # [H, W]
+    return float(diff[mask].mean()) if mask.any() else 0.0
+
+
+def write_control_pictures(out: Path, run, train) -> list[float]:
+    """OUT/control_sheet.png (a training frame, the controlled scene at v = 0, its object ids, each object at its
+    largest displacement) and OUT/control.mp4 (each object swept from rest to that displacement and back, captioned),
+    seen from the first training camera; prints where they went and how visibly each object moves
+    (`changed_share` over its pixels at both ends). Returns those shares, one per object."""
+    s2 = run.s2
+    u8 = to_u8
+    vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height
+    v0 = np.zeros((max(s2.num_objects, 1), 3))  # v = 0 for every object
+    ids = render_clusters(run, vm, K, w, h, vectors=v0 if s2.num_objects else None)  # the scene beside it
+    rgb0 = render_controlled(run, v0, vm, K, w, h)
+    tiles = [_label(_up(u8(train.images[0]), max(1, 240 // w)), "training frame 0"),
+             _label(_up(u8(rgb0), max(1, 240 // w)), "stage 2, v = 0"),
+             _label(_up(ids_to_color(ids), max(1, 240 // w)), f"{s2.num_objects} object(s) found")]
+    frames, moved = [], []
+    for k in range(s2.num_objects):
+        times = sweep_times(s2, k)
+        raw = []
+        for t in np.concatenate([times, times[::-1][1:]]):
+            vec = np.zeros((s2.num_objects, 3))
+            vec[k] = cluster_vectors_at(s2, t)[k]
+            raw.append(u8(render_controlled(run, vec, vm, K, w, h)))
+            frames.append(_pad16(_label(_up(raw[-1], max(1, 320 // w)), f"object {k + 1}")))
+        far = len(times) - 1  # the object at its largest displacement
+        ids_far = render_clusters(run, vm, K, w, h, vectors=np.where(np.arange(s2.num_objects)[:, None] == k,
+                                                                      cluster_vectors_at(s2, times[-1]), 0.0))
+        moved.append(changed_share(raw[0], raw[far], (ids == k + 1) | (ids_far == k + 1)))
+        tiles.append(_label(_up(raw[far], max(1, 240 // w)), f"object {k + 1} moved"))
+    sheet = out / "control_sheet.png"
+    iio.imwrite(sheet, np.concatenate([np.pad(x, ((2, 2), (2, 2), (0, 0)), constant_values=255) for x in tiles], 1))
+    print(f"control sheet: {sheet}")
+    if frames:
+        print(f"control video: {write_video(frames, out / 'control.mp4')}")
+    return moved
+
+
 def _pipeline(out: Path, scene_dir: Path, cfg: Config, *, say) -> None:
     """Optical flow -> stage 1 -> discovery/stage 2 -> control (sweep videos, cluster map) -> eval."""
     t0 = time.perf_counter()
@@ -214,34 +264,17 @@ def _pipeline(out: Path, scene_dir: Path, cfg: Config, *, say) -> None:
     stage1.run(cfg, scene_dir, run_dir, log=say)
     say(f"demo: stage 1 done ({time.perf_counter() - t0:.1f} s)")
     if cfg.stage2.variant == "articulated":
-        s2 = run_articulated(run_dir, scene_dir, cfg.stage2, cfg.articulate, log=say)
+        run_articulated(run_dir, scene_dir, cfg.stage2, cfg.articulate, log=say)
     else:
-        s2 = run_stage2(run_dir, scene_dir, cfg.stage2, log=say)
+        run_stage2(run_dir, scene_dir, cfg.stage2, log=say)
     run = load_stage2(run_dir)
-    vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height
-    v0 = np.zeros((max(s2.num_objects, 1), 3))  # v = 0 for every object
-    ids = render_clusters(run, vm, K, w, h, vectors=v0 if s2.num_objects else None)  # the scene beside it
-    rgb0 = render_controlled(run, v0, vm, K, w, h)
-    tiles = [_label(_up(u8(train.images[0]), max(1, 240 // w)), "training frame 0"),
-             _label(_up(u8(rgb0), max(1, 240 // w)), "stage 2, v = 0"),
-             _label(_up(ids_to_color(ids), max(1, 240 // w)), f"{s2.num_objects} object(s) found")]
-    frames = []
-    for k in range(s2.num_objects):
-        raw = []
-        for t in np.concatenate([np.linspace(0, 1, 9), np.linspace(1, 0, 9)[1:]]):
-            vec = np.zeros((s2.num_objects, 3))
-            vec[k] = cluster_vectors_at(s2, s2.traj_times[0] + t * (s2.traj_times[-1] - s2.traj_times[0]))[k]
-            raw.append(u8(render_controlled(run, vec, vm, K, w, h)))
-            frames.append(_pad16(_up(raw[-1], max(1, 320 // w))))
-        tiles.append(_label(_up(raw[8], max(1, 240 // w)), f"object {k + 1} moved"))  # t = 1: end of its range
-    sheet = out / "control_sheet.png"
-    iio.imwrite(sheet, np.concatenate([np.pad(x, ((2, 2), (2, 2), (0, 0)), constant_values=255) for x in tiles], 1))
+    moved = write_control_pictures(out, run, train)
     print(f"run:           {run_dir} (stage 1 + stage2.npz)")
-    print(f"control sheet: {sheet}")
-    if frames:
-        print(f"control video: {write_video(frames, out / 'control.mp4')}")
     res = write_control_metrics(run, scene_dir)
     print(f"metrics:       {run_dir / 'metrics.json'}")
+    if moved:
+        print("visible motion: " + ", ".join(f"object {k + 1} {100 * m:.0f}%" for k, m in enumerate(moved))
+              + " of its pixels change by more than 20/255 between the ends of its sweep")
     if res:
         print(f"objects found: {res['num_objects_found']} of {res['num_objects_gt']}; ARI {res['ari']:.3f}, "
               f"ARI of the controlled scene {res['ari_controlled']:.3f}; held-out states "

@@ -38,10 +38,10 @@ from jaxtyping import Bool, Float
 from fgjax import cluster
 from fgjax import flow as fl
 from fgjax.config import Stage2Config
-from fgjax.data.loaders import viewmat_to_c2w
 from fgjax.data.opticalflow import estimate_flow
 from fgjax.data.scene import Scene
 from fgjax.gaussians import activate
+from fgjax.geometry import viewmat_to_c2w
 from fgjax.method.camera import camera_correction
 from fgjax.method.result import LoadedRun, with_geometry
 from fgjax.render.api import gaussian_weights, rasterization

@@ -1,7 +1,7 @@
 """``fgjax eval --run RUN [--data DATA]``: control metrics against ground truth (synthetic gt/ only).
 
 Only this module reads ground truth; the pipeline never does. When DATA/gt/meta.json exists
-(`fgjax.data.synth`), RUN/metrics.json gets a ``"control"`` entry (written atomically, other entries
+(`fgjax.synth`), RUN/metrics.json gets a ``"control"`` entry (written atomically, other entries
 kept):
 
 - ``ari``: adjusted Rand index of per-pixel object ids (`fgjax.method.result.render_clusters` with the stage-1
@@ -23,7 +23,7 @@ kept):
   vote: evaluation only). A control vector is the displacement of the cluster's centroid (its
   trajectory ς(t, k) is the mean centre of its Gaussians), so the gt state is turned into a vector
   the same way: the gt rigid motion of the matched object from its state at the reference (first)
-  training frame to the held-out state (`fgjax.data.synth.object_transform`) applied to the
+  training frame to the held-out state (`fgjax.synth.object_transform`) applied to the
   cluster's reference centroid; the vector is snapped to the cluster's trajectory and fed to the
   control network.
 - ``state_psnr_centre``: the same with the displacement of the gt object's centre instead. For a rotating part this differs from the centroid's displacement whenever the
@@ -88,18 +88,18 @@ from sklearn.neighbors import NearestNeighbors
 from fgjax import metrics
 from fgjax.data.loaders import load_scene
 from fgjax.data.scene import Normalization
-from fgjax.data.synth import SynthObject, object_transform
 from fgjax.io import atomic_write
 from fgjax.method import result
 from fgjax.method.stage1 import refined_viewmats, render_frame
 from fgjax.metrics import rotation_angle_deg
+from fgjax.synth import SynthObject, object_transform
 
 __all__ = ["write_control_metrics", "align_cameras", "run_camera", "apply_alignment", "camera_errors", "error_by_object", "evaluate_control", "gt_labels_of_gaussians",
            "gt_motion_scene", "gt_objects", "gt_point_motion"]
 
 
 def gt_motion_scene(obj, s_from: float, s_to: float, norm) -> np.ndarray:
-    """The gt rigid motion [4, 4] (x -> R x + t) of synthetic object `obj` (`fgjax.data.synth.SynthObject`)
+    """The gt rigid motion [4, 4] (x -> R x + t) of synthetic object `obj` (`fgjax.synth.SynthObject`)
     from state `s_from` to state `s_to`, in the run's scene units (`norm`: the run's `Normalization`,
     x_scene = scale (x_world - centre)): R is unchanged and t = scale (R c + t_world - c)."""
     mo = object_transform(obj, float(s_to)) @ np.linalg.inv(object_transform(obj, float(s_from)))
@@ -110,7 +110,7 @@ def gt_motion_scene(obj, s_from: float, s_to: float, norm) -> np.ndarray:
 
 
 def gt_point_motion(obj, s_from: float, s_to: float, point, norm):
-    """Where the gt motion of synthetic object `obj` (`fgjax.data.synth.SynthObject`) from state `s_from` to
+    """Where the gt motion of synthetic object `obj` (`fgjax.synth.SynthObject`) from state `s_from` to
     state `s_to` takes a point given in the run's scene units (`norm`: the run's `Normalization`); scene
     units [3]."""
     tr = gt_motion_scene(obj, s_from, s_to, norm)
@@ -178,7 +178,7 @@ def apply_alignment(viewmats, s: float, rot, t) -> np.ndarray:
 
 
 def gt_objects(meta: dict) -> dict:
-    """The synthetic objects of a scene's gt/meta.json, by label: {label: `fgjax.data.synth.SynthObject`}."""
+    """The synthetic objects of a scene's gt/meta.json, by label: {label: `fgjax.synth.SynthObject`}."""
     return {int(o["label"]): SynthObject(**{f: (np.asarray(v, np.float64) if isinstance(v, list) else v)
                                             for f, v in o.items()}) for o in meta.get("objects", [])}
 

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from fgjax.bench import motion
-from fgjax.pipeline import stage1
 
 
 @pytest.fixture(scope="module")
@@ -24,13 +23,13 @@ def tiny(tmp_path_factory):
 def test_motion_report_measures_a_known_translation(tiny, monkeypatch, tmp_path, capsys):
     run_dir, data = tiny
     shift = np.array([0.036, -0.048, 0.0])  # |shift| = 0.06
-    real = stage1._deformed
+    real = motion.deformed_gaussians
 
     def shifted(params, alive, t, spec):
         m, *rest = real(params, alive, t, None)  # the canonical Gaussians ...
         return (m + shift * (t > 0.5), *rest)  # ... translated in the second half of the video only
 
-    monkeypatch.setattr(stage1, "_deformed", shifted)
+    monkeypatch.setattr(motion, "deformed_gaussians", shifted)
     r = motion.motion_report(run_dir, data, num_times=5)
     live = r["live_gaussians"]
     assert live > 0
@@ -43,7 +42,7 @@ def test_motion_report_measures_a_known_translation(tiny, monkeypatch, tmp_path,
             assert o["learned_max_displacement"] == pytest.approx(0.06, rel=1e-5)
     assert np.isfinite(r["psnr_static_pixels"])
     # the CLI prints the table and writes the same report
-    monkeypatch.setattr(stage1, "_deformed", real)
+    monkeypatch.setattr(motion, "deformed_gaussians", real)
     out = tmp_path / "m.json"
     assert motion.main(["--run", str(run_dir), "--data", str(data), "--json", str(out)]) == 0
     assert "learned" in capsys.readouterr().out and json.loads(out.read_text())["objects"]

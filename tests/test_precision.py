@@ -18,7 +18,8 @@ from conftest import look_at
 
 import fgjax
 from fgjax import flow, geometry
-from fgjax.pipeline import phototrack, track
+from fgjax.articulate import phototrack, track
+from fgjax.method import camera
 from fgjax.render.project import project_gaussians
 
 W, H = 32, 24
@@ -144,7 +145,7 @@ def test_joint_fit_and_rigid_increment_at_full_precision(kind):
     centre = f(np.zeros(3))
     assert _check(lambda *a: track._fit_joint_jit(*a, kind=kind, irls=1, huber_px=1.0),
                   x0, pts, target, w, vms, ks, centre) >= 3
-    assert _check(lambda p, t: track.rigid_increment(p, t, w[0], vms[0], ks[0], irls=1), pts[0], target[0]) >= 3
+    assert _check(lambda p, t: camera.rigid_increment(p, t, w[0], vms[0], ks[0], irls=1), pts[0], target[0]) >= 3
 
 
 def test_tracking_transforms_at_full_precision():
@@ -160,7 +161,7 @@ def test_stage1_step_at_full_precision_but_the_fields_mlps():
     at HIGHEST except the learned deformation field's MLP (fgjax/models), which may use TF32."""
     from test_stage1 import _cfg, _tiny_scene
 
-    from fgjax.pipeline import stage1
+    from fgjax.method import stage1
     from fgjax.train.optim import OptimSpec, make_optimizer
 
     scene = _tiny_scene(True, frames=3)
@@ -168,7 +169,7 @@ def test_stage1_step_at_full_precision_but_the_fields_mlps():
     params = dict(state.params, pose=jnp.zeros((3, 6), jnp.float32))
     ospec = OptimSpec(steps=10)
     ss = stage1.StepSpec(spec, 1, scene.width, scene.height, 16384, 8, 0.2, 0.0, 0.05, True)
-    step = stage1._make_step(ss, ospec, 4, (0.0, 0.0, 0.0))
+    step = stage1.make_step(ss, ospec, 4, (0.0, 0.0, 0.0))
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     i = np.array([1])
     args = (params, make_optimizer(ospec, 4).init(params), state.densify, jnp.ones(4, jnp.float32),

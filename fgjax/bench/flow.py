@@ -26,6 +26,7 @@ import numpy as np
 
 from fgjax import flow as fl
 from fgjax import geometry as g
+from fgjax.render.api import rasterization
 
 BASE_TWIST = (0.002, -0.003, 0.0015, 0.012, 0.006, 0.009)  # [omega (rad), v (scene units)] per unit s
 
@@ -73,8 +74,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeats", type=int, default=21)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
-
-    from fgjax.render.api import rasterization
 
     w, h = args.width, args.height
     means, quats, scales, opac, c2w0, K = _scene(args.n_gaussians, w, h, args.seed)

@@ -21,6 +21,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
+
+from fgjax.data.loaders import load_scene
+from fgjax.data.scene import Normalization
+from fgjax.io import atomic_write
+from fgjax.method.stage1 import load_run, render_frame
+from fgjax.models.model import deformed_gaussians
 
 __all__ = ["main", "motion_report"]
 
@@ -31,10 +38,6 @@ def _pooled_psnr(err2: np.ndarray) -> float:
 
 def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21) -> dict:
     """The measurements above as a dict (see the module docstring)."""
-    from fgjax.data.loaders import load_scene
-    from fgjax.data.scene import Normalization
-    from fgjax.pipeline.stage1 import _deformed, load_run, render_frame
-
     gt = data_dir / "gt"
     for f in ("meta.json", "canonical.npz", "train/centres.npy", "test/object_id.npy", "test/kind.npy"):
         if not (gt / f).exists():
@@ -61,7 +64,7 @@ def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21) -> dict:
     times = np.linspace(0.0, 1.0, num_times)
     deformed = [can]  # [num_times][N, 3]
     if spec is not None and not state.static:
-        deformed = [np.asarray(_deformed(state.params, state.densify.alive, float(t), spec)[0]) for t in times]
+        deformed = [np.asarray(deformed_gaussians(state.params, state.densify.alive, float(t), spec)[0]) for t in times]
     disp = np.max([np.linalg.norm(m - can, axis=-1) for m in deformed], axis=0)  # [N]
     res["moving_gaussians"] = {str(th): int(np.sum(alive & (disp > th))) for th in (0.01, 0.05, 0.1)}
     res["live_gaussians"] = int(alive.sum())
@@ -69,7 +72,6 @@ def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21) -> dict:
     gt_pts = norm.points_to_scene(np.asarray(canon["means"], np.float64))  # [M, 3]
     gt_lab = np.asarray(canon["labels"])
     centres = np.load(gt / "train" / "centres.npy")  # [T, K, 3] world units
-    from scipy.spatial import cKDTree
 
     live = np.flatnonzero(alive)
     dist, nn = cKDTree(gt_pts).query(can[live])
@@ -109,7 +111,5 @@ def main(argv: list[str] | None = None) -> int:
     print(f"live Gaussians {r['live_gaussians']}; moving more than 0.01 / 0.05 / 0.1: "
           f"{mv['0.01']} / {mv['0.05']} / {mv['0.1']}")
     if args.json:
-        from fgjax.io import atomic_write
-
         atomic_write(Path(args.json), lambda f: f.write(json.dumps(r, indent=1).encode()))
     return 0

@@ -29,9 +29,12 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from fgjax.data import flowio as fio
 from fgjax.data import opticalflow as of
+from fgjax.io import atomic_write
 
 DEFAULT_SPECS = (
     "dis_deepflow",
@@ -65,15 +68,13 @@ def _default_data_dir() -> Path:
 
 
 def _load_pairs(data: Path) -> list[_Pair]:
-    import cv2
-
     pairs = []
     mb = data / "middlebury"
     if mb.is_dir():
         for seq in sorted(p for p in mb.iterdir() if (p / "flow10.flo").is_file()):
-            gt = of.read_flo(seq / "flow10.flo")
-            pairs.append(_Pair("middlebury", seq.name, of.read_image(seq / "frame10.png"),
-                               of.read_image(seq / "frame11.png"), gt, of.flow_valid_mask(gt)))
+            gt = fio.read_flo(seq / "flow10.flo")
+            pairs.append(_Pair("middlebury", seq.name, fio.read_image(seq / "frame10.png"),
+                               fio.read_image(seq / "frame11.png"), gt, fio.flow_valid_mask(gt)))
     si = data / "sintel"
     if si.is_dir():
         for scene in sorted(p for p in si.iterdir() if (p / "gt").is_dir()):
@@ -82,13 +83,13 @@ def _load_pairs(data: Path) -> list[_Pair]:
                 f0, f1 = scene / f"frame_{k:04d}.png", scene / f"frame_{k + 1:04d}.png"
                 if not (f0.is_file() and f1.is_file()):
                     continue
-                gt = of.read_flo(flo)
-                valid = of.flow_valid_mask(gt)
+                gt = fio.read_flo(flo)
+                valid = fio.flow_valid_mask(gt)
                 for sub in ("occlusions", "invalid"):
                     m = scene / "gt" / sub / f"{flo.stem}.png"
                     if m.is_file():
                         valid &= cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) == 0
-                pairs.append(_Pair("sintel", f"{scene.name}/{flo.stem}", of.read_image(f0), of.read_image(f1), gt, valid))
+                pairs.append(_Pair("sintel", f"{scene.name}/{flo.stem}", fio.read_image(f0), fio.read_image(f1), gt, valid))
     return pairs
 
 
@@ -162,8 +163,6 @@ def _verdict(res: dict, pairs: list[_Pair]) -> str | None:
 
 
 def _machine() -> str:
-    import cv2
-
     return (f"{platform.machine()} {platform.system()}, {os.cpu_count()} CPUs visible, OpenCV {cv2.__version__} "
             f"({cv2.getNumThreads()} threads), Python {platform.python_version()}")
 
@@ -179,7 +178,7 @@ def _record(path: Path, block: str) -> None:
         new = (text.rstrip() + "\n\n" if text.strip() else "") + section + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
     data = new.encode()
-    of._atomic_write(path, lambda f: f.write(data))
+    atomic_write(path, lambda f: f.write(data))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,6 +10,7 @@ against the float64 dense reference on a crop (the dense reference is O(H W N)).
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import platform
 import resource
@@ -20,6 +21,12 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from fgjax.render import api, tiles
+from fgjax.render import composite as comp
+from fgjax.render.api import count_intersections, rasterization, round_capacity
+from fgjax.render.project import project_gaussians
+from fgjax.render.reference import rasterize_dense
 
 DEFAULT_GARDEN = pathlib.Path(__file__).resolve().parents[2].parent / "shared" / "data" / "garden" / "test_garden.npz"
 
@@ -88,11 +95,8 @@ def dense_error(args, w, h, tile_size, crop):
 
     Only Gaussians whose tile rectangle touches the crop are passed to the (O(H W N)) reference.
     """
-    import fgjax
-    from fgjax.render.reference import rasterize_dense
-
     cargs, (cw, ch) = crop_scene(args, w, h, *crop)
-    img, _, info = fgjax.rasterization(*cargs, cw, ch, tile_size=tile_size)
+    img, _, info = rasterization(*cargs, cw, ch, tile_size=tile_size)
     rect = np.asarray(info["tile_rect"])
     sel = (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
     with jax.enable_x64(True):
@@ -104,17 +108,14 @@ def dense_error(args, w, h, tile_size, crop):
 
 
 def bench_scene(name, args, w, h, tile_sizes, repeats, crop, check_error=True):
-    import fgjax
-    from fgjax.render.api import _round_capacity, count_intersections
-
     rows = []
     for ts in tile_sizes:
         need = int(count_intersections(*args[:4], args[5], args[6], width=w, height=h, tile_size=ts))
-        cap = _round_capacity(need)
-        fwd = jax.jit(lambda *a, ts=ts, cap=cap: fgjax.rasterization(*a, w, h, tile_size=ts, capacity=cap)[0])
+        cap = round_capacity(need)
+        fwd = jax.jit(lambda *a, ts=ts, cap=cap: rasterization(*a, w, h, tile_size=ts, capacity=cap)[0])
 
         def loss(means, quats, scales, opac, colors, ts=ts, cap=cap):
-            img, alpha, _ = fgjax.rasterization(
+            img, alpha, _ = rasterization(
                 means, quats, scales, opac, colors, args[5], args[6], w, h, tile_size=ts, capacity=cap
             )
             return jnp.sum(img) + jnp.sum(alpha)
@@ -151,15 +152,11 @@ def breakdown(name, args, w, h, tile_size, repeats, chunk=None, batch=None):
     Also reports the (Gaussian, pixel) pairs evaluated, i.e. chunk slots x tile pixels, the
     quantity the compositor's run time scales with.
     """
-    from fgjax.render import api, tiles
-    from fgjax.render import composite as comp
-    from fgjax.render.project import project_gaussians
-
     chunk = chunk or api.DEFAULT_CHUNK
     batch = batch or api.DEFAULT_BATCH
     n = int(args[0].shape[0])
     need = int(api.count_intersections(*args[:4], args[5], args[6], width=w, height=h, tile_size=tile_size))
-    cap = api._round_capacity(need)
+    cap = api.round_capacity(need)
     ntx, nty = -(-w // tile_size), -(-h // tile_size)
     proj_f = jax.jit(lambda m, q, s, o, vm, K: project_gaussians(m, q, s, o, vm, K, w, h))
     rect_f = jax.jit(lambda p: tiles.tile_ranges(p.means2d, p.extent, p.valid, tile_size, w, h))
@@ -225,6 +222,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _cores():
-    import os
-
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()

@@ -28,6 +28,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from fgjax.config import load_config
+from fgjax.data.loaders import load_scene
+from fgjax.gaussians import Gaussians, knn_graph
+from fgjax.method import stage1
+from fgjax.models.model import render_params
+from fgjax.synth import SynthConfig, generate
+from fgjax.train.optim import OptimSpec, make_optimizer
+
 __all__ = ["main"]
 
 
@@ -56,10 +64,6 @@ def _max_diff(a, b) -> float:
 
 def _load(args):
     """(cfg, state, spec, scene, capacity, tmp) from a run or a fresh initial state on the synthetic scene."""
-    from fgjax.config import load_config
-    from fgjax.data.loaders import load_scene
-    from fgjax.pipeline import stage1
-
     tmp = None
     if args.run:
         if not args.data:
@@ -67,8 +71,6 @@ def _load(args):
         cfg, state, spec, meta = stage1.load_run(args.run)
         data = Path(args.data)
     else:
-        from fgjax.data.synth import SynthConfig, generate
-
         tmp = tempfile.TemporaryDirectory()
         data = Path(tmp.name) / "synth"
         generate(SynthConfig(), data)
@@ -78,20 +80,16 @@ def _load(args):
     if not args.run:
         state, spec, _ = stage1.initial_state(cfg, scene, log=lambda *_: None)
     f32 = lambda x: np.asarray(x, np.float32)
-    cap = stage1._compute_capacity(state.params, state.densify.alive, f32(scene.viewmats), f32(scene.Ks),
+    cap = stage1.compute_capacity(state.params, state.densify.alive, f32(scene.viewmats), f32(scene.Ks),
                                    scene.width, scene.height, cfg.train.tile_size, cfg.train.capacity_margin)
     return cfg, state, spec, scene, cap, tmp
 
 
 def bench_step(cfg, state, spec, scene, cap, frames, repeats) -> dict:
-    from fgjax.gaussians import knn_graph
-    from fgjax.pipeline import stage1
-    from fgjax.train.optim import OptimSpec, make_optimizer
-
     t = cfg.train
     ospec = OptimSpec(steps=t.steps, warmup_steps=t.warmup_steps)
     num_sh = state.params["gaussians"].sh.shape[1]
-    sh_mask = stage1._sh_mask(cfg.model.sh_degree, cfg.model.sh_degree)
+    sh_mask = stage1.active_sh_mask(cfg.model.sh_degree, cfg.model.sh_degree)
     nbr = knn_graph(state.params["gaussians"].means, state.densify.alive, t.rigid_neighbours) if t.rigid_weight > 0 \
         else None
     i = np.asarray(frames)
@@ -104,7 +102,7 @@ def bench_step(cfg, state, spec, scene, cap, frames, repeats) -> dict:
         ss = stage1.StepSpec(spec, cfg.model.sh_degree, scene.width, scene.height, cap, t.tile_size, t.lambda_dssim,
                              t.scale_reg, t.scale_reg_max, "pose" in state.params, rigid_weight=t.rigid_weight,
                              rigid_cap=t.rigid_cap, vmap_cameras=vm)
-        fn = stage1._make_step(ss, ospec, num_sh, tuple(cfg.model.background))
+        fn = stage1.make_step(ss, ospec, num_sh, tuple(cfg.model.background))
         steps[name] = (lambda fn=fn: fn(_copy(state.params), _copy(opt0), _copy(state.densify), *batch, nbr=nbr))
         outs[name] = steps[name]()
     med = _alternate(steps, repeats)
@@ -116,9 +114,6 @@ def bench_step(cfg, state, spec, scene, cap, frames, repeats) -> dict:
 
 
 def bench_active(cfg, state, spec, scene, cap, frame, window, repeats) -> dict:
-    from fgjax.gaussians import Gaussians
-    from fgjax.pipeline.stage1 import render_params
-
     alive = state.densify.alive
     vm = jnp.asarray(scene.viewmats[frame], jnp.float32)
     K = jnp.asarray(scene.Ks[frame], jnp.float32)
@@ -141,7 +136,7 @@ def bench_active(cfg, state, spec, scene, cap, frame, window, repeats) -> dict:
         return jnp.mean(jnp.abs(img - target))
 
     # The parameters are arguments, not constants closed over: with jaxlib 0.10.2 on the CPU, a jitted
-    # deform_apply that closes over the hash-grid parameters returned garbage (1e8-1e30) in session 15.
+    # deform_apply that closes over the hash-grid parameters returns garbage (1e8-1e30).
     full = jax.jit(jax.value_and_grad(lambda prm, m, s: loss(prm, m, s, None), argnums=(1, 2)))
     part = jax.jit(jax.value_and_grad(lambda prm, m, s, act: loss(prm, m, s, act), argnums=(1, 2)))
     prm = state.params

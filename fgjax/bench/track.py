@@ -1,5 +1,5 @@
 """``fgjax bench track``: the photometric tracker's time per frame, drawing every Gaussian at every step
-against drawing only the ones near the parts it fits (`fgjax.pipeline.phototrack.track_photometric`'s
+against drawing only the ones near the parts it fits (`fgjax.articulate.phototrack.track_photometric`'s
 ``subset_margin``), and how far apart their poses come out.
 
 On a run with stage 2 (its labels; the scene stage 2 tracks: stage 1's Gaussians at the first training
@@ -18,6 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from fgjax.articulate.phototrack import track_photometric
+from fgjax.articulate.pipeline import photo_level_steps
+from fgjax.data.loaders import load_scene
+from fgjax.data.scene import Normalization
+from fgjax.method.result import load_stage2, reference_scene, render_capacity
+
 __all__ = ["main", "track_bench"]
 
 
@@ -25,11 +31,6 @@ def track_bench(run_dir: Path, data_dir: Path, *, start: int = 20, frames: int =
                 objects: list[int] | None = None, repeats: int = 2, margin: int = 2, log=print) -> dict:
     """The measurements above as a dict: per mode ("all", "subset") the seconds a frame of each run and
     the Gaussians drawn per step; "ratio" (median subset / median all) and "max_pose_difference"."""
-    from fgjax.data.loaders import load_scene
-    from fgjax.data.scene import Normalization
-    from fgjax.pipeline.phototrack import track_photometric
-    from fgjax.pipeline.stage2 import _reference_scene, _render_capacity, load_stage2, photo_level_steps
-
     run = load_stage2(run_dir)
     scene = load_scene(data_dir, "train", normalize=Normalization.from_dict(run.meta["normalization"]),
                        downscale=run.cfg.data.downscale)
@@ -46,9 +47,9 @@ def track_bench(run_dir: Path, data_dir: Path, *, start: int = 20, frames: int =
     sel = order[start:start + frames + 1]
     moving = np.zeros((num_objects, frames), bool)
     moving[objects] = True
-    ref = _reference_scene(run, float(scene.times[order[0]]))
+    ref = reference_scene(run, float(scene.times[order[0]]))
     kw = dict(moving=moving, sh_degree=run.cfg.model.sh_degree, background=run.cfg.model.background,
-              capacity=_render_capacity(run), tile_size=run.cfg.train.tile_size, steps=photo_level_steps(steps))
+              capacity=render_capacity(run), tile_size=run.cfg.train.tile_size, steps=photo_level_steps(steps))
     out: dict = {mode: {"frame_s": [], "drawn": [], "fitted_again": []} for mode in ("all", "subset")}
     poses = {}
     for r in range(repeats):

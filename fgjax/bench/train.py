@@ -15,6 +15,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from fgjax.config import load_config
+from fgjax.data.loaders import load_scene
+from fgjax.method.stage1 import load_test_views, train_stage1
+from fgjax.synth import SynthConfig, generate
+
 __all__ = ["main"]
 
 FIELDS = {
@@ -33,15 +38,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", dest="overrides", action="append", default=[])
     p.add_argument("--json", default=None, help="also write the rows to this file")
     args = p.parse_args(argv)
-    from fgjax.config import load_config
-    from fgjax.data.loaders import load_scene
-    from fgjax.pipeline.stage1 import _stage1_test_views, train_stage1
 
     tmp = None
     data = Path(args.data) if args.data else None
     if data is None:
-        from fgjax.data.synth import SynthConfig, generate
-
         tmp = tempfile.TemporaryDirectory()
         data = Path(tmp.name) / "synth"
         generate(SynthConfig(), data)
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(args.config, [f"train.steps={args.steps}", f"train.eval_every={args.eval_every}",
                                          *FIELDS[field], *args.overrides])
         scene = load_scene(data, "train", downscale=cfg.data.downscale)
-        test, _, _ = _stage1_test_views(data, cfg, scene.normalization)
+        test, _, _ = load_test_views(data, cfg, scene.normalization)
         cpu0 = time.process_time()
         res = train_stage1(cfg, scene, None, test_scene=test, progress=False, log=lambda *_: None)
         for h in res["eval_history"]:

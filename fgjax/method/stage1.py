@@ -39,7 +39,7 @@ from fgjax.method.init_points import first_view_colors, flow_point_cloud, random
 from fgjax.method.poses import bundle_adjust
 from fgjax.models.deform import DeformSpec, deform_init
 from fgjax.models.model import deformed_gaussians, refined_viewmats, render_params, scene_extent
-from fgjax.render.api import _round_capacity, count_intersections
+from fgjax.render.api import count_intersections, round_capacity
 from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
 from fgjax.train.losses import isometry_loss, photometric_loss, scale_change_loss, scale_regularizer
@@ -47,7 +47,7 @@ from fgjax.train.optim import OptimSpec, active_sh_degree, make_optimizer
 
 __all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "FlowBatch",
            "estimate_training_flows", "previous_frames", "load_run", "render_frame", "evaluate", "template_state",
-           "refined_viewmats"]
+           "refined_viewmats", "load_test_views", "make_step", "compute_capacity", "active_sh_mask", "StepSpec"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -163,7 +163,7 @@ def _flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
 
 
 @functools.lru_cache(maxsize=16)
-def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[float, ...]):
+def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[float, ...]):
     """The jitted step for one static configuration. Memoised on its (hashable, immutable) static inputs
     so that repeated runs in one process (tests, resume, benchmarks) reuse compiled code."""
     optimizer = make_optimizer(ospec, num_sh)
@@ -242,7 +242,7 @@ def _make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[fl
 # ---------------------------------------------------------------------------------------------
 
 
-def _compute_capacity(params, alive, viewmats, Ks, width, height, tile_size, margin) -> int:
+def compute_capacity(params, alive, viewmats, Ks, width, height, tile_size, margin) -> int:
     g = params["gaussians"]
     q, s, o = activate(g, alive)
     worst = 0
@@ -250,7 +250,7 @@ def _compute_capacity(params, alive, viewmats, Ks, width, height, tile_size, mar
         worst = max(worst, int(count_intersections(g.means, q, s, o, jnp.asarray(vm, jnp.float32),
                                                    jnp.asarray(K, jnp.float32), width=width, height=height,
                                                    tile_size=tile_size)))
-    return _round_capacity(int(worst * margin) + 1024)
+    return round_capacity(int(worst * margin) + 1024)
 
 
 def previous_frames(times: np.ndarray) -> np.ndarray:
@@ -484,7 +484,7 @@ def train_stage1(
     if state.capacity == 0 and t.tile_capacity > 0:
         state.capacity = t.tile_capacity
     if state.capacity == 0:
-        state.capacity = _compute_capacity(state.params, state.densify.alive, viewmats, Ks, w, h, t.tile_size,
+        state.capacity = compute_capacity(state.params, state.densify.alive, viewmats, Ks, w, h, t.tile_size,
                                            t.capacity_margin)
     batch_sh, repl_sh = _mesh_shardings(t.batch_size, devices)
     if batch_sh is not None:
@@ -521,7 +521,7 @@ def train_stage1(
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None)
         if ss not in steps_cache:
-            steps_cache[ss] = _make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
+            steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
 
     d = cfg.densify
@@ -559,7 +559,7 @@ def train_stage1(
         flow_on = use_flow and use_deform and s >= fc.start and not lo
         freeze = use_deform and s < t.warmup_steps + t.field_only_steps
         step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze)
-        sh_mask = _sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
+        sh_mask = active_sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)
                   if t.time_curriculum > 0 else None)
         idx = _batch_indices(cfg.model.seed, s, n_frames, t.batch_size, window, state.frame_err, t.error_sampling)
@@ -638,13 +638,13 @@ def train_stage1(
             "eval_history": metrics_hist}
 
 
-def _sh_mask(active: int, max_degree: int) -> jax.Array:
+def active_sh_mask(active: int, max_degree: int) -> jax.Array:
     k = (max_degree + 1) ** 2
     return (jnp.arange(k) < (active + 1) ** 2).astype(jnp.float32)
 
 
 def _maybe_grow_capacity(state: TrainState, viewmats, Ks, w, h, t, log, force: bool = False) -> None:
-    need = _compute_capacity(state.params, state.densify.alive, viewmats, Ks, w, h, t.tile_size, t.capacity_margin)
+    need = compute_capacity(state.params, state.densify.alive, viewmats, Ks, w, h, t.tile_size, t.capacity_margin)
     if force:
         need = max(need, int(state.capacity * 1.5))
     if need > state.capacity:
@@ -693,7 +693,7 @@ def evaluate(state: TrainState, spec, cfg: Config, test_scene, masks=None, out_d
     return res
 
 
-def _stage1_test_views(data_dir: Path, cfg: Config, normalization):
+def load_test_views(data_dir: Path, cfg: Config, normalization):
     """Held-out test views evaluated by time (the synthetic scenes' "state" frames are skipped), plus
     dynamic-region masks where the dataset has them (scene masks, or the synthetic gt object ids)."""
     try:
@@ -735,7 +735,7 @@ def write_video(state, spec, cfg: Config, scene, path: Path, frames: int) -> Pat
 def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print) -> dict[str, Any]:
     """Load, train, evaluate and write RUN/{config.toml, checkpoint.npz, metrics.json, test/*.png, sweep.mp4}."""
     scene = load_scene(data_dir, "train", downscale=cfg.data.downscale)
-    test, masks, names = _stage1_test_views(data_dir, cfg, scene.normalization)
+    test, masks, names = load_test_views(data_dir, cfg, scene.normalization)
     log(f"train: {scene.num_frames} frames {scene.width}x{scene.height}; "
         f"test: {0 if test is None else test.num_frames} views")
     res = train_stage1(cfg, scene, out, test_scene=test, resume=resume, log=log)

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
+from scipy.spatial import cKDTree
 
 __all__ = [
     "Gaussians",
@@ -88,8 +89,6 @@ def activate(
 
 def _knn_scale(points: np.ndarray, k: int = 3) -> np.ndarray:
     """Mean distance to the k nearest neighbours (3DGS's initial isotropic scale)."""
-    from scipy.spatial import cKDTree
-
     if len(points) <= k:
         return np.full(len(points), 0.01)
     d, _ = cKDTree(points).query(points, k=k + 1)
@@ -109,8 +108,6 @@ def knn_graph(means: Float[ArrayLike, "N 3"], alive: Bool[ArrayLike, " N"], k: i
     w = np.zeros((n, k), np.float32)
     kk = min(k, len(live) - 1)
     if kk >= 1:
-        from scipy.spatial import cKDTree
-
         _, nb = cKDTree(pts[live]).query(pts[live], k=kk + 1)
         idx[live, :kk] = live[nb[:, 1:]]
         w[live, :kk] = 1.0

@@ -13,7 +13,9 @@ Conventions (see ../shared/DESIGN.md section 2):
 - Pixel (j, i) (column j, row i) has its centre at (j + 0.5, i + 0.5); ``K``'s cx, cy live in that
   continuous coordinate system (as in gsplat).
 
-Every public function is pure, broadcasts over leading batch dimensions, is wrapped in ``jax.jit`` (so
+Every public function is pure and broadcasts over leading batch dimensions. The camera-convention
+conversions (``opengl_to_opencv_c2w``, ``opencv_to_opengl_c2w``, ``c2w_to_viewmat``, ``viewmat_to_c2w``) are
+numpy float64, used once at load time; every other function is wrapped in ``jax.jit`` (so
 eager calls run as one compiled program; inside other jitted code it is simply inlined), and is vmap- and
 grad-safe:
 small-angle Taylor branches use dtype-dependent thresholds and the double-``where`` so that neither
@@ -26,6 +28,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = [
@@ -47,7 +50,10 @@ __all__ = [
     "make_pose",
     "opengl_to_opencv_c2w",
     "opencv_to_opengl_c2w",
+    "c2w_to_viewmat",
+    "viewmat_to_c2w",
     "project_points",
+    "as_float",
 ]
 
 _FLIP_YZ = (1.0, -1.0, -1.0, 1.0)
@@ -83,7 +89,7 @@ def full_precision(fn):
     return wrapped
 
 
-def _float(x: ArrayLike) -> Array:
+def as_float(x: ArrayLike) -> Array:
     """As a JAX array of a floating dtype (integers promote to the default float)."""
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
@@ -113,7 +119,7 @@ def _safe_norm_sq(x: Array) -> tuple[Array, Array]:
 @jax.jit
 def hat(w: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Skew-symmetric matrix [w]_x with hat(w) @ p == cross(w, p)."""
-    w = _float(w)
+    w = as_float(w)
     x, y, z = w[..., 0], w[..., 1], w[..., 2]
     o = jnp.zeros_like(x)
     return jnp.stack(
@@ -124,7 +130,7 @@ def hat(w: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
 @jax.jit
 def vee(m: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     """Inverse of ``hat`` on the antisymmetric part: vee(M) = axial vector of (M - M^T) / 2."""
-    m = _float(m)
+    m = as_float(m)
     return 0.5 * jnp.stack(
         [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1
     )
@@ -169,7 +175,7 @@ def so3_exp(omega: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     Returns:
         Rotation matrices, shape [..., 3, 3].
     """
-    omega = _float(omega)
+    omega = as_float(omega)
     theta2 = jnp.sum(omega * omega, axis=-1)
     a, b, _ = _so3_coeffs(theta2)
     w = hat(omega)
@@ -187,7 +193,7 @@ def so3_left_jacobian(omega: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*bat
     Returns:
         V, shape [..., 3, 3], with se3_exp([omega, v])[:3, 3] == V @ v.
     """
-    omega = _float(omega)
+    omega = as_float(omega)
     theta2 = jnp.sum(omega * omega, axis=-1)
     _, b, c = _so3_coeffs(theta2)
     w = hat(omega)
@@ -208,7 +214,7 @@ def so3_left_jacobian_inv(omega: Float[ArrayLike, "*batch 3"]) -> Float[Array, "
     Returns:
         V^-1, shape [..., 3, 3].
     """
-    omega = _float(omega)
+    omega = as_float(omega)
     theta2 = jnp.sum(omega * omega, axis=-1)
     small = theta2 < _small_angle_threshold(theta2.dtype)
     t2 = jnp.where(small, 1.0, theta2)
@@ -243,7 +249,7 @@ def so3_log(rot: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     Returns:
         Rotation vectors, shape [..., 3].
     """
-    rot = _float(rot)
+    rot = as_float(rot)
     dtype = rot.dtype
     w = vee(rot)  # [..., 3] = sin(t) * axis
     c = 0.5 * (jnp.trace(rot, axis1=-2, axis2=-1) - 1.0)
@@ -300,7 +306,7 @@ def quat_to_rotmat(quats: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 
     Returns:
         Rotation matrices, shape [..., 3, 3].
     """
-    q = _float(quats)
+    q = as_float(quats)
     n2 = jnp.sum(q * q, axis=-1)
     pos = n2 > 0
     s = jnp.where(pos, 2.0 / jnp.where(pos, n2, 1.0), 0.0)
@@ -326,7 +332,7 @@ def rotmat_to_quat(rot: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 
     Returns:
         Unit quaternions (w, x, y, z), shape [..., 4], sign chosen so that w >= 0.
     """
-    r = _float(rot)
+    r = as_float(rot)
     r00, r11, r22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
     tr = r00 + r11 + r22
     pivots = jnp.stack([1.0 + tr, 1.0 + 2 * r00 - tr, 1.0 + 2 * r11 - tr, 1.0 + 2 * r22 - tr], axis=-1)
@@ -357,7 +363,7 @@ def rotmat_to_quat(rot: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 
 @jax.jit
 def make_pose(rot: Float[ArrayLike, "*batch 3 3"], trans: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4 4"]:
     """4x4 homogeneous matrix [[R, t], [0, 0, 0, 1]]."""
-    rot, trans = _float(rot), _float(trans)
+    rot, trans = as_float(rot), as_float(trans)
     rot, trans = jnp.broadcast_arrays(rot, trans[..., None])
     top = jnp.concatenate([rot, trans[..., :1]], axis=-1)  # [..., 3, 4]
     bottom = jnp.broadcast_to(jnp.array([0.0, 0.0, 0.0, 1.0], dtype=top.dtype), top.shape[:-2] + (1, 4))
@@ -378,7 +384,7 @@ def se3_exp(xi: Float[ArrayLike, "*batch 6"]) -> Float[Array, "*batch 4 4"]:
     Returns:
         Rigid transforms, shape [..., 4, 4].
     """
-    xi = _float(xi)
+    xi = as_float(xi)
     omega, v = xi[..., :3], xi[..., 3:]
     rot = so3_exp(omega)
     trans = matmul(so3_left_jacobian(omega), v[..., None])[..., 0]
@@ -395,7 +401,7 @@ def se3_log(pose: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 6"]:
     Returns:
         Twists [omega, v], shape [..., 6].
     """
-    pose = _float(pose)
+    pose = as_float(pose)
     omega = so3_log(pose[..., :3, :3])
     v = matmul(so3_left_jacobian_inv(omega), pose[..., :3, 3:4])[..., 0]
     return jnp.concatenate([omega, v], axis=-1)
@@ -404,13 +410,13 @@ def se3_log(pose: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 6"]:
 @jax.jit
 def se3_compose(a: Float[ArrayLike, "*batch 4 4"], b: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 4 4"]:
     """Composition a ∘ b = a @ b of rigid transforms (apply b first)."""
-    return matmul(_float(a), _float(b))
+    return matmul(as_float(a), as_float(b))
 
 
 @jax.jit
 def se3_inverse(pose: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 4 4"]:
     """Inverse [[R^T, -R^T t], [0, 1]] of a rigid transform (exact for orthonormal R, no solve)."""
-    pose = _float(pose)
+    pose = as_float(pose)
     rt = jnp.swapaxes(pose[..., :3, :3], -1, -2)
     t = pose[..., :3, 3:4]
     return make_pose(rt, -matmul(rt, t)[..., 0])
@@ -421,23 +427,48 @@ def se3_inverse(pose: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 4 
 # ----------------------------------------------------------------------------------------------
 
 
-@jax.jit
-def opengl_to_opencv_c2w(c2w: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 4 4"]:
+_GL_FLIP = np.diag(np.asarray(_FLIP_YZ))  # [4, 4]
+
+
+def opengl_to_opencv_c2w(c2w: Float[ArrayLike, "*batch 4 4"]) -> Float[np.ndarray, "*batch 4 4"]:
     """OpenGL/Blender camera-to-world (x right, y up, z back) -> OpenCV camera-to-world (y down, z fwd).
 
-    Right-multiplies by diag(1, -1, -1, 1): the camera centre is unchanged, the camera's y and z axes flip.
-    The same matrix converts back (``opencv_to_opengl_c2w``). For world-to-camera matrices left-multiply
-    instead: viewmat_cv = diag(1, -1, -1, 1) @ viewmat_gl.
+    c2w_cv = c2w_gl @ diag(1, -1, -1, 1): the camera centre is unchanged, the camera's y and z axes flip.
+    The same matrix converts back (`opencv_to_opengl_c2w`). For world-to-camera matrices left-multiply
+    instead: viewmat_cv = diag(1, -1, -1, 1) @ viewmat_gl. Numpy float64 in and out: datasets are converted
+    once, at load and write time (`fgjax.data.loaders`, `fgjax.data.write`).
     """
-    c2w = _float(c2w)
-    flip = jnp.broadcast_to(jnp.asarray(_FLIP_YZ, dtype=c2w.dtype), c2w.shape)
-    return c2w * flip  # scales columns 1 and 2 by -1
+    return np.asarray(c2w, dtype=np.float64) @ _GL_FLIP
 
 
-@jax.jit
-def opencv_to_opengl_c2w(c2w: Float[ArrayLike, "*batch 4 4"]) -> Float[Array, "*batch 4 4"]:
-    """OpenCV camera-to-world -> OpenGL/Blender camera-to-world; the inverse of ``opengl_to_opencv_c2w``."""
-    return opengl_to_opencv_c2w(c2w)
+def opencv_to_opengl_c2w(c2w: Float[ArrayLike, "*batch 4 4"]) -> Float[np.ndarray, "*batch 4 4"]:
+    """OpenCV camera-to-world -> OpenGL/Blender camera-to-world; c2w_gl = c2w_cv @ diag(1, -1, -1, 1), the
+    inverse of `opengl_to_opencv_c2w`. Numpy float64 in and out."""
+    return np.asarray(c2w, dtype=np.float64) @ _GL_FLIP
+
+
+def _rigid_inverse_f64(m: ArrayLike) -> np.ndarray:
+    """Inverse of (near-)rigid 4x4s by a full LU solve, bottom row set to (0, 0, 0, 1); numpy float64.
+
+    An LU inverse rather than [R^T | -R^T t], so that float32 poses whose R is orthonormal only to ~1e-7
+    still round-trip to float64 precision."""
+    out = np.linalg.inv(np.asarray(m, dtype=np.float64))
+    out[..., 3, :] = np.array([0.0, 0.0, 0.0, 1.0])
+    return out
+
+
+def c2w_to_viewmat(c2w: Float[ArrayLike, "*batch 4 4"]) -> Float[np.ndarray, "*batch 4 4"]:
+    """Rigid camera-to-world -> world-to-camera (same convention), [R^T | -R^T c] for orthonormal R.
+
+    Numpy float64 (LU inverse, see `_rigid_inverse_f64`); `se3_inverse` is the JAX version."""
+    return _rigid_inverse_f64(c2w)
+
+
+def viewmat_to_c2w(viewmat: Float[ArrayLike, "*batch 4 4"]) -> Float[np.ndarray, "*batch 4 4"]:
+    """Rigid world-to-camera -> camera-to-world (same convention), [R^T | -R^T t] for orthonormal R.
+
+    Numpy float64 (LU inverse, see `_rigid_inverse_f64`); `se3_inverse` is the JAX version."""
+    return _rigid_inverse_f64(viewmat)
 
 
 @jax.jit
@@ -457,8 +488,8 @@ def project_points(p_cam: Float[ArrayLike, "*batch 3"], K: Float[ArrayLike, "3 3
     Returns:
         Pixel coordinates (x, y), shape [..., 2].
     """
-    p = _float(p_cam)
-    K = _float(K)
+    p = as_float(p_cam)
+    K = as_float(K)
     x, y, z = p[..., 0], p[..., 1], p[..., 2]
     eps = jnp.finfo(p.dtype).eps
     z_safe = jnp.where(jnp.abs(z) > eps, z, jnp.where(z < 0, -eps, eps))

@@ -11,6 +11,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import imageio.v2 as iio2
+import imageio.v3 as iio
 import numpy as np
 
 
@@ -48,8 +50,6 @@ def write_video(frames, path: str | Path, fps: int = 10, *, warn=None) -> Path:
     Odd sides are padded by one edge row or column (yuv420p needs even sides). Written to a temporary
     file and renamed, so no half-written video is left. Returns the file written; ``warn(str)`` hears
     about a fallback (default: stderr)."""
-    import imageio.v2 as iio2
-
     path = Path(path)
     frames = [np.asarray(f, np.uint8) for f in frames]
     if not frames:
@@ -77,8 +77,6 @@ def write_video(frames, path: str | Path, fps: int = 10, *, warn=None) -> Path:
             tmp.unlink()
         gif = path.with_suffix(".gif")
         (warn or (lambda s: print(s, file=sys.stderr)))(f"mp4 writing failed ({e}); writing {gif.name} instead")
-        import imageio.v3 as iio
-
         atomic_write(gif, lambda f: f.write(iio.imwrite("<bytes>", np.stack(frames), extension=".gif",
                                                         duration=1000 // fps, loop=0)))
         return gif

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
+from sklearn.metrics import adjusted_rand_score
 
 __all__ = ["psnr", "mse", "ssim", "ssim_map", "masked_psnr", "epe", "ari", "gaussian_window", "filter_valid",
            "rotation_angle_deg"]
@@ -85,10 +86,9 @@ def filter_valid(x: Array, taps) -> Array:
     """Separable 'valid' filtering of a stack [B, H, W] with the 1D `taps` [k] (numpy or jax, traceable) along
     H and W: [B, H - k + 1, W - k + 1]. SSIM's local means, and the photometric tracker's blur.
 
-    Products with banded matrices (`_filter_last`; full float32 precision on every backend). An unrolled sum
-    of k shifted slices per axis gives the same numbers but made XLA:CPU compile stage 1's training step in
-    8.7 s instead of 3.9 s and ran 5.5x slower at 160x120; two 1-D convolutions ran 3x slower than the slices
-    (docs/benchmarks.md, session 13)."""
+    Products with banded matrices (`_filter_last`; full float32 precision on every backend): the same numbers
+    as a sum of k shifted slices per axis, with a shorter XLA:CPU compile and a
+    faster run; two 1-D convolutions are slower still."""
     k = taps.shape[0]
     if x.ndim != 3 or x.shape[1] < k or x.shape[2] < k or taps.ndim != 1 or k < 1:
         raise ValueError(f"filter_valid: needs a stack [B, H, W] with H, W >= the {k} taps and 1-D taps; got x "
@@ -151,8 +151,6 @@ def epe(
 
 def ari(labels_true: ArrayLike, labels_pred: ArrayLike) -> float:
     """Adjusted Rand index (scikit-learn) of two flat labellings."""
-    from sklearn.metrics import adjusted_rand_score
-
     a, b = np.asarray(labels_true).reshape(-1), np.asarray(labels_pred).reshape(-1)
     if a.shape != b.shape:
         raise ValueError(f"ari: label arrays differ in size: {a.shape} vs {b.shape}")

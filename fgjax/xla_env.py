@@ -5,13 +5,10 @@ an entry point calls `use_fast_cpu_compile` before it runs anything. The library
 environment.
 
 ``--xla_cpu_use_fusion_emitters=false`` shortens XLA:CPU compile times, which dominate fgjax's small runs
-(the quick demo, the tests): measured on this 2-core CPU with jaxlib 0.10.2, the stage-1 step of a 32x24
-scene compiled in 7.4 s instead of 11.4 s and the rasterizer in 1.3 s instead of 2.6 s; the quick demo
-compiled for 59 s instead of 85 s (docs/benchmarks.md, session 12). The results change only by rounding; the
-run time of large scenes may not gain: at 20k Gaussians stage 1's steps ran about 10% slower with the flag in one
-A/B, while the photometric tracker ran as fast or faster (session 13). XLA aborts on a
-flag it does not know, so the flag is only added for the jaxlib releases it was measured with; it only
-affects the CPU backend. ``FGJAX_XLA_DEFAULTS=0`` leaves ``XLA_FLAGS`` alone.
+(the quick demo, the tests; about a third shorter on a 2-core CPU with jaxlib 0.10); the results change only by
+rounding, and the steps of large scenes (20k Gaussians) may run about 10 % slower. XLA aborts on a flag it does not know, so the flag is only added for the
+jaxlib releases listed in `MEASURED_JAXLIB`; it only affects the CPU backend. ``FGJAX_XLA_DEFAULTS=0`` leaves
+``XLA_FLAGS`` alone.
 """
 
 from __future__ import annotations

@@ -226,27 +226,6 @@ def test_snap_is_nearest_point_of_polyline(seed, t):
     assert 0.0 <= snap.t <= t - 1
 
 
-def test_grow_clusters_hysteresis():
-    from fgjax.cluster import grow_clusters
-
-    # two chains of points along x; seeds at their left ends; a gap of 0.2 between the chains
-    a = np.stack([np.linspace(0.0, 1.0, 21), np.zeros(21), np.zeros(21)], -1)
-    b = a + np.array([0.0, 0.2, 0.0])
-    far = np.array([[5.0, 5.0, 5.0]])
-    pts = np.concatenate([a, b, far])
-    labels = np.full(len(pts), -1)
-    labels[0], labels[21] = 0, 1
-    cand = np.ones(len(pts), bool)
-    cand[10] = False  # a non-candidate breaks chain a in the middle
-    out = grow_clusters(pts, labels, cand, eps=0.06)
-    assert np.all(out[1:10] == 0) and np.all(out[10:21] == -1)  # growth stops at the break
-    assert np.all(out[21:42] == 1)  # chain b grows to its end (0.05 spacing < eps)
-    assert out[-1] == -1  # far candidate stays out
-    np.testing.assert_array_equal(grow_clusters(pts, np.full(len(pts), -1), cand, 0.06), -1)  # no seeds
-    with pytest.raises(ValueError):
-        grow_clusters(pts, labels, cand, eps=0.0)
-
-
 def test_fill_hulls_brings_in_the_static_points_inside_a_clusters_core_hull():
     from fgjax.cluster import fill_hulls
 

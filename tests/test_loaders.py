@@ -13,16 +13,11 @@ from conftest import shared_data
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fgjax.data import loaders
-from fgjax.data.loaders import (
-    c2w_opencv_to_opengl,
-    c2w_opengl_to_opencv,
-    c2w_to_viewmat,
-    load_scene,
-    viewmat_to_c2w,
-    write_transforms,
-)
+from fgjax.data import write as writer
+from fgjax.data.loaders import load_scene
 from fgjax.data.scene import Normalization, Scene, camera_centres, compute_normalization
+from fgjax.data.write import write_transforms
+from fgjax.geometry import c2w_to_viewmat, opencv_to_opengl_c2w, opengl_to_opencv_c2w, viewmat_to_c2w
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -81,8 +76,8 @@ def _listing(root):
 def test_opengl_opencv_conversion_is_an_involution_flipping_y_and_z():
     rng = np.random.default_rng(1)
     c2w = viewmat_to_c2w(_viewmats(rng, 4))
-    gl = c2w_opencv_to_opengl(c2w)
-    np.testing.assert_allclose(c2w_opengl_to_opencv(gl), c2w, atol=1e-15)
+    gl = opencv_to_opengl_c2w(c2w)
+    np.testing.assert_allclose(opengl_to_opencv_c2w(gl), c2w, atol=1e-15)
     np.testing.assert_array_equal(gl[:, :3, 3], c2w[:, :3, 3])  # same centre
     np.testing.assert_array_equal(gl[:, :3, 0], c2w[:, :3, 0])  # x axis kept
     np.testing.assert_array_equal(gl[:, :3, 1], -c2w[:, :3, 1])  # y up = -(y down)
@@ -171,7 +166,7 @@ def test_compute_normalization_degenerate_cameras_keep_scale_one():
 
 
 def _blender_frame(i, t, c2w_cv, rel):
-    fr = {"file_path": rel, "transform_matrix": c2w_opencv_to_opengl(c2w_cv).tolist()}
+    fr = {"file_path": rel, "transform_matrix": opencv_to_opengl_c2w(c2w_cv).tolist()}
     if t is not None:
         fr["time"] = t
     return fr
@@ -571,10 +566,10 @@ def test_writer_failure_midway_leaves_nothing_new(tmp_path, monkeypatch):
         calls.append(path)
         if len(calls) >= 2:
             raise OSError("disk full (simulated)")
-        loaders._save_npy.__wrapped__(path, a)
+        writer._save_npy.__wrapped__(path, a)
 
-    failing_save.__wrapped__ = loaders._save_npy
-    monkeypatch.setattr(loaders, "_save_npy", failing_save)
+    failing_save.__wrapped__ = writer._save_npy
+    monkeypatch.setattr(writer, "_save_npy", failing_save)
     new_images, new_ks, new_vm, _ = _good_args(rng)
     with pytest.raises(OSError, match="simulated"):
         write_transforms(out, "train", new_images, new_ks, new_vm, times, depths=np.ones((3, 6, 8)))

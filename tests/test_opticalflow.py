@@ -18,7 +18,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import fgjax
+from fgjax.apps import flow as flow_app
 from fgjax.bench import opticalflow as bench
+from fgjax.data import flowio as fio
+from fgjax.data import flowseq as fseq
 from fgjax.data import opticalflow as of
 
 # Documented in docs/benchmarks.md ("Optical flow") and fgjax/data/opticalflow.py: the default
@@ -54,12 +57,12 @@ def _middlebury_pairs():
     out = []
     for seq in ("Dimetrodon", "Hydrangea", "RubberWhale"):
         d = root / seq
-        out.append((of.read_image(d / "frame10.png"), of.read_image(d / "frame11.png"), of.read_flo(d / "flow10.flo")))
+        out.append((fio.read_image(d / "frame10.png"), fio.read_image(d / "frame11.png"), fio.read_flo(d / "flow10.flo")))
     return out
 
 
 def _epe(flow, gt, valid=None):
-    valid = of.flow_valid_mask(gt) if valid is None else valid
+    valid = fio.flow_valid_mask(gt) if valid is None else valid
     return float(np.linalg.norm(flow - gt, axis=-1)[valid].mean())
 
 
@@ -75,11 +78,11 @@ def test_default_method_epe_on_middlebury_under_documented_value():
 
 def test_default_method_epe_on_sintel_non_occluded():
     d = shared_data("sintel") / "alley_1"
-    gt = of.read_flo(d / "gt" / "frame_0002.flo")
-    valid = of.flow_valid_mask(gt)
+    gt = fio.read_flo(d / "gt" / "frame_0002.flo")
+    valid = fio.flow_valid_mask(gt)
     for sub in ("occlusions", "invalid"):
         valid &= cv2.imread(str(d / "gt" / sub / "frame_0002.png"), cv2.IMREAD_GRAYSCALE) == 0
-    flow = of.estimate_flow(of.read_image(d / "frame_0002.png"), of.read_image(d / "frame_0003.png"))
+    flow = of.estimate_flow(fio.read_image(d / "frame_0002.png"), fio.read_image(d / "frame_0003.png"))
     assert _epe(flow, gt, valid) < DEFAULT_SINTEL_NOC_EPE_BOUND
 
 
@@ -246,18 +249,18 @@ def test_bad_parameters_raise_naming_the_field(method, params, match):
 def test_flo_round_trip_is_exact(flow):
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "f.flo"
-        of.write_flo(path, flow)
-        back = of.read_flo(path)
+        fio.write_flo(path, flow)
+        back = fio.read_flo(path)
         assert back.dtype == np.float32 and back.shape == flow.shape
         np.testing.assert_array_equal(back, flow)
         assert os.listdir(d) == ["f.flo"]
 
 
 def test_read_flo_matches_opencv_and_marks_unknown():
-    gt = of.read_flo(shared_data("middlebury") / "Hydrangea" / "flow10.flo")
+    gt = fio.read_flo(shared_data("middlebury") / "Hydrangea" / "flow10.flo")
     ref = cv2.readOpticalFlow(str(shared_data("middlebury") / "Hydrangea" / "flow10.flo"))
     np.testing.assert_array_equal(gt, ref)
-    valid = of.flow_valid_mask(gt)
+    valid = fio.flow_valid_mask(gt)
     assert 0.9 < valid.mean() < 1.0  # Middlebury marks a few pixels unknown (> 1e9)
 
 
@@ -274,17 +277,17 @@ def test_bad_flo_file_names_the_file_and_the_field(tmp_path, content, match):
     path = tmp_path / "broken.flo"
     path.write_bytes(content)
     with pytest.raises(ValueError, match=match) as e:
-        of.read_flo(path)
+        fio.read_flo(path)
     assert "broken.flo" in str(e.value)
 
 
 def test_write_rejects_bad_flow_and_writes_nothing(tmp_path):
     with pytest.raises(ValueError, match=r"bad.flo: flow has shape \(4, 5, 3\); expected \[H, W, 2\]"):
-        of.write_flo(tmp_path / "bad.flo", np.zeros((4, 5, 3), np.float32))
+        fio.write_flo(tmp_path / "bad.flo", np.zeros((4, 5, 3), np.float32))
     with pytest.raises(ValueError, match="bad.npy: flow has dtype int64"):
-        of.save_flow(tmp_path / "bad.npy", np.zeros((4, 5, 2), np.int64))
+        fio.save_flow(tmp_path / "bad.npy", np.zeros((4, 5, 2), np.int64))
     with pytest.raises(ValueError, match="must end in .npy or .flo"):
-        of.save_flow(tmp_path / "bad.png", np.zeros((4, 5, 2), np.float32))
+        fio.save_flow(tmp_path / "bad.png", np.zeros((4, 5, 2), np.float32))
     assert list(tmp_path.iterdir()) == []
 
 
@@ -295,27 +298,27 @@ def test_load_flow_imports_npy_and_flo(tmp_path):
     np.save(tmp_path / "chw.npy", flow.transpose(2, 0, 1))  # PyTorch/RAFT layout
     unknown = flow.copy()
     unknown[1, 2] = 1e10
-    of.write_flo(tmp_path / "u.flo", unknown)
-    np.testing.assert_array_equal(of.load_flow(tmp_path / "hw2.npy"), flow)
-    np.testing.assert_array_equal(of.load_flow(tmp_path / "chw.npy", shape=(6, 9)), flow)
-    u = of.load_flow(tmp_path / "u.flo")
+    fio.write_flo(tmp_path / "u.flo", unknown)
+    np.testing.assert_array_equal(fio.load_flow(tmp_path / "hw2.npy"), flow)
+    np.testing.assert_array_equal(fio.load_flow(tmp_path / "chw.npy", shape=(6, 9)), flow)
+    u = fio.load_flow(tmp_path / "u.flo")
     assert np.isnan(u[1, 2]).all() and np.isfinite(np.delete(u.reshape(-1, 2), 1 * 9 + 2, 0)).all()
     with pytest.raises(ValueError, match=r"hw2.npy: flow has shape \(6, 9\) \(H, W\) but the images are \(7, 9\)"):
-        of.load_flow(tmp_path / "hw2.npy", shape=(7, 9))
+        fio.load_flow(tmp_path / "hw2.npy", shape=(7, 9))
     np.save(tmp_path / "bad.npy", np.zeros((6, 9, 3), np.float32))
     with pytest.raises(ValueError, match=r"bad.npy: flow has shape \(6, 9, 3\)"):
-        of.load_flow(tmp_path / "bad.npy")
+        fio.load_flow(tmp_path / "bad.npy")
     (tmp_path / "junk.npy").write_bytes(b"\x93NUMPY garbage")
     with pytest.raises(ValueError, match="junk.npy: not a plain .npy array"):
-        of.load_flow(tmp_path / "junk.npy")
+        fio.load_flow(tmp_path / "junk.npy")
     np.savez(tmp_path / "z.npz", flow=flow)
     os.replace(tmp_path / "z.npz", tmp_path / "z.npy")
     with pytest.raises(ValueError, match="z.npy: holds an .npz archive"):
-        of.load_flow(tmp_path / "z.npy")
+        fio.load_flow(tmp_path / "z.npy")
     with pytest.raises(ValueError, match="use .flo or .npy"):
-        of.load_flow(tmp_path / "flow.pfm")
+        fio.load_flow(tmp_path / "flow.pfm")
     with pytest.raises(FileNotFoundError, match="missing.npy"):
-        of.load_flow(tmp_path / "missing.npy")
+        fio.load_flow(tmp_path / "missing.npy")
 
 
 def test_read_image_composites_rgba_and_names_bad_files(tmp_path):
@@ -323,14 +326,14 @@ def test_read_image_composites_rgba_and_names_bad_files(tmp_path):
     rgba[..., 2] = 200  # red in BGRA
     rgba[:10, :, 3] = 255  # top half opaque, bottom transparent
     cv2.imwrite(str(tmp_path / "a.png"), rgba)
-    im = of.read_image(tmp_path / "a.png")
+    im = fio.read_image(tmp_path / "a.png")
     assert im.shape == (20, 20, 3) and im.dtype == np.uint8
     np.testing.assert_array_equal(im[0, 0], [200, 0, 0])
     np.testing.assert_array_equal(im[-1, 0], [255, 255, 255])
-    np.testing.assert_array_equal(of.read_image(tmp_path / "a.png", background=0)[-1, 0], [0, 0, 0])
+    np.testing.assert_array_equal(fio.read_image(tmp_path / "a.png", background=0)[-1, 0], [0, 0, 0])
     (tmp_path / "b.png").write_text("not an image")
     with pytest.raises(ValueError, match="b.png: cannot decode image"):
-        of.read_image(tmp_path / "b.png")
+        fio.read_image(tmp_path / "b.png")
 
 
 # ---------------------------------------------------------------------------------------------- forward-backward
@@ -394,7 +397,7 @@ def test_cli_sequence_backward_cache_and_progress(tmp_path, capsys):
     out, cache = tmp_path / "out", tmp_path / "cache"
     args = ["--images", str(tmp_path / "imgs"), "--out", str(out), "--method", "dis", "--backward",
             "--cache", str(cache), "--param", "finest_scale=1"]
-    assert of.main(args) == 0
+    assert flow_app.main(args) == 0
     err = capsys.readouterr().err
     assert "[flow] pair 1/3 frame_0.png -> frame_1.png" in err and "s/pair" in err and "ETA" in err
     names = sorted(p.name for p in out.iterdir())
@@ -412,13 +415,13 @@ def test_cli_sequence_backward_cache_and_progress(tmp_path, capsys):
     assert mask[10:-10, 10:-10].mean() > 0.9 * 255
     assert len(list(cache.iterdir())) == 6  # 3 forward + 3 backward
 
-    assert of.main(args + ["--format", "flo"]) == 0  # every pair from the cache
+    assert flow_app.main(args + ["--format", "flo"]) == 0  # every pair from the cache
     err = capsys.readouterr().err
     assert err.count("(cached)") == 3
-    np.testing.assert_array_equal(of.read_flo(out / "flow_00001.flo"), fw)
+    np.testing.assert_array_equal(fio.read_flo(out / "flow_00001.flo"), fw)
     assert not (out / "flow_00001.npy").exists()  # outputs match the new manifest
 
-    assert of.main(args[:-1] + ["finest_scale=2"]) == 0  # a changed parameter recomputes
+    assert flow_app.main(args[:-1] + ["finest_scale=2"]) == 0  # a changed parameter recomputes
     assert "(cached)" not in capsys.readouterr().err
     assert len(list(cache.iterdir())) == 12
 
@@ -427,7 +430,7 @@ def test_cli_bad_frame_exits_2_and_writes_nothing(tmp_path, capsys):
     frames = _frames(tmp_path / "imgs")
     frames[2].write_bytes(b"\x89PNG garbage")
     out = tmp_path / "new" / "out"
-    assert of.main(["--images", str(tmp_path / "imgs"), "--out", str(out), "--cache", str(tmp_path / "c")]) == 2
+    assert flow_app.main(["--images", str(tmp_path / "imgs"), "--out", str(out), "--cache", str(tmp_path / "c")]) == 2
     err = capsys.readouterr().err
     assert "frame_2.png: cannot decode image" in err and "Traceback" not in err
     assert not (tmp_path / "new").exists() and not (tmp_path / "c").exists()
@@ -447,22 +450,22 @@ def test_failure_mid_sequence_writes_no_outputs_but_keeps_cache(tmp_path, monkey
     monkeypatch.setitem(of.METHODS, "dis", dataclasses.replace(spec, run=flaky))
     out, cache = tmp_path / "out", tmp_path / "cache"
     with pytest.raises(RuntimeError, match="pair 2"):
-        of.estimate_sequence(frames, out, method="dis", cache_dir=cache, progress=None)
+        fseq.estimate_sequence(frames, out, method="dis", cache_dir=cache, progress=None)
     assert not out.exists()
     assert len(list(cache.iterdir())) == 1  # pair 1 is kept, so a rerun resumes
-    manifest = of.estimate_sequence(frames, out, method="dis", cache_dir=cache, progress=None)
+    manifest = fseq.estimate_sequence(frames, out, method="dis", cache_dir=cache, progress=None)
     assert len(manifest["pairs"]) == 3 and len(calls) == 4  # pair 1 came from the cache
 
 
 def test_cli_mismatched_sizes_and_bad_param_exit_2(tmp_path, capsys):
     _frames(tmp_path / "imgs")
     _write_png(tmp_path / "imgs" / "frame_9.png", _texture(40, 64))
-    assert of.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o")]) == 2
+    assert flow_app.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o")]) == 2
     assert "frame_9.png: image is 64x40 but" in capsys.readouterr().err
     (tmp_path / "imgs" / "frame_9.png").unlink()
-    assert of.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o"), "--param", "levels=-1"]) == 2
+    assert flow_app.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o"), "--param", "levels=-1"]) == 2
     assert "DISDeepFlowParams.levels must be >= 0" in capsys.readouterr().err
-    assert of.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o"), "--param", "levels"]) == 2
+    assert flow_app.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o"), "--param", "levels"]) == 2
     assert "expected key=value" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
@@ -475,7 +478,7 @@ def test_cli_data_orders_frames_by_time(tmp_path, capsys):
               {"file_path": "./train/frame_1.png", "time": 0.5}]
     (scene / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
     out = tmp_path / "out"
-    assert of.main(["--data", str(scene), "--out", str(out), "--method", "dis", "--quiet"]) == 0
+    assert flow_app.main(["--data", str(scene), "--out", str(out), "--method", "dis", "--quiet"]) == 0
     manifest = json.loads((out / "flows.json").read_text())
     assert [Path(p["frame0"]).name for p in manifest["pairs"]] == ["frame_0.png", "frame_1.png"]
     assert [p["time1"] for p in manifest["pairs"]] == [0.5, 1.0]
@@ -483,13 +486,13 @@ def test_cli_data_orders_frames_by_time(tmp_path, capsys):
 
     frames[2].pop("time")
     (scene / "transforms_train.json").write_text(json.dumps({"frames": frames}))
-    assert of.main(["--data", str(scene), "--out", str(tmp_path / "o2")]) == 2
+    assert flow_app.main(["--data", str(scene), "--out", str(tmp_path / "o2")]) == 2
     err = capsys.readouterr().err
     assert "transforms_train.json: frames[2].time is missing" in err
     frames[2]["time"] = 0.5
     frames[0]["file_path"] = "./train/nope"
     (scene / "transforms_train.json").write_text(json.dumps({"frames": frames}))
-    assert of.main(["--data", str(scene), "--out", str(tmp_path / "o2")]) == 2
+    assert flow_app.main(["--data", str(scene), "--out", str(tmp_path / "o2")]) == 2
     assert "frames[0].file_path './train/nope': no such image" in capsys.readouterr().err
     assert not (tmp_path / "o2").exists()
 
@@ -501,19 +504,19 @@ def test_cli_import_precomputed_flow(tmp_path, capsys):
     src.mkdir()
     flows = [rng.normal(size=(48, 64, 2)).astype(np.float32) for _ in range(2)]
     np.save(src / "0.npy", flows[0].transpose(2, 0, 1))
-    of.write_flo(src / "1.flo", flows[1])
+    fio.write_flo(src / "1.flo", flows[1])
     out = tmp_path / "out"
-    assert of.main(["--import", str(src), "--images", str(tmp_path / "imgs"), "--out", str(out)]) == 0
+    assert flow_app.main(["--import", str(src), "--images", str(tmp_path / "imgs"), "--out", str(out)]) == 0
     for k in range(2):
         np.testing.assert_array_equal(np.load(out / f"flow_{k:05d}.npy"), flows[k])
     assert json.loads((out / "flows.json").read_text())["method"] == "imported"
     np.save(src / "2.npy", np.zeros((48, 64, 2), np.float32))  # one too many for 3 frames
-    assert of.main(["--import", str(src), "--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o2")]) == 2
+    assert flow_app.main(["--import", str(src), "--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o2")]) == 2
     assert "3 flow files need 4 frames, got 3" in capsys.readouterr().err
     (src / "2.npy").unlink()
     (src / "1.flo").unlink()
     np.save(src / "1.npy", np.zeros((40, 64, 2), np.float32))  # wrong size
-    assert of.main(["--import", str(src), "--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o2")]) == 2
+    assert flow_app.main(["--import", str(src), "--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o2")]) == 2
     assert "1.npy: flow has shape (40, 64) (H, W) but the images are (48, 64)" in capsys.readouterr().err
     assert not (tmp_path / "o2").exists() and frames[0].exists()
 

@@ -14,8 +14,10 @@ import cv2
 import numpy as np
 import pytest
 
-from fgjax.data import synth
+from fgjax import synth
+from fgjax.apps import synth as synth_app
 from fgjax.data.loaders import load_scene
+from fgjax.synth import write as synth_write
 
 W, H, T = 64, 48, 10
 SMALL = ["--width", str(W), "--height", str(H), "--frames", str(T), "--test-views", "2", "--test-states", "2"]
@@ -224,15 +226,15 @@ def test_loader_reads_scene_back(scene_dir):
 
 def test_failures_leave_nothing_behind(tmp_path, monkeypatch, capsys):
     out = tmp_path / "new" / "scene"
-    assert synth.main(["--out", str(out), "--width", "0"]) == 2
-    assert synth.main(["--out", str(out), "--objects", "door,teapot"]) == 2
+    assert synth_app.main(["--out", str(out), "--width", "0"]) == 2
+    assert synth_app.main(["--out", str(out), "--objects", "door,teapot"]) == 2
     assert "teapot" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()
 
     def boom(*a, **k):
         raise RuntimeError("render failed")
 
-    monkeypatch.setattr(synth, "render_sequence", boom)
+    monkeypatch.setattr(synth_write, "render_sequence", boom)  # the name `generate` calls
     with pytest.raises(RuntimeError, match="render failed"):
         synth.generate(synth.SynthConfig(width=W, height=H, frames=3), out)
     assert list(tmp_path.iterdir()) == []  # no output, no temporary folder, no created parents
@@ -240,7 +242,7 @@ def test_failures_leave_nothing_behind(tmp_path, monkeypatch, capsys):
     keep = tmp_path / "full"
     keep.mkdir()
     (keep / "x.txt").write_text("mine")
-    assert synth.main(["--out", str(keep), *SMALL]) == 2
+    assert synth_app.main(["--out", str(keep), *SMALL]) == 2
     assert [p.name for p in keep.iterdir()] == ["x.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["full"]
 

@@ -1,9 +1,9 @@
-"""fgjax.data: dataset loaders, the synthetic scene generator and optical flow.
+"""fgjax.data: dataset loaders and writer, optical flow (OpenCV backends, .flo I/O, sequences).
 
 Public names (imported lazily, so that ``import fgjax.data`` stays cheap):
-``Scene``, ``Normalization``, ``load_scene``, ``write_transforms`` (loaders),
-``SynthConfig``, ``generate`` (synthetic articulated scenes),
-``estimate_flow``, ``read_flo``, ``write_flo``, ``load_flow`` (optical flow).
+``Scene``, ``Normalization``, ``load_scene`` (loaders), ``write_transforms`` (writer),
+``estimate_flow`` (optical flow), ``read_flo``, ``write_flo``, ``load_flow`` (flow files).
+The synthetic scene generator is `fgjax.synth`.
 """
 
 from __future__ import annotations
@@ -14,13 +14,11 @@ _EXPORTS = {
     "Scene": "fgjax.data.scene",
     "Normalization": "fgjax.data.scene",
     "load_scene": "fgjax.data.loaders",
-    "write_transforms": "fgjax.data.loaders",
-    "SynthConfig": "fgjax.data.synth",
-    "generate": "fgjax.data.synth",
+    "write_transforms": "fgjax.data.write",
     "estimate_flow": "fgjax.data.opticalflow",
-    "read_flo": "fgjax.data.opticalflow",
-    "write_flo": "fgjax.data.opticalflow",
-    "load_flow": "fgjax.data.opticalflow",
+    "read_flo": "fgjax.data.flowio",
+    "write_flo": "fgjax.data.flowio",
+    "load_flow": "fgjax.data.flowio",
 }
 
 __all__ = list(_EXPORTS)

@@ -1,4 +1,4 @@
-"""Dataset readers (nerfstudio, Blender/D-NeRF/LiveScene, CoNeRF/Nerfies) and the transforms writer.
+"""Dataset readers (nerfstudio, Blender/D-NeRF/LiveScene, CoNeRF/Nerfies); the writer is `fgjax.data.write`.
 
 Every reader returns one `Scene` (see `fgjax.data.scene`): images [T, H, W, 3] float32 in
 [0, 1], pinhole Ks, OpenCV world-to-camera viewmats in normalised scene units, times in
@@ -44,86 +44,40 @@ non-rigid poses, inconsistent sizes, times out of [0, 1], malformed json -> `Val
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import math
 import os
-import shutil
-import uuid
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import cv2
 import imageio.v3 as iio
 import numpy as np
-from jaxtyping import Float
 
-from fgjax.data.scene import (
-    Normalization,
-    Scene,
-    _rigid_problem,
-    compute_normalization,
-)
+from fgjax.data.scene import Normalization, Scene, compute_normalization, rigid_problem
+from fgjax.geometry import c2w_to_viewmat, opengl_to_opencv_c2w, viewmat_to_c2w
 
 __all__ = [
-    "c2w_opencv_to_opengl",
-    "c2w_opengl_to_opencv",
-    "c2w_to_viewmat",
+    "FrameRecord",
+    "Listing",
     "detect_layout",
+    "frame_intrinsics",
+    "imread",
     "load_scene",
-    "viewmat_to_c2w",
-    "write_transforms",
+    "parse_transforms",
+    "viewmat_to_c2w",  # re-exported: `fgjax.geometry.viewmat_to_c2w`
 ]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 DEPTH_EXTS = (".npy", ".png")
 MASK_EXTS = (".png", ".npy")
 DEFAULT_PNG_DEPTH_SCALE = 1e-3
-_GL_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 _DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _INTRINSIC_FIELDS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y")
 _PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "PERSPECTIVE")
-
-
-# ----------------------------------------------------------------------------- pose helpers
-
-
-def c2w_opengl_to_opencv(c2w: Float[np.ndarray, "*B 4 4"]) -> Float[np.ndarray, "*B 4 4"]:
-    """OpenGL/Blender camera-to-world (x right, y up, z back) -> OpenCV (x right, y down, z forward).
-
-    c2w_cv = c2w_gl @ diag(1, -1, -1, 1): the camera's y and z axes flip, its centre stays.
-    The map is its own inverse (see `c2w_opencv_to_opengl`).
-    """
-    return np.asarray(c2w, dtype=np.float64) @ _GL_FLIP
-
-
-def c2w_opencv_to_opengl(c2w: Float[np.ndarray, "*B 4 4"]) -> Float[np.ndarray, "*B 4 4"]:
-    """OpenCV camera-to-world -> OpenGL/Blender camera-to-world; c2w_gl = c2w_cv @ diag(1, -1, -1, 1)."""
-    return np.asarray(c2w, dtype=np.float64) @ _GL_FLIP
-
-
-def _rigid_inverse(m: np.ndarray) -> np.ndarray:
-    """Inverse of (near-)rigid 4x4s. A full LU inverse rather than [R^T | -R^T t], so that
-    float32 poses whose R is orthonormal only to ~1e-7 still round-trip to float64 precision."""
-    m = np.asarray(m, dtype=np.float64)
-    out = np.linalg.inv(m)
-    out[..., 3, :] = np.array([0.0, 0.0, 0.0, 1.0])
-    return out
-
-
-def c2w_to_viewmat(c2w: Float[np.ndarray, "*B 4 4"]) -> Float[np.ndarray, "*B 4 4"]:
-    """Rigid camera-to-world -> world-to-camera (same convention), [R^T | -R^T c] for orthonormal R."""
-    return _rigid_inverse(c2w)
-
-
-def viewmat_to_c2w(viewmat: Float[np.ndarray, "*B 4 4"]) -> Float[np.ndarray, "*B 4 4"]:
-    """Rigid world-to-camera -> camera-to-world (same convention), [R^T | -R^T t] for orthonormal R."""
-    return _rigid_inverse(viewmat)
-
-
-# ----------------------------------------------------------------------------- small readers
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -159,12 +113,12 @@ def _as_matrix(src: Path, where: str, field: str, value: Any, shape: tuple[int, 
 
 
 def _check_rigid(src: Path, where: str, field: str, m: np.ndarray) -> None:
-    problem = _rigid_problem(m[None])
+    problem = rigid_problem(m[None])
     if problem is not None:
         raise ValueError(f"{src}: {where}: `{field}` {problem[1]}")
 
 
-def _imread(path: Path) -> np.ndarray:
+def imread(path: Path) -> np.ndarray:
     """Decode an image file. Reads the bytes first: imageio leaks the file handle on corrupt files."""
     data = path.read_bytes()
     return np.asarray(iio.imread(data, extension=path.suffix.lower() or ".png"))
@@ -206,7 +160,7 @@ def _read_depth(path: Path, png_scale: float) -> np.ndarray:
         d = np.load(path, allow_pickle=False)
         d = np.asarray(d, dtype=np.float64)
     else:
-        raw = _imread(path)
+        raw = imread(path)
         if not np.issubdtype(raw.dtype, np.integer):
             raise ValueError(f"depth png {path} must be an integer (8/16-bit) image, got {raw.dtype}")
         d = raw.astype(np.float64) * png_scale
@@ -221,7 +175,7 @@ def _read_depth(path: Path, png_scale: float) -> np.ndarray:
 
 def _read_mask(path: Path) -> np.ndarray:
     """Mask file -> [H, W] int32 labels (bool stays bool)."""
-    m = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" else _imread(path)
+    m = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" else imread(path)
     m = np.asarray(m)
     if m.ndim == 3:
         m = m[..., 0]
@@ -274,7 +228,7 @@ def _nearest_resize(a: np.ndarray, h: int, w: int) -> np.ndarray:
 
 
 @dataclasses.dataclass
-class _Frame:
+class FrameRecord:
     """One listed frame, before any image is read (world units, OpenCV c2w)."""
 
     src: Path  # the file that lists the frame (named in errors)
@@ -293,8 +247,8 @@ class _Frame:
 
 
 @dataclasses.dataclass
-class _Listing:
-    frames: list[_Frame]
+class Listing:
+    frames: list[FrameRecord]
     depth_scale: float
     warn_fields: dict[str, set[str]]  # source file -> non-pinhole fields ignored
 
@@ -310,7 +264,7 @@ def _sibling_file(image: Path | None, hint: Path, folder: str, exts: Sequence[st
     return found, (None if found is not None else (f"{folder}/ folder", d / (stem + exts[0])))
 
 
-def _parse_transforms(json_path: Path, split: str | None) -> _Listing:
+def parse_transforms(json_path: Path, split: str | None) -> Listing:
     """Frames of a transforms json; `split` selects `{split}_filenames` (transforms.json only)."""
     meta = _read_json(json_path)
     base = json_path.parent
@@ -343,7 +297,7 @@ def _parse_transforms(json_path: Path, split: str | None) -> _Listing:
             )
 
     ignored: set[str] = set()
-    frames: list[_Frame] = []
+    frames: list[FrameRecord] = []
     raw_times: list[float | None] = []
     for i, fr in enumerate(frames_raw):
         where = f"frame {i}"
@@ -377,7 +331,7 @@ def _parse_transforms(json_path: Path, split: str | None) -> _Listing:
             if v is not None and _as_number(json_path, where, k, v) != 0.0:
                 ignored.add(k)
         image, hint = _resolve(base, rel, IMAGE_EXTS)
-        f = _Frame(json_path, where, "file_path", name, image, hint, c2w_opengl_to_opencv(tm), 0.0, intr)
+        f = FrameRecord(json_path, where, "file_path", name, image, hint, opengl_to_opencv_c2w(tm), 0.0, intr)
         for attr, key, folder, exts in (
             ("depth", "depth_file_path", "depth", DEPTH_EXTS),
             ("mask", "mask_path", "mask", MASK_EXTS),
@@ -401,7 +355,7 @@ def _parse_transforms(json_path: Path, split: str | None) -> _Listing:
     n = len(frames)
     for j, f in enumerate(frames):
         f.time = raw_times[j] if all(have) else (j / (n - 1) if n > 1 else 0.0)
-    return _Listing(frames, depth_scale, {str(json_path): ignored} if ignored else {})
+    return Listing(frames, depth_scale, {str(json_path): ignored} if ignored else {})
 
 
 def _matrix_shape(fr: dict[str, Any]) -> tuple[int, int]:
@@ -457,10 +411,10 @@ def _nerfies_camera(cam_path: Path, where: str) -> tuple[np.ndarray, dict[str, f
         "camera_angle_x": None,
         "camera_angle_y": None,
     }
-    return _rigid_inverse(w2c), intr, ignored
+    return viewmat_to_c2w(w2c), intr, ignored
 
 
-def _parse_nerfies(root: Path, split: str, downscale: int) -> tuple[_Listing, int]:
+def _parse_nerfies(root: Path, split: str, downscale: int) -> tuple[Listing, int]:
     """Frames of a Nerfies/CoNeRF/HyperNeRF folder; also returns the downscale still to apply."""
     ds_path = root / "dataset.json"
     ds = _read_json(ds_path)
@@ -506,7 +460,7 @@ def _parse_nerfies(root: Path, split: str, downscale: int) -> tuple[_Listing, in
         )
     sub = f"{pre}x"
 
-    frames: list[_Frame] = []
+    frames: list[FrameRecord] = []
     ignored: dict[str, set[str]] = {}
     for j, cid in enumerate(ids):
         where = f"id {cid!r} (frame {j})"
@@ -519,7 +473,7 @@ def _parse_nerfies(root: Path, split: str, downscale: int) -> tuple[_Listing, in
             intr = dict(intr, fl_x=intr["fl_x"] * s, fl_y=intr["fl_y"] * s, cx=intr["cx"] * s, cy=intr["cy"] * s)
             intr["w"], intr["h"] = float(round(intr["w"] * s)), float(round(intr["h"] * s))
         image, hint = _resolve(img_dir, cid, IMAGE_EXTS)
-        f = _Frame(ds_path, where, f"{split}_ids", cid, image, hint, c2w, times[cid], intr)
+        f = FrameRecord(ds_path, where, f"{split}_ids", cid, image, hint, c2w, times[cid], intr)
         for attr, folder, exts in (("depth", "depth", DEPTH_EXTS), ("mask", "mask", MASK_EXTS)):
             d = root / folder / sub if (root / folder / sub).is_dir() else root / folder
             if d.is_dir():
@@ -527,13 +481,14 @@ def _parse_nerfies(root: Path, split: str, downscale: int) -> tuple[_Listing, in
                 setattr(f, attr, found)
                 setattr(f, attr + "_hint", None if found else (f"{folder}/ folder", d / (cid + exts[0])))
         frames.append(f)
-    return _Listing(frames, depth_scale, ignored), remaining
+    return Listing(frames, depth_scale, ignored), remaining
 
 
 # ----------------------------------------------------------------------------- assembly
 
 
-def _intrinsics(f: _Frame, w: int, h: int) -> np.ndarray:
+def frame_intrinsics(f: FrameRecord, w: int, h: int) -> np.ndarray:
+    """[3, 3] pinhole K of frame `f` at image size (w, h) (fl_x/fl_y/cx/cy or camera_angle_x/y)."""
     it = f.intr
     for key, actual in (("w", w), ("h", h)):
         if it.get(key) is not None and int(round(it[key])) != actual:
@@ -564,7 +519,7 @@ def _intrinsics(f: _Frame, w: int, h: int) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def _drop_missing(frames: list[_Frame], skip_missing: bool) -> list[_Frame]:
+def _drop_missing(frames: list[FrameRecord], skip_missing: bool) -> list[FrameRecord]:
     kept = []
     for f in frames:
         missing = []
@@ -588,7 +543,7 @@ def _drop_missing(frames: list[_Frame], skip_missing: bool) -> list[_Frame]:
 
 
 def _assemble(
-    listing: _Listing,
+    listing: Listing,
     *,
     normalization: Normalization,
     skip_missing: bool,
@@ -618,7 +573,7 @@ def _assemble(
     for f in frames:
         assert f.image is not None  # _drop_missing guarantees it
         try:
-            img = _image_to_float(_imread(f.image), f.image, background)
+            img = _image_to_float(imread(f.image), f.image, background)
         except Exception as e:  # imageio raises many exception types for corrupt files
             raise ValueError(f"{f.src}: {f.where} (field `{f.field}`): cannot read image {f.image}: {e}") from e
         h, w = img.shape[:2]
@@ -629,7 +584,7 @@ def _assemble(
                 f"{f.src}: {f.where}: image {f.image} is {w}x{h} but {first[0]} is "
                 f"{first[1]}x{first[2]} (W x H); all frames must have the same size"
             )
-        k = _intrinsics(f, w, h)
+        k = frame_intrinsics(f, w, h)
         for kind, out, reader in (
             ("depth", depths, lambda p: _read_depth(p, listing.depth_scale)),
             ("mask", masks, _read_mask),
@@ -645,8 +600,6 @@ def _assemble(
                 raise ValueError(f"{f.src}: {f.where}: {kind} {p} is {a.shape[1]}x{a.shape[0]}, image is {w}x{h}")
             out.append(a)
         if downscale > 1:
-            import cv2  # heavy import, only when resizing
-
             w2, h2 = max(w // downscale, 1), max(h // downscale, 1)
             img = cv2.resize(img, (w2, h2), interpolation=cv2.INTER_AREA)
             k = np.diag([w2 / w, h2 / h, 1.0]) @ k
@@ -712,9 +665,9 @@ def _training_centres(kind: str, start: Path, split: str) -> np.ndarray:
     if kind == "blender":
         train = start.parent / "transforms_train.json"
         src = train if (start.name == f"transforms_{split}.json" and train.is_file()) else start
-        frames = _parse_transforms(src, None).frames
+        frames = parse_transforms(src, None).frames
     elif kind == "nerfstudio":
-        frames = _parse_transforms(start, "train").frames
+        frames = parse_transforms(start, "train").frames
     else:
         ds = _read_json(start)
         has_train = isinstance(ds.get("train_ids"), list) and bool(ds["train_ids"])
@@ -773,7 +726,7 @@ def load_scene(
     if kind == "nerfies":
         listing, remaining = _parse_nerfies(start.parent, split, downscale)
     else:
-        listing, remaining = _parse_transforms(start, split if kind == "nerfstudio" else None), downscale
+        listing, remaining = parse_transforms(start, split if kind == "nerfstudio" else None), downscale
 
     if isinstance(normalize, Normalization):
         norm = normalize
@@ -786,239 +739,3 @@ def load_scene(
     return _assemble(
         listing, normalization=norm, skip_missing=skip_missing, downscale=remaining, background=background
     )
-
-
-# ----------------------------------------------------------------------------- writer
-
-_RESERVED_TOP = ("frames", "camera_model", "camera_angle_x", "w", "h")
-
-
-def _check_name(name: Any, i: int) -> str:
-    if (
-        not isinstance(name, str)
-        or not name
-        or name in (".", "..")
-        or any(c in name for c in "/\\\0")
-    ):
-        raise ValueError(f"write_transforms: frame_names[{i}] = {name!r} is not a valid file stem")
-    return name
-
-
-def _image_array_for_png(img: np.ndarray, i: int) -> np.ndarray:
-    a = np.asarray(img)
-    if a.ndim != 3 or a.shape[-1] not in (3, 4):
-        raise ValueError(f"write_transforms: images[{i}] must be [H, W, 3|4], got shape {a.shape}")
-    if a.dtype in (np.uint8, np.uint16):
-        return a
-    if np.issubdtype(a.dtype, np.floating):
-        if not np.all(np.isfinite(a)) or a.min() < 0 or a.max() > 1:
-            raise ValueError(f"write_transforms: images[{i}] float values must be finite and in [0, 1]")
-        return np.round(a * 255.0).astype(np.uint8)
-    raise ValueError(f"write_transforms: images[{i}] has dtype {a.dtype}; expected uint8, uint16 or float")
-
-
-def write_transforms(
-    out_dir: str | os.PathLike,
-    split: str,
-    images_or_paths: np.ndarray | Sequence[str | os.PathLike],
-    Ks: Float[np.ndarray, "T 3 3"],
-    viewmats: Float[np.ndarray, "T 4 4"],
-    times: Float[np.ndarray, " T"],
-    *,
-    depths: Float[np.ndarray, "T H W"] | None = None,
-    masks: np.ndarray | None = None,
-    extra: dict[str, Any] | None = None,
-    frame_names: Sequence[str] | None = None,
-) -> Path:
-    """Write a nerfstudio/Blender-style ``out_dir/transforms_{split}.json`` with its images.
-
-    Files: ``images/<name>.png`` (float images quantised to 8 bit, uint8/uint16 kept; paths
-    are copied byte for byte, keeping their extension), ``depth/<name>.npy`` (float32 z-depth,
-    world units), ``mask/<name>.png`` (8-bit, or 16-bit when labels exceed 255; bool -> 0/1),
-    and the json: per frame ``file_path``, ``transform_matrix`` (OpenGL camera-to-world,
-    from ``c2w_opencv_to_opengl(inverse(viewmat))``), ``time``, ``fl_x, fl_y, cx, cy, w, h``,
-    ``depth_file_path``, ``mask_path``; top level ``camera_model`` "OPENCV" (zero distortion),
-    ``w``, ``h`` and, when every frame has fx = fy and the principal point at (W/2, H/2) with
-    one focal length, ``camera_angle_x``; then `extra`. Names default to ``{split}_{i:05d}``.
-
-    Atomic: every input is validated before anything is written; each file goes to a temporary
-    name in its final folder and is `os.replace`d into place at the end (json last). On any
-    failure, temporary files, newly created files and newly created folders are removed.
-
-    Args:
-        out_dir: dataset folder (created if absent).
-        split: split name, used in the json name and default frame names.
-        images_or_paths: [T, H, W, 3|4] array (float in [0, 1], uint8 or uint16) or T image paths.
-        Ks: [T, 3, 3] zero-skew pinhole intrinsics (pixel centres at +0.5).
-        viewmats: [T, 4, 4] OpenCV world-to-camera matrices, world units.
-        times: [T] in [0, 1].
-        depths: optional [T, H, W] camera z-depth in world units (>= 0, 0 = unknown).
-        masks: optional [T, H, W] bool or non-negative integer labels (< 65536).
-        extra: optional JSON-serialisable top-level fields (e.g. ``depth_scale``, a scene name).
-        frame_names: optional T distinct file stems.
-
-    Returns:
-        The path of the written json.
-    """
-    out = Path(out_dir)
-    if not isinstance(split, str) or not split or any(c in split for c in "/\\\0"):
-        raise ValueError(f"write_transforms: split must be a plain name, got {split!r}")
-
-    # ---- validate everything before touching the disk
-    if isinstance(images_or_paths, np.ndarray):
-        arr = images_or_paths
-        if arr.ndim != 4:
-            raise ValueError(f"write_transforms: images must be [T, H, W, 3|4], got shape {arr.shape}")
-        pngs: list[np.ndarray] | None = [_image_array_for_png(arr[i], i) for i in range(arr.shape[0])]
-        src_paths: list[Path] | None = None
-        t = arr.shape[0]
-        h, w = arr.shape[1:3]
-    else:
-        pngs = None
-        src_paths = [Path(p) for p in images_or_paths]
-        t = len(src_paths)
-        if t == 0:
-            raise ValueError("write_transforms: images_or_paths is empty")
-        size0 = None
-        for i, p in enumerate(src_paths):
-            if not p.is_file():
-                raise FileNotFoundError(f"write_transforms: images_or_paths[{i}] = {p} does not exist")
-            try:
-                shape = _imread(p).shape
-            except Exception as e:  # imageio raises many types for bad files
-                raise ValueError(f"write_transforms: images_or_paths[{i}] = {p} is not a readable image: {e}") from e
-            if size0 is None:
-                size0 = (shape[:2], p)
-            elif shape[:2] != size0[0]:
-                raise ValueError(
-                    f"write_transforms: image {p} is {shape[1]}x{shape[0]} but {size0[1]} is "
-                    f"{size0[0][1]}x{size0[0][0]} (W x H)"
-                )
-        assert size0 is not None
-        h, w = size0[0]
-    if t == 0:
-        raise ValueError("write_transforms: no frames")
-
-    ks = np.asarray(Ks, dtype=np.float64)
-    if ks.shape != (t, 3, 3) or not np.all(np.isfinite(ks)):
-        raise ValueError(f"write_transforms: Ks must be finite [T, 3, 3] = [{t}, 3, 3], got shape {ks.shape}")
-    for i, k in enumerate(ks):
-        if k[0, 1] != 0 or k[1, 0] != 0 or np.any(k[2] != [0.0, 0.0, 1.0]) or k[0, 0] <= 0 or k[1, 1] <= 0:
-            raise ValueError(f"write_transforms: Ks[{i}] is not a zero-skew pinhole with fx, fy > 0: {k.tolist()}")
-    vm = np.asarray(viewmats, dtype=np.float64)
-    if vm.shape != (t, 4, 4):
-        raise ValueError(f"write_transforms: viewmats must be [T, 4, 4] = [{t}, 4, 4], got shape {vm.shape}")
-    problem = _rigid_problem(vm)
-    if problem is not None:
-        raise ValueError(f"write_transforms: viewmats[{problem[0]}] {problem[1]}")
-    ts = np.asarray(times, dtype=np.float64)
-    if ts.shape != (t,):
-        raise ValueError(f"write_transforms: times must be [T] = [{t}], got shape {ts.shape}")
-    bad = np.flatnonzero(~np.isfinite(ts) | (ts < 0) | (ts > 1))
-    if bad.size:
-        raise ValueError(f"write_transforms: times[{bad[0]}] = {ts[bad[0]]} is outside [0, 1]")
-    if depths is not None:
-        dp = np.asarray(depths)
-        if not np.issubdtype(dp.dtype, np.floating) or dp.shape != (t, h, w):
-            raise ValueError(f"write_transforms: depths must be float [T, H, W] = [{t}, {h}, {w}], got {dp.shape}")
-        if np.any(np.isnan(dp)) or np.any(dp < 0):
-            raise ValueError("write_transforms: depths contain NaN or negative values")
-    if masks is not None:
-        mk = np.asarray(masks)
-        if mk.shape != (t, h, w) or not (mk.dtype == bool or np.issubdtype(mk.dtype, np.integer)):
-            raise ValueError(f"write_transforms: masks must be bool/int [T, H, W] = [{t}, {h}, {w}], got {mk.shape}")
-        if mk.dtype != bool and (mk.min() < 0 or mk.max() > 65535):
-            raise ValueError("write_transforms: masks labels must be in [0, 65535]")
-        mk = mk.astype(np.uint8 if mk.dtype == bool or mk.max() <= 255 else np.uint16)
-    names = [f"{split}_{i:05d}" for i in range(t)] if frame_names is None else list(frame_names)
-    if len(names) != t:
-        raise ValueError(f"write_transforms: frame_names has {len(names)} items, expected {t}")
-    names = [_check_name(n, i) for i, n in enumerate(names)]
-    if len(set(names)) != t:
-        raise ValueError("write_transforms: frame_names must be distinct")
-    extra = dict(extra or {})
-    for key in extra:
-        if not isinstance(key, str) or key in _RESERVED_TOP:
-            raise ValueError(f"write_transforms: extra field {key!r} is reserved or not a string")
-
-    c2w_gl = c2w_opencv_to_opengl(viewmat_to_c2w(vm))  # [T, 4, 4]
-    img_ext = [".png"] * t if src_paths is None else [p.suffix or ".png" for p in src_paths]
-    frames = []
-    for i in range(t):
-        fr: dict[str, Any] = {
-            "file_path": f"images/{names[i]}{img_ext[i]}",
-            "transform_matrix": c2w_gl[i].tolist(),
-            "time": float(ts[i]),
-            "fl_x": float(ks[i, 0, 0]),
-            "fl_y": float(ks[i, 1, 1]),
-            "cx": float(ks[i, 0, 2]),
-            "cy": float(ks[i, 1, 2]),
-            "w": int(w),
-            "h": int(h),
-        }
-        if depths is not None:
-            fr["depth_file_path"] = f"depth/{names[i]}.npy"
-        if masks is not None:
-            fr["mask_path"] = f"mask/{names[i]}.png"
-        frames.append(fr)
-    doc: dict[str, Any] = {"camera_model": "OPENCV", "w": int(w), "h": int(h)}
-    fx0 = ks[0, 0, 0]
-    if np.all(ks[:, 0, 0] == fx0) and np.all(ks[:, 1, 1] == fx0) and np.all(ks[:, 0, 2] == w / 2) and np.all(
-        ks[:, 1, 2] == h / 2
-    ):
-        doc["camera_angle_x"] = 2.0 * math.atan(w / (2.0 * fx0))
-    doc.update(extra)
-    doc["frames"] = frames
-    try:
-        text = json.dumps(doc, indent=2, allow_nan=False)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"write_transforms: extra is not JSON-serialisable: {e}") from e
-
-    # ---- write to temporary names, then move into place
-    plan: list[tuple[Path, Any]] = []  # (final path, writer(tmp_path))
-    for i in range(t):
-        final = out / frames[i]["file_path"]
-        if pngs is not None:
-            plan.append((final, lambda tmp, a=pngs[i]: iio.imwrite(tmp, a, extension=".png")))
-        else:
-            plan.append((final, lambda tmp, s=src_paths[i]: shutil.copyfile(s, tmp)))
-        if depths is not None:
-            plan.append((out / frames[i]["depth_file_path"], lambda tmp, a=dp[i]: _save_npy(tmp, a)))
-        if masks is not None:
-            plan.append((out / frames[i]["mask_path"], lambda tmp, a=mk[i]: iio.imwrite(tmp, a, extension=".png")))
-    json_path = out / f"transforms_{split}.json"
-    plan.append((json_path, lambda tmp: tmp.write_text(text, encoding="utf-8")))
-
-    created_dirs: list[Path] = []
-    temps: list[Path] = []
-    new_files: list[Path] = []
-    token = uuid.uuid4().hex[:12]
-    try:
-        for final, _ in plan:
-            for d in reversed([final.parent, *final.parent.parents]):
-                if not d.exists():
-                    d.mkdir()
-                    created_dirs.append(d)
-        for final, write in plan:
-            tmp = final.with_name(f".{final.name}.{token}.tmp")
-            temps.append(tmp)
-            write(tmp)
-        for (final, _), tmp in zip(plan, temps, strict=True):
-            existed = final.exists()
-            os.replace(tmp, final)
-            if not existed:
-                new_files.append(final)
-    except BaseException:
-        for p in [*temps, *new_files]:
-            with contextlib.suppress(OSError):
-                p.unlink()
-        for d in reversed(created_dirs):
-            with contextlib.suppress(OSError):
-                d.rmdir()
-        raise
-    return json_path
-
-
-def _save_npy(path: Path, a: np.ndarray) -> None:
-    with open(path, "wb") as f:
-        np.save(f, np.asarray(a, dtype=np.float32))

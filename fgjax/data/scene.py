@@ -30,7 +30,7 @@ ROTATION_TOL = 1e-3  # max |R^T R - I| accepted as a rotation
 BOTTOM_ROW_TOL = 1e-6  # max |last row - (0, 0, 0, 1)|
 
 
-def _rigid_problem(mats: np.ndarray) -> tuple[int, str] | None:
+def rigid_problem(mats: np.ndarray) -> tuple[int, str] | None:
     """First non-rigid 4x4 in `mats` [T, 4, 4], as (index, reason); None when all are rigid."""
     for i, m in enumerate(mats):
         if not np.all(np.isfinite(m)):
@@ -236,7 +236,7 @@ class Scene:
         vm = _as_float("viewmats", self.viewmats, np.float64)
         if vm.shape != (t, 4, 4):
             raise ValueError(f"Scene.viewmats must be [T, 4, 4] = [{t}, 4, 4]; got shape {vm.shape}")
-        problem = _rigid_problem(vm)
+        problem = rigid_problem(vm)
         if problem is not None:
             raise ValueError(f"Scene.viewmats[{problem[0]}] {problem[1]}")
         object.__setattr__(self, "viewmats", vm)

@@ -21,7 +21,7 @@ from fgjax.render.project import project_gaussians
 from fgjax.render.sh import spherical_harmonics as spherical_harmonics  # re-export
 from fgjax.render.tiles import bin_gaussians, tile_ranges
 
-__all__ = ["rasterization", "spherical_harmonics", "count_intersections", "gaussian_weights"]
+__all__ = ["rasterization", "spherical_harmonics", "count_intersections", "gaussian_weights", "round_capacity"]
 
 # Speed-only knobs, tuned with `fgjax bench raster` on the garden scene (docs/benchmarks.md):
 # 8-pixel tiles evaluate far fewer (Gaussian, pixel) pairs than 16 for small splats.
@@ -88,7 +88,7 @@ def default_capacity(n: int, width: int, height: int, tile_size: int) -> int:
     return per * max(n, 1) + n_tiles
 
 
-def _round_capacity(x: int) -> int:
+def round_capacity(x: int) -> int:
     """Round up to 1.25x-spaced buckets so that nearby counts share a compiled program."""
     x = max(int(x), 1024)
     b = 2 ** math.floor(math.log2(x))
@@ -96,6 +96,9 @@ def _round_capacity(x: int) -> int:
         if x <= b * f:
             return int(b * f)
     return 2 * b
+
+
+_round_capacity = round_capacity  # old name, still imported by fgjax.method.stage1
 
 
 def _empty_render(means, colors, background, width, height, render_depth):
@@ -258,7 +261,7 @@ def rasterization(
                 means, quats, scales, opacities, viewmat, K,
                 width=width, height=height, near_plane=near_plane, tile_size=tile_size,
             ))
-            capacity = _round_capacity(needed)
+            capacity = round_capacity(needed)
     elif not isinstance(capacity, (int, np.integer)) or capacity <= 0:
         raise ValueError(f"rasterization: capacity must be a positive int, got {capacity!r}")
     if active is not None:

@@ -1,32 +1,10 @@
-"""Flow derivatives: camera velocity, motion field, reprojection flow, Gaussian flow maps, Lemma 1, flow loss.
-
-The maths is ../shared/DESIGN.md section 1, steps 3 and 4 (FreeGaussian, Lemma 1; GaussianFlow for the
-anisotropic form). Conventions, shared by every function here:
-
-- Cameras are OpenCV (x right, y down, z forward). ``c2w`` is a 4x4 camera-to-world pose, ``viewmat`` a 4x4
-  world-to-camera matrix. ``K`` is 3x3; the motion-field formulas assume zero skew (``K[0, 1]`` ignored
-  there), ``reprojection_flow`` and ``geometry.project_points`` honour it.
-- Pixel (j, i) (column j, row i) has its centre at m = (j + 0.5, i + 0.5); ``xy`` arguments are in that
-  continuous system, as are K's cx, cy (gsplat's convention). Datasets whose K assumes integer pixel
-  centres (OpenCV/ROS calibrations such as TUM's cx = 319.5) need cx + 0.5, cy + 0.5.
-- Flow is forward, frame t-1 -> t, on frame t-1's pixel grid, in pixels per frame interval, stored
-  [H, W, 2] as (dx, dy): the content at m in frame t-1 is at m + flow(m) in frame t.
-- Camera velocity (v, omega) is expressed in camera-(t-1) coordinates: v is the camera centre's velocity,
-  omega the angular velocity, so that a static point P (camera coordinates) moves as P' = -v - omega x P.
-- Quaternions are wxyz, any norm; scales and opacities are activated (as the rasterizer takes them).
-
-Every function is pure, differentiable, vmap-able and NaN-free (double-``where`` on every division and
-square root). The array functions are wrapped in ``jax.jit`` (static: image sizes, norms, thresholds), so
-eager calls run as one compiled program and calls inside other jitted code are inlined. The Gaussian flow
-maps render through ``fgjax.rasterization`` (imported lazily) and are not jitted themselves, so that
-outside jit the rasterizer can size its intersection buffer exactly; they are jit-able with a
-``capacity``.
-"""
+"""Gaussian flow: projected 2D covariances, the GaussianFlow affine term, rendered dynamic Gaussian flow
+maps, composited inverse depth, the Lemma 1 residual, flow losses and backward warping (DESIGN.md section 1,
+steps 3 and 4; conventions in `fgjax.flow`)."""
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
 from typing import Literal, NamedTuple
 
 import jax
@@ -34,327 +12,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from fgjax import geometry
-
-_mm = geometry.matmul  # full float32 precision on every backend (geometry.HIGHEST)
-
-__all__ = [
-    "pixel_centers",
-    "camera_velocity",
-    "motion_field_matrices",
-    "motion_field",
-    "motion_field_inv_depth",
-    "reprojection_flow",
-    "gaussian_image_velocity",
-    "gaussian_image_velocity_jvp",
-    "project_covariances",
-    "sqrtm_2x2",
-    "gaussian_flow_affine",
-    "GaussianFlowMaps",
-    "dynamic_gaussian_flow",
-    "composited_inverse_depth",
-    "lemma1_residual",
-    "flow_loss",
-    "gaussian_flow_loss",
-    "warp_backward",
-]
-
-
-# ----------------------------------------------------------------------------------------------
-# helpers
-# ----------------------------------------------------------------------------------------------
-
-
-def _float(x: ArrayLike) -> Array:
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        x = x.astype(jnp.result_type(float))
-    return x
-
-
-def _check_shape(name: str, x: Array, tail: tuple[int, ...]) -> None:
-    if x.shape[x.ndim - len(tail) :] != tail or x.ndim < len(tail):
-        raise ValueError(f"{name} must have trailing shape {list(tail)}; got {list(x.shape)}.")
-
-
-def _safe_inv_depth(depth: Array) -> Array:
-    """1/Z where Z is finite and > 0; 0 elsewhere (a point at infinity). Finite gradients (double-where)."""
-    ok = jnp.isfinite(depth) & (depth > 0)
-    return jnp.where(ok, 1.0 / jnp.where(ok, depth, 1.0), 0.0)
-
-
-def _intrinsics(K: Array) -> tuple[Array, Array, Array, Array]:
-    return K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-
-
-@functools.partial(jax.jit, static_argnames=("height", "width", "dtype"))
-def pixel_centers(height: int, width: int, dtype=None) -> Float[Array, "H W 2"]:
-    """Pixel centres m[i, j] = (j + 0.5, i + 0.5) as (x, y), shape [H, W, 2]."""
-    dtype = jnp.result_type(float) if dtype is None else dtype
-    x = jnp.arange(width, dtype=dtype) + 0.5
-    y = jnp.arange(height, dtype=dtype) + 0.5
-    xx, yy = jnp.meshgrid(x, y, indexing="xy")  # [H, W] each
-    return jnp.stack([xx, yy], axis=-1)
-
-
-# ----------------------------------------------------------------------------------------------
-# camera flow
-# ----------------------------------------------------------------------------------------------
-
-
-@jax.jit
-def camera_velocity(
-    c2w0: Float[ArrayLike, "4 4"], c2w1: Float[ArrayLike, "4 4"], dt: float | ArrayLike = 1.0
-) -> tuple[Float[Array, 3], Float[Array, 3]]:
-    """Camera velocity (v, omega) between two OpenCV camera-to-world poses, in camera-0 coordinates.
-
-    v = R0^T (c1 - c0) / dt,  omega = log(R0^T R1) / dt  (DESIGN section 1, step 3), with c_i the camera
-    centres (translation column of c2w_i) and log the SO(3) logarithm (rotation vector, angle <= pi).
-
-    Relation to twists: if c2w1 = c2w0 @ se3_exp(dt [w, u]) then omega == w but v == V(dt w) u (the
-    SE(3) exponential moves the centre along an arc); v == u exactly when c1 = c0 + dt R0 u. Both agree
-    with the instantaneous velocity as dt -> 0. Batched poses: use ``jax.vmap``.
-
-    Args:
-        c2w0: camera-to-world pose at t-1 (OpenCV), [4, 4].
-        c2w1: camera-to-world pose at t (OpenCV), [4, 4].
-        dt: time between the frames (non-zero; dt == 0 returns zeros rather than inf).
-
-    Returns:
-        (v [3], omega [3]) in camera-0 coordinates, per unit of dt.
-    """
-    c2w0, c2w1 = _float(c2w0), _float(c2w1)
-    _check_shape("c2w0", c2w0, (4, 4))
-    _check_shape("c2w1", c2w1, (4, 4))
-    dt = jnp.asarray(dt, dtype=c2w0.dtype)
-    inv_dt = jnp.where(dt != 0, 1.0 / jnp.where(dt != 0, dt, 1.0), 0.0)
-    r0t = c2w0[:3, :3].T
-    v = _mm(r0t, c2w1[:3, 3] - c2w0[:3, 3]) * inv_dt
-    omega = geometry.so3_log(_mm(r0t, c2w1[:3, :3])) * inv_dt
-    return v, omega
-
-
-@jax.jit
-def motion_field_matrices(
-    xy: Float[ArrayLike, "*batch 2"], K: Float[ArrayLike, "3 3"]
-) -> tuple[Float[Array, "*batch 2 3"], Float[Array, "*batch 2 3"]]:
-    """The translational and rotational motion-field matrices A(m), B(m) (DESIGN section 1, step 3).
-
-    A = [[-fx, 0, x~], [0, -fy, y~]],
-    B = [[x~ y~ / fy, -fx - x~^2 / fx, y~ fx / fy], [fy + y~^2 / fy, -x~ y~ / fx, -x~ fy / fx]],
-    with x~ = x - cx, y~ = y - cy. The projection Jacobian is J(P) = -A(pi(P)) / Z and
-    B(pi(P)) omega = J(P) (-omega x P) exactly.
-
-    Args:
-        xy: pixel coordinates (centres at +0.5), [..., 2].
-        K: intrinsics, [3, 3] (zero skew assumed).
-
-    Returns:
-        (A [..., 2, 3], B [..., 2, 3]).
-    """
-    xy, K = _float(xy), _float(K)
-    fx, fy, cx, cy = _intrinsics(K)
-    xt, yt = xy[..., 0] - cx, xy[..., 1] - cy
-    zero = jnp.zeros_like(xt)
-    a = jnp.stack(
-        [jnp.stack([-fx + zero, zero, xt], -1), jnp.stack([zero, -fy + zero, yt], -1)], axis=-2
-    )
-    b = jnp.stack(
-        [
-            jnp.stack([xt * yt / fy, -fx - xt * xt / fx, yt * fx / fy], -1),
-            jnp.stack([fy + yt * yt / fy, -xt * yt / fx, -xt * fy / fx], -1),
-        ],
-        axis=-2,
-    )
-    return a, b
-
-
-@jax.jit
-def motion_field_inv_depth(
-    xy: Float[ArrayLike, "*batch 2"],
-    inv_depth: Float[ArrayLike, "*batch"],
-    K: Float[ArrayLike, "3 3"],
-    v: Float[ArrayLike, 3],
-    omega: Float[ArrayLike, 3],
-) -> Float[Array, "*batch 2"]:
-    """Motion field u = A v rho + B omega with the inverse depth rho = 1/Z given directly.
-
-    Linear in rho, which is what makes Lemma 1 exact with the composited inverse depth
-    (``composited_inverse_depth``); rho = 0 is a point at infinity (pure rotational flow).
-
-    Args:
-        xy: pixel coordinates (centres at +0.5), [..., 2].
-        inv_depth: inverse camera-frame depth 1/Z, [...] (broadcast against xy[..., 0]).
-        K: intrinsics, [3, 3] (zero skew assumed).
-        v: camera translational velocity in camera-0 coordinates, [3].
-        omega: camera angular velocity in camera-0 coordinates, [3].
-
-    Returns:
-        Flow in pixels per unit time, [..., 2].
-    """
-    xy, K, v, omega = _float(xy), _float(K), _float(v), _float(omega)
-    rho = _float(inv_depth)
-    fx, fy, cx, cy = _intrinsics(K)
-    xt, yt = xy[..., 0] - cx, xy[..., 1] - cy
-    # A v and B omega written out (cheaper than building the [..., 2, 3] matrices)
-    av_x = -fx * v[0] + xt * v[2]
-    av_y = -fy * v[1] + yt * v[2]
-    bw_x = xt * yt / fy * omega[0] - (fx + xt * xt / fx) * omega[1] + yt * fx / fy * omega[2]
-    bw_y = (fy + yt * yt / fy) * omega[0] - xt * yt / fx * omega[1] - xt * fy / fx * omega[2]
-    return jnp.stack([av_x * rho + bw_x, av_y * rho + bw_y], axis=-1)
-
-
-@jax.jit
-def motion_field(
-    xy: Float[ArrayLike, "*batch 2"],
-    depth: Float[ArrayLike, "*batch"],
-    K: Float[ArrayLike, "3 3"],
-    v: Float[ArrayLike, 3],
-    omega: Float[ArrayLike, 3],
-) -> Float[Array, "*batch 2"]:
-    """First-order camera flow u = A(m) v / Z + B(m) omega of static points (DESIGN section 1, step 3).
-
-    Follows from P' = -v - omega x P and the projection Jacobian J(P) = -A / Z; it is the exact
-    instantaneous image velocity, and a first-order approximation of the flow between two frames when
-    (v, omega) come from ``camera_velocity`` with dt = 1 frame.
-
-    Args:
-        xy: pixel coordinates (centres at +0.5), [..., 2].
-        depth: camera-frame depth Z (z coordinate, not ray length), [...]. Non-positive or non-finite
-            depth is treated as a point at infinity (rotational flow only); mask such pixels yourself.
-        K: intrinsics, [3, 3] (zero skew assumed).
-        v: camera translational velocity in camera-0 coordinates, [3].
-        omega: camera angular velocity in camera-0 coordinates, [3].
-
-    Returns:
-        Flow (dx, dy) in pixels per unit time, [..., 2].
-    """
-    return motion_field_inv_depth(xy, _safe_inv_depth(_float(depth)), K, v, omega)
-
-
-@jax.jit
-def reprojection_flow(
-    depth: Float[ArrayLike, "H W"],
-    K: Float[ArrayLike, "3 3"],
-    c2w0: Float[ArrayLike, "4 4"],
-    c2w1: Float[ArrayLike, "4 4"],
-) -> tuple[Float[Array, "H W 2"], Bool[Array, "H W"]]:
-    """Exact camera flow by reprojection: u(m) = pi(K, T1^-1 T0 Z K^-1 m~) - m.
-
-    Each frame-0 pixel centre m is back-projected with its depth Z (camera z), moved into camera 1 with
-    the OpenCV camera-to-world poses, and projected with the same K.
-
-    Args:
-        depth: frame-0 depth map (camera z), [H, W].
-        K: intrinsics, [3, 3] (skew honoured).
-        c2w0: camera-to-world pose of frame 0 (OpenCV), [4, 4].
-        c2w1: camera-to-world pose of frame 1 (OpenCV), [4, 4].
-
-    Returns:
-        flow: [H, W, 2] (dx, dy) in pixels, 0 where invalid.
-        valid: [H, W] bool, False for non-positive or non-finite depth and for points that land on or
-            behind camera 1's image plane (z1 <= eps * Z).
-    """
-    depth, K, c2w0, c2w1 = _float(depth), _float(K), _float(c2w0), _float(c2w1)
-    if depth.ndim != 2:
-        raise ValueError(f"depth must have shape [H, W]; got {list(depth.shape)}.")
-    _check_shape("K", K, (3, 3))
-    _check_shape("c2w0", c2w0, (4, 4))
-    _check_shape("c2w1", c2w1, (4, 4))
-    h, w = depth.shape
-    m = pixel_centers(h, w, depth.dtype)  # [H, W, 2]
-    ok0 = jnp.isfinite(depth) & (depth > 0)
-    z = jnp.where(ok0, depth, 1.0)
-    fx, fy, cx, cy = _intrinsics(K)
-    yn = (m[..., 1] - cy) / fy
-    xn = (m[..., 0] - cx - K[0, 1] * yn) / fx
-    rel = _mm(geometry.se3_inverse(c2w1), c2w0)  # camera 0 -> camera 1, [4, 4]
-    # P1 = R (Z xn, Z yn, Z) + t, written out per component: one fused elementwise kernel
-    # (a [H*W, 3] x [3, 3] matmul would not fuse with the rest on CPU)
-    r, t = rel[:3, :3], rel[:3, 3]
-    x1 = z * (r[0, 0] * xn + r[0, 1] * yn + r[0, 2]) + t[0]
-    y1 = z * (r[1, 0] * xn + r[1, 1] * yn + r[1, 2]) + t[1]
-    z1 = z * (r[2, 0] * xn + r[2, 1] * yn + r[2, 2]) + t[2]
-    valid = ok0 & (z1 > jnp.finfo(depth.dtype).eps * z)
-    p1 = jnp.stack([x1, y1, jnp.where(valid, z1, 1.0)], axis=-1)  # [H, W, 3]
-    flow = geometry.project_points(p1, K) - m
-    return jnp.where(valid[..., None], flow, 0.0), valid
-
-
-# ----------------------------------------------------------------------------------------------
-# per-Gaussian image velocity
-# ----------------------------------------------------------------------------------------------
-
-
-@jax.jit
-def gaussian_image_velocity(
-    p_cam: Float[ArrayLike, "*batch 3"],
-    v_obj: Float[ArrayLike, "*batch 3"],
-    K: Float[ArrayLike, "3 3"],
-    v: Float[ArrayLike, 3],
-    omega: Float[ArrayLike, 3],
-) -> Float[Array, "*batch 2"]:
-    """Analytic image velocity of Gaussian centres: A v / Z_i + B omega - A v_i / Z_i.
-
-    Sign convention: ``v_obj`` (v_i) is the Gaussian's own velocity in camera-0 coordinates
-    (R0^T dX_i/dt for a world-frame velocity dX_i/dt), so the centre moves as P_i' = -v - omega x P_i + v_i
-    and its image velocity is J(P_i) P_i' with J = -A / Z_i: positive v_i[0] moves it right in the image
-    (+fx v_i[0] / Z_i), while positive camera v[0] moves the image left. Exact (not first order) for
-    instantaneous velocities; equals ``gaussian_image_velocity_jvp`` to rounding.
-
-    Args:
-        p_cam: Gaussian centres in camera-0 coordinates (OpenCV), [..., 3], z > 0 expected.
-        v_obj: Gaussian velocities in camera-0 coordinates, [..., 3].
-        K: intrinsics, [3, 3] (zero skew assumed).
-        v, omega: camera velocity in camera-0 coordinates, [3] each.
-
-    Returns:
-        Image velocities (dx/dt, dy/dt) in pixels per unit time, [..., 2]; centres with z <= 0 get the
-        rotational term only (their inverse depth is taken as 0).
-    """
-    p_cam, v_obj, K, v = _float(p_cam), _float(v_obj), _float(K), _float(v)
-    xy = geometry.project_points(p_cam, K)
-    rho = _safe_inv_depth(p_cam[..., 2])
-    fx, fy, _, _ = _intrinsics(K)
-    xt = xy[..., 0] - K[0, 2]
-    yt = xy[..., 1] - K[1, 2]
-    # A (v - v_i) / Z_i, written out, plus B omega (the camera flow at rho = 0)
-    dv = jnp.broadcast_to(v, v_obj.shape) - v_obj  # [..., 3]
-    tx = (-fx * dv[..., 0] + xt * dv[..., 2]) * rho
-    ty = (-fy * dv[..., 1] + yt * dv[..., 2]) * rho
-    rot = motion_field_inv_depth(xy, jnp.zeros_like(rho), K, jnp.zeros(3, dtype=rho.dtype), omega)
-    return jnp.stack([tx, ty], axis=-1) + rot
-
-
-def gaussian_image_velocity_jvp(
-    means_fn: Callable[[Array], Float[Array, "N 3"]],
-    c2w_fn: Callable[[Array], Float[Array, "4 4"]],
-    K: Float[ArrayLike, "3 3"],
-    t: float | ArrayLike,
-) -> tuple[Float[Array, "N 2"], Float[Array, "N 2"]]:
-    """Exact image velocity d/dt pi(K, c2w(t)^-1 X(t)) of moving centres under a moving camera (``jax.jvp``).
-
-    The oracle for ``gaussian_image_velocity`` and ``motion_field``: no formula, only autodiff of the
-    projection through both trajectories.
-
-    Args:
-        means_fn: t -> world-frame centres X(t), [N, 3].
-        c2w_fn: t -> OpenCV camera-to-world pose, [4, 4].
-        K: intrinsics, [3, 3].
-        t: time (scalar) at which to differentiate.
-
-    Returns:
-        (xy [N, 2], dxy/dt [N, 2]): projections at t and their time derivative.
-    """
-    K = _float(K)
-    t = jnp.asarray(t, dtype=jnp.result_type(float))
-
-    def proj(tt):
-        view = geometry.se3_inverse(c2w_fn(tt))
-        p = _mm(means_fn(tt), view[:3, :3].T) + view[None, :3, 3]
-        return geometry.project_points(p, K)
-
-    return jax.jvp(proj, (t,), (jnp.ones_like(t),))
-
+from fgjax.flow._common import mm, safe_inv_depth
+from fgjax.flow.motion import motion_field_inv_depth, pixel_centers, reprojection_flow
+from fgjax.geometry import as_float
+from fgjax.render.api import rasterization
+from fgjax.render.project import project_gaussians
 
 # ----------------------------------------------------------------------------------------------
 # 2D covariances and the GaussianFlow affine term
@@ -394,11 +56,9 @@ def project_covariances(
         (means2d [N, 2], cov2d [N, 2, 2], depths [N]); depths are camera z. Centres with z <= 0 get a
         finite but meaningless covariance (the rasterizer culls them).
     """
-    from fgjax.render.project import project_gaussians  # the rasterizer's own EWA rule
-
-    means, quats, scales = _float(means), _float(quats), _float(scales)
-    viewmat, K = _float(viewmat), _float(K)
-    p = _mm(means, viewmat[:3, :3].T) + viewmat[None, :3, 3]  # [N, 3]
+    means, quats, scales = as_float(means), as_float(quats), as_float(scales)
+    viewmat, K = as_float(viewmat), as_float(K)
+    p = mm(means, viewmat[:3, :3].T) + viewmat[None, :3, 3]  # [N, 3]
     proj = project_gaussians(
         means, quats, scales, jnp.ones(means.shape[:1], means.dtype), viewmat, K, width, height, near_plane=0.0
     )
@@ -423,7 +83,7 @@ def sqrtm_2x2(s: Float[ArrayLike, "*batch 2 2"]) -> Float[Array, "*batch 2 2"]:
     Returns:
         B with B @ B == S, B symmetric positive semi-definite, [..., 2, 2].
     """
-    s = _float(s)
+    s = as_float(s)
     det = s[..., 0, 0] * s[..., 1, 1] - s[..., 0, 1] * s[..., 1, 0]
     det_pos = det > 0
     sd = jnp.where(det_pos, jnp.sqrt(jnp.where(det_pos, det, 1.0)), 0.0)
@@ -464,12 +124,12 @@ def gaussian_flow_affine(
     Returns:
         (M - I [N, 2, 2], offset [N, 2]).
     """
-    means2d0, cov2d0 = _float(means2d0), _float(cov2d0)
-    means2d1, cov2d1 = _float(means2d1), _float(cov2d1)
+    means2d0, cov2d0 = as_float(means2d0), as_float(cov2d0)
+    means2d1, cov2d1 = as_float(means2d1), as_float(cov2d1)
     b0_inv = _inv_2x2(sqrtm_2x2(cov2d0))
-    m = _mm(sqrtm_2x2(cov2d1), b0_inv)  # [N, 2, 2]
+    m = mm(sqrtm_2x2(cov2d1), b0_inv)  # [N, 2, 2]
     m_minus_i = m - jnp.broadcast_to(jnp.eye(2, dtype=m.dtype), m.shape)
-    offset = (means2d1 - means2d0) - _mm(m_minus_i, means2d0[..., None])[..., 0]
+    offset = (means2d1 - means2d0) - mm(m_minus_i, means2d0[..., None])[..., 0]
     return m_minus_i, offset
 
 
@@ -493,8 +153,6 @@ class GaussianFlowMaps(NamedTuple):
 
 
 def _rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, **kw):
-    from fgjax.render.api import rasterization  # lazy: flow.py imports without the renderer
-
     return rasterization(
         means, quats, scales, opacities, colors, viewmat, K, width, height, background=None, **kw
     )
@@ -552,8 +210,8 @@ def dynamic_gaussian_flow(
     Outside ``jax.jit`` with ``capacity=None`` the rasterizer sizes its intersection buffer exactly; under
     jit pass a ``capacity`` (or check ``overflow``).
     """
-    means0, quats0, scales0 = _float(means0), _float(quats0), _float(scales0)
-    opacities, means1, viewmat, K = _float(opacities), _float(means1), _float(viewmat), _float(K)
+    means0, quats0, scales0 = as_float(means0), as_float(quats0), as_float(scales0)
+    opacities, means1, viewmat, K = as_float(opacities), as_float(means1), as_float(viewmat), as_float(K)
     n = means0.shape[0]
     for name, x, tail in (
         ("means0", means0, (n, 3)),
@@ -572,8 +230,8 @@ def dynamic_gaussian_flow(
         colors = _iso_colors(means0, means1, viewmat, K)  # [N, 3]
         image, alpha, info = _rasterize(means0, quats0, scales0, opacities, colors, viewmat, K, width, height, **kw)
         return GaussianFlowMaps(image[..., :2], alpha, image[..., 2], jnp.asarray(info["overflow"]))
-    quats1 = quats0 if quats1 is None else _float(quats1)
-    scales1 = scales0 if scales1 is None else _float(scales1)
+    quats1 = quats0 if quats1 is None else as_float(quats1)
+    scales1 = scales0 if scales1 is None else as_float(scales1)
     colors = _aniso_colors(means0, quats0, scales0, means1, quats1, scales1, viewmat, K, width, height)  # [N, 7]
     image, alpha, info = _rasterize(means0, quats0, scales0, opacities, colors, viewmat, K, width, height, **kw)
     return GaussianFlowMaps(_aniso_flow(image), alpha, image[..., 6], jnp.asarray(info["overflow"]))
@@ -583,10 +241,10 @@ def dynamic_gaussian_flow(
 def _iso_colors(means0, means1, viewmat, K):
     """Per-Gaussian channels [dmu (2), 1/Z_i (1)], both frames projected with camera t-1."""
     view_rot, view_t = viewmat[:3, :3], viewmat[:3, 3]
-    p0 = _mm(means0, view_rot.T) + view_t[None]  # [N, 3]
-    p1 = _mm(means1, view_rot.T) + view_t[None]  # [N, 3]
+    p0 = mm(means0, view_rot.T) + view_t[None]  # [N, 3]
+    p1 = mm(means1, view_rot.T) + view_t[None]  # [N, 3]
     dmu = geometry.project_points(p1, K) - geometry.project_points(p0, K)  # [N, 2]
-    return jnp.concatenate([dmu, _safe_inv_depth(p0[:, 2])[:, None]], axis=-1)
+    return jnp.concatenate([dmu, safe_inv_depth(p0[:, 2])[:, None]], axis=-1)
 
 
 @functools.partial(jax.jit, static_argnames=("width", "height"))
@@ -596,7 +254,7 @@ def _aniso_colors(means0, quats0, scales0, means1, quats1, scales1, viewmat, K, 
     mu0, cov0, z0 = project_covariances(means0, quats0, scales0, viewmat, K, width, height)
     mu1, cov1, _ = project_covariances(means1, quats1, scales1, viewmat, K, width, height)
     m_minus_i, offset = gaussian_flow_affine(mu0, cov0, mu1, cov1)
-    return jnp.concatenate([m_minus_i.reshape(n, 4), offset, _safe_inv_depth(z0)[:, None]], axis=-1)
+    return jnp.concatenate([m_minus_i.reshape(n, 4), offset, safe_inv_depth(z0)[:, None]], axis=-1)
 
 
 @jax.jit
@@ -605,7 +263,7 @@ def _aniso_flow(image):
     height, width = image.shape[:2]
     pix = pixel_centers(height, width, image.dtype)  # [H, W, 2]
     r_m = image[..., :4].reshape(height, width, 2, 2)
-    return _mm(r_m, pix[..., None])[..., 0] + image[..., 4:6]
+    return mm(r_m, pix[..., None])[..., 0] + image[..., 4:6]
 
 
 def composited_inverse_depth(
@@ -638,7 +296,7 @@ def composited_inverse_depth(
     Returns:
         (inv_depth [H, W], alpha [H, W], overflow []): overflow as in ``GaussianFlowMaps``.
     """
-    means, viewmat = _float(means), _float(viewmat)
+    means, viewmat = as_float(means), as_float(viewmat)
     colors = _inv_depth_colors(means, viewmat)  # [N, 1]
     image, alpha, info = _rasterize(
         means, quats, scales, opacities, colors, viewmat, K, width, height,
@@ -649,8 +307,8 @@ def composited_inverse_depth(
 
 @jax.jit
 def _inv_depth_colors(means, viewmat):
-    z = _mm(means, viewmat[2, :3]) + viewmat[2, 3]  # [N]
-    return _safe_inv_depth(z)[:, None]
+    z = mm(means, viewmat[2, :3]) + viewmat[2, 3]  # [N]
+    return safe_inv_depth(z)[:, None]
 
 
 @jax.jit
@@ -679,8 +337,8 @@ def lemma1_residual(
     Returns:
         Delta, [..., 2].
     """
-    zero = jnp.zeros(3, dtype=jnp.result_type(_float(v).dtype, _float(xy).dtype))
-    d_rho = _float(inv_depth_gs) - _safe_inv_depth(_float(depth))
+    zero = jnp.zeros(3, dtype=jnp.result_type(as_float(v).dtype, as_float(xy).dtype))
+    d_rho = as_float(inv_depth_gs) - safe_inv_depth(as_float(depth))
     return motion_field_inv_depth(xy, d_rho, K, v, zero)
 
 
@@ -718,7 +376,7 @@ def flow_loss(
     Returns:
         Scalar loss: sum(w * err) / max(sum(w), 1) with w the validity weights (0 when nothing is valid).
     """
-    flow, flow_cam, flow_gs = _float(flow), _float(flow_cam), _float(flow_gs)
+    flow, flow_cam, flow_gs = as_float(flow), as_float(flow_cam), as_float(flow_gs)
     if flow.shape != flow_cam.shape or flow.shape != flow_gs.shape or flow.shape[-1:] != (2,):
         raise ValueError(
             f"flow, flow_cam, flow_gs must share one shape [..., H, W, 2]; got {list(flow.shape)}, "
@@ -779,9 +437,9 @@ def gaussian_flow_loss(
     inv_d = jax.lax.stop_gradient(maps.inv_depth)
     ok = inv_d > 1e-6
     depth = jnp.where(ok, 1.0 / jnp.where(ok, inv_d, 1.0), 0.0)  # [H, W]
-    u_cam, cam_ok = reprojection_flow(depth, K, geometry.se3_inverse(_float(viewmat0)),
-                                      geometry.se3_inverse(_float(viewmat1)))
-    u_obs = _float(flow)
+    u_cam, cam_ok = reprojection_flow(depth, K, geometry.se3_inverse(as_float(viewmat0)),
+                                      geometry.se3_inverse(as_float(viewmat1)))
+    u_obs = as_float(flow)
     known = jnp.all(jnp.isfinite(u_obs), axis=-1)
     valid = cam_ok & known & (jax.lax.stop_gradient(maps.alpha) > min_alpha)
     loss = flow_loss(jnp.where(known[..., None], u_obs, 0.0), jax.lax.stop_gradient(u_cam), maps.flow, valid,
@@ -807,7 +465,7 @@ def warp_backward(
         (warped [H, W, C], inside [H, W]) with inside False where m + flow(m) leaves the image
         (or the flow is not finite).
     """
-    image, flow = _float(image), _float(flow)
+    image, flow = as_float(image), as_float(flow)
     h, w = image.shape[:2]
     if flow.shape != (h, w, 2):
         raise ValueError(f"flow must have shape [{h}, {w}, 2]; got {list(flow.shape)}.")

@@ -25,7 +25,7 @@ $(STAMP_TEST): pyproject.toml requirements.lock | $(BIN)/python
 # The whole pipeline on a smaller synthetic scene (a smoke run of a few minutes); `fgjax demo`
 # without --quick runs it at full size.
 demo: $(STAMP_RUN)
-	$(BIN)/fgjax demo --quick
+	$(BIN)/fgjax demo --quick --overwrite
 
 test: $(STAMP_TEST)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)

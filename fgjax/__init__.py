@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import importlib
 
-__version__ = "0.1.0"
+from fgjax.version import __version__ as __version__
 
 _LAZY = {
     "rasterization": "fgjax.render.api",

@@ -10,6 +10,9 @@ from __future__ import annotations
 import importlib
 import os
 import sys
+import zipfile
+
+from fgjax.version import __version__
 
 # command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -52,13 +55,21 @@ def _dispatch(table: dict[str, tuple[str, str]], name: str, argv: list[str], pro
         raise
     try:
         return int(module.main(argv) or 0)
-    except (FileNotFoundError, NotADirectoryError, IsADirectoryError, ValueError) as e:
-        # Bad input (a missing file, a malformed field): one clear line, no traceback.
-        # FGJAX_DEBUG=1 shows the traceback.
+    except (OSError, ValueError, zipfile.BadZipFile) as e:
+        # Bad input or a file system that refuses (a missing or corrupt file, a malformed field, a read-only or full
+        # folder, a path that is a file): one clear line, no traceback. FGJAX_DEBUG=1 shows the traceback.
         if os.environ.get("FGJAX_DEBUG"):
             raise
-        print(f"fgjax {prog}: error: {e}", file=sys.stderr)
+        print(f"fgjax {prog}: error: {_one_line(e)}", file=sys.stderr)
         return 2
+
+
+def _one_line(e: BaseException) -> str:
+    """The error as one line: an OSError names its file and the system's reason."""
+    if isinstance(e, OSError) and e.filename is not None:
+        what = e.strerror or type(e).__name__
+        return f"{e.filename}: {what}" + (f" (and {e.filename2})" if e.filename2 else "")
+    return " ".join(str(e).split()) or type(e).__name__
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -70,8 +81,6 @@ def main(argv: list[str] | None = None) -> int:
         print(_usage())
         return 0
     if argv[0] in ("--version", "-V"):
-        from fgjax import __version__
-
         print(f"fgjax {__version__}")
         return 0
     cmd, rest = argv[0], argv[1:]

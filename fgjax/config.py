@@ -18,7 +18,7 @@ from typing import Any
 
 __all__ = [
     "DataConfig", "ModelConfig", "DeformConfig", "TrainConfig", "DensifyConfig", "FlowConfig",
-    "PoseConfig", "StaticConfig", "Stage2Config", "ArticulateConfig", "Config", "validate_stage2",
+    "PoseConfig", "StaticConfig", "Stage2Config", "ArticulateConfig", "Config", "validate_stage1", "validate_stage2",
     "validate_articulate", "load_config", "apply_overrides", "to_toml", "from_dict",
     "ConfigError",
 ]
@@ -307,6 +307,7 @@ def from_dict(d: dict[str, Any], base: Config | None = None) -> Config:
             kw[k] = _coerce(f"{sec}.{k}", types[k], v)
         updates[sec] = dataclasses.replace(cur, **kw)
     cfg = dataclasses.replace(base, **updates)
+    validate_stage1(cfg)
     validate_stage2(cfg.stage2)
     validate_articulate(cfg.articulate)
     return cfg
@@ -544,10 +545,87 @@ class ArticulateConfig:
     """Re-fit steps after the label passes; 0: none."""
 
 
+def validate_stage1(cfg: Config) -> None:
+    """Raise `ConfigError` naming ``section.key`` when a stage-1 value is out of its range (counts that must be
+    positive, rates and weights that must be finite and positive or non-negative, choices among names)."""
+    def need(ok: bool, key: str, want: str, value: Any) -> None:
+        if not ok:
+            raise ConfigError(f"config key '{key}' must be {want}; got {value!r}")
+
+    finite = lambda x: x == x and abs(x) != float("inf")
+    d, m, f, t, dn, fl = cfg.data, cfg.model, cfg.deform, cfg.train, cfg.densify, cfg.flow
+    need(d.downscale >= 1, "data.downscale", ">= 1", d.downscale)
+    need(d.test_every_train >= 0, "data.test_every_train", ">= 0", d.test_every_train)
+    need(0 <= m.sh_degree <= 3, "model.sh_degree", "in 0..3", m.sh_degree)
+    need(m.init in ("flow", "random"), "model.init", "'flow' or 'random'", m.init)
+    need(m.init_points >= 1, "model.init_points", ">= 1", m.init_points)
+    need(m.capacity >= m.init_points, "model.capacity", f">= model.init_points ({m.init_points})", m.capacity)
+    need(0.0 <= m.init_random_fraction <= 1.0, "model.init_random_fraction", "in [0, 1]", m.init_random_fraction)
+    need(m.init_flow_gap >= 1, "model.init_flow_gap", ">= 1", m.init_flow_gap)
+    need(0.0 < m.init_opacity < 1.0, "model.init_opacity", "in (0, 1)", m.init_opacity)
+    need(finite(m.init_scale) and m.init_scale > 0, "model.init_scale", "> 0", m.init_scale)
+    need(len(m.background) == 3 and all(0.0 <= c <= 1.0 for c in m.background), "model.background",
+         "three numbers in [0, 1]", m.background)
+    need(f.kind in ("hash", "frequency"), "deform.kind", "'hash' or 'frequency'", f.kind)
+    for k in ("depth", "width", "hash_levels", "hash_features", "hash_base_res", "hash_max_res"):
+        need(getattr(f, k) >= 1, f"deform.{k}", ">= 1", getattr(f, k))
+    for k in ("skip", "x_freqs", "t_freqs", "x_freqs_hash"):
+        need(getattr(f, k) >= 0, f"deform.{k}", ">= 0", getattr(f, k))
+    need(t.steps >= 1, "train.steps", ">= 1", t.steps)
+    need(t.batch_size >= 1, "train.batch_size", ">= 1", t.batch_size)
+    for k in ("warmup_steps", "sh_increase_every", "eval_every", "checkpoint_every", "tile_capacity", "video_frames"):
+        need(getattr(t, k) >= 0, f"train.{k}", ">= 0", getattr(t, k))
+    need(t.log_every >= 1, "train.log_every", ">= 1", t.log_every)
+    for k in ("lr_means", "lr_means_final", "lr_deform", "lr_deform_final", "lr_opacity", "lr_scales", "lr_quats",
+              "lr_sh", "lr_hash_factor", "scale_reg_max"):
+        v = getattr(t, k)
+        need(finite(v) and v > 0, f"train.{k}", "a finite number > 0", v)
+    need(0.0 <= t.lambda_dssim <= 1.0, "train.lambda_dssim", "in [0, 1]", t.lambda_dssim)
+    need(finite(t.scale_reg) and t.scale_reg >= 0, "train.scale_reg", ">= 0", t.scale_reg)
+    need(t.rigid_neighbours >= 1, "train.rigid_neighbours", ">= 1", t.rigid_neighbours)
+    need(finite(t.capacity_margin) and t.capacity_margin >= 1.0, "train.capacity_margin", ">= 1", t.capacity_margin)
+    need(t.tile_size in (4, 8, 16, 32), "train.tile_size", "4, 8, 16 or 32", t.tile_size)
+    for k in ("start", "stop", "every", "reset_every"):
+        need(getattr(dn, k) >= 0, f"densify.{k}", ">= 0", getattr(dn, k))
+    for k in ("grad_threshold", "percent_dense", "prune_opacity", "max_world_scale"):
+        v = getattr(dn, k)
+        need(finite(v) and v >= 0, f"densify.{k}", "a finite number >= 0", v)
+    need(finite(fl.weight) and fl.weight >= 0, "flow.weight", ">= 0", fl.weight)
+    need(finite(fl.threshold) and fl.threshold >= 0, "flow.threshold", ">= 0", fl.threshold)
+    need(fl.start >= 0, "flow.start", ">= 0", fl.start)
+    for k in ("lr", "lr_final"):
+        v = getattr(cfg.pose, k)
+        need(finite(v) and v > 0, f"pose.{k}", "a finite number > 0", v)
+    need(cfg.static.force in ("auto", "static", "dynamic"), "static.force", "'auto', 'static' or 'dynamic'",
+         cfg.static.force)
+    need(finite(cfg.static.threshold) and cfg.static.threshold >= 0, "static.threshold", ">= 0",
+         cfg.static.threshold)
+
+
+def _check_types(section: str, cfg: Any) -> None:
+    """Raise `ConfigError` naming ``section.field`` when a value does not have its field's declared type (a bool is
+    not an int, an int is a float, ``float | str`` takes either)."""
+    for name, typ in typing.get_type_hints(type(cfg)).items():
+        v = getattr(cfg, name)
+        allowed = typing.get_args(typ) if typing.get_origin(typ) is types.UnionType else (typ,)
+        ok = any(
+            (t is bool and isinstance(v, bool))
+            or (t is int and isinstance(v, int) and not isinstance(v, bool))
+            or (t is float and isinstance(v, int | float) and not isinstance(v, bool))
+            or (t is str and isinstance(v, str))
+            for t in allowed
+        )
+        if not ok:
+            want = " or ".join(getattr(t, "__name__", str(t)) for t in allowed)
+            raise ConfigError(f"{section}.{name} must be of type {want}; got {v!r}")
+
+
 def validate_stage2(cfg: Stage2Config) -> None:
-    """Raise `ConfigError` naming the field when a `Stage2Config` value is out of range."""
+    """Raise `ConfigError` naming the field when a `Stage2Config` value has the wrong type or is out of range."""
     def bad(name: str, want: str) -> ConfigError:
         return ConfigError(f"stage2.{name} must be {want}; got {getattr(cfg, name)!r}")
+
+    _check_types("stage2", cfg)
 
     if cfg.variant not in ("paper", "articulated"):
         raise bad("variant", "'paper' or 'articulated'")
@@ -557,7 +635,7 @@ def validate_stage2(cfg: Stage2Config) -> None:
         raise bad("cluster_method", "'dbscan' or 'hdbscan'")
     for name in ("threshold_px", "score_threshold"):
         v = getattr(cfg, name)
-        if v != "otsu" and not (isinstance(v, float) and v >= 0):
+        if v != "otsu" and not (isinstance(v, int | float) and not isinstance(v, str) and v >= 0):
             raise bad(name, "'otsu' or a number >= 0")
     for name in ("min_px", "min_alpha", "min_score", "eps", "min_fraction", "flow_weight", "flow_threshold"):
         if not float(getattr(cfg, name)) >= 0:
@@ -575,9 +653,11 @@ def validate_stage2(cfg: Stage2Config) -> None:
 
 
 def validate_articulate(cfg: ArticulateConfig) -> None:
-    """Raise `ConfigError` naming the field when an `ArticulateConfig` value is out of range."""
+    """Raise `ConfigError` naming the field when an `ArticulateConfig` value has the wrong type or is out of range."""
     def bad(name: str, want: str) -> ConfigError:
         return ConfigError(f"articulate.{name} must be {want}; got {getattr(cfg, name)!r}")
+
+    _check_types("articulate", cfg)
 
     finite = lambda x: x == x and abs(x) != float("inf")
     if cfg.track_joints not in ("auto", "off"):

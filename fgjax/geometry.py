@@ -40,6 +40,7 @@ __all__ = [
     "so3_left_jacobian_inv",
     "quat_to_rotmat",
     "rotmat_to_quat",
+    "quat_multiply",
     "se3_exp",
     "se3_log",
     "se3_compose",
@@ -320,6 +321,14 @@ def quat_to_rotmat(quats: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 
 
 
 @jax.jit
+def quat_multiply(a: Float[ArrayLike, "*batch 4"], b: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
+    """Hamilton product a * b of wxyz quaternions [..., 4] (rotation b first, then a)."""
+    aw, ax, ay, az = jnp.moveaxis(jnp.asarray(a), -1, 0)
+    bw, bx, by, bz = jnp.moveaxis(jnp.asarray(b), -1, 0)
+    return jnp.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                      aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
 def rotmat_to_quat(rot: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4"]:
     """Unit wxyz quaternion of a rotation matrix (Shepperd's method), with w >= 0.
 

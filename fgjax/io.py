@@ -31,10 +31,8 @@ def atomic_write(path: str | Path, write: Callable[[Any], None]) -> Path:
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        try:
+        with contextlib.suppress(OSError):  # the first error is the one to report, never the clean-up's
             os.unlink(tmp)
-        except FileNotFoundError:
-            pass
         raise
     return path
 

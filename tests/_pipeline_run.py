@@ -9,6 +9,8 @@ import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
+from fgjax.config import ArticulateConfig, Stage2Config
+
 
 def shared_base(tmp_path_factory) -> Path:
     """The session's temporary folder, or under ``pytest -n`` (pytest-xdist) the one its workers share."""
@@ -27,6 +29,11 @@ QUICK = ["train.steps=8", "train.warmup_steps=2", "densify.enabled=false", "trai
          "train.log_every=4", "train.checkpoint_every=0", "static.detect=false"]
 
 
+# the articulated variant's settings for the tiny run: the flow tracking and a few re-fit steps (seconds, not minutes)
+TINY_STAGE2 = (Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2, control_rigid=True),
+               ArticulateConfig(refit_steps=4, track_photo=0, relabel_steps=0, local_threshold=0.4, hull_refit_steps=4))
+
+
 def tiny_run(base: Path, *, stage2: bool = True) -> tuple[Path, Path]:
     """(run_dir, data_dir) under `base` (48x36, 8 frames, 8 stage-1 steps); cached on disk, built under a
     lock so that parallel test workers build it once."""
@@ -35,10 +42,12 @@ def tiny_run(base: Path, *, stage2: bool = True) -> tuple[Path, Path]:
 
 
 def _tiny_run(base: Path, *, stage2: bool) -> tuple[Path, Path]:
+    from conftest import synth
+
+    from fgjax.articulate import run_articulated
     from fgjax.config import load_config
-    from fgjax.data import synth
-    from fgjax.pipeline import stage1
-    from fgjax.pipeline import stage2 as s2
+    from fgjax.method import stage1
+    from fgjax.method.result import STAGE2_NAME
 
     data, run = base / "scene", base / "run"
     if not (data / "gt" / "meta.json").exists():
@@ -50,9 +59,6 @@ def _tiny_run(base: Path, *, stage2: bool) -> tuple[Path, Path]:
         from fgjax.data.loaders import load_scene
 
         stage1.train_stage1(cfg, load_scene(data, "train"), run, progress=False, log=lambda m: None)
-    if stage2 and not (run / s2.STAGE2_NAME).exists():
-        cfg2 = s2.Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2, refit_steps=4, track_photo=0,
-                               relabel_steps=0, local_threshold=0.4,  # the flow tracking: seconds, not minutes
-                               hull_refit_steps=4)
-        s2.run_stage2(run, data, cfg2, log=lambda m: None)
+    if stage2 and not (run / STAGE2_NAME).exists():
+        run_articulated(run, data, *TINY_STAGE2, log=lambda m: None)
     return run, data

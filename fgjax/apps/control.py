@@ -62,7 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="fgjax control", description="Move a discovered object and render.")
     p.add_argument("--run", required=True, help="run folder with stage-2 results")
     p.add_argument("--object", type=int, required=True, help="object id K (1-based)")
-    p.add_argument("--vector", default="0,0,0", help="displacement x,y,z in scene units (snapped to the trajectory)")
+    p.add_argument("--vector", default=None, help="displacement x,y,z in scene units (snapped to the trajectory); "
+                   "required unless --sweep")
     p.add_argument("--cameras", default=None, help="transforms json (default: first training camera)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--sweep", action="store_true", help="write a video moving the object through its range")
@@ -71,7 +72,11 @@ def main(argv: list[str] | None = None) -> int:
 
     err = lambda m: print(f"fgjax control: {m}", file=sys.stderr)
     try:
-        vec = parse_vector(args.vector)
+        if args.vector is None and not args.sweep:
+            raise ValueError("give --vector x,y,z (the object's displacement) or --sweep (its whole range)")
+        if args.vector is not None and args.sweep:
+            raise ValueError("give --vector or --sweep, not both")
+        vec = parse_vector(args.vector) if args.vector is not None else None
         run = stage2.load_stage2(args.run)
         n = run.s2.num_objects
         if n == 0:
@@ -97,8 +102,11 @@ def main(argv: list[str] | None = None) -> int:
             path = out / f"object{args.object}_{name}.png"
             iio.imwrite(path, (img * 255 + 0.5).astype(np.uint8))
             print(f"wrote {path}")
-        print(f"object {args.object}: vector {vec.tolist()} snapped to {np.round(v, 5).tolist()} "
-              f"(trajectory time {t:.4f})")
+        off = float(np.linalg.norm(np.asarray(v) - vec))
+        print(f"object {args.object}: vector {vec.tolist()} snapped to {np.round(v, 5).tolist()} on its trajectory "
+              f"(time {t:.4f}; moved by {off:.4g} scene units"
+              + (", more than the trajectory's own reach: the vector lies far off it" if off > float(np.max(
+                  np.linalg.norm(s2.traj[k] - s2.traj[k, :1], axis=-1), initial=0.0)) else "") + ")")
         return 0
 
     name, vm, K, _, w, h = cams[0]

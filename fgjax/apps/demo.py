@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -154,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--frames", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier demo in --out")
     p.add_argument("--synth-only", action="store_true",
                    help="only the synthetic scene and its ground-truth pictures (no training)")
     p.add_argument("--config", default=None, help="named configuration (default: experiments/articulated.toml, "
@@ -170,10 +172,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fgjax demo: error: {e}", file=sys.stderr)
         return 2
     scene_dir = out / "scene"
-    if scene_dir.exists() and (not scene_dir.is_dir() or (any(scene_dir.iterdir()) and not _is_synth_output(scene_dir))):
-        print(f"fgjax demo: error: {scene_dir} exists and is not a synthetic scene from an earlier demo; "
-              "choose another --out", file=sys.stderr)
+    if out.exists() and not out.is_dir():
+        print(f"fgjax demo: error: --out {out} is a file, not a folder", file=sys.stderr)
         return 2
+    if out.is_dir() and any(out.iterdir()):
+        if not args.overwrite:
+            print(f"fgjax demo: error: {out} is not empty; pass --overwrite to replace an earlier demo there, or "
+                  "choose another --out", file=sys.stderr)
+            return 2
+        if not _is_synth_output(scene_dir):
+            print(f"fgjax demo: error: {out} does not hold an earlier demo (no {scene_dir / 'gt' / 'meta.json'} "
+                  "from fgjax synth); --overwrite replaces only a demo's folder: choose another --out", file=sys.stderr)
+            return 2
+        shutil.rmtree(out)
     t0 = time.perf_counter()
     say = lambda msg: print(msg, file=sys.stderr, flush=True)
     synth.generate(scfg, scene_dir, overwrite=True, progress=say)

@@ -1,4 +1,7 @@
-"""``fgjax train --data SCENE --out RUN [--config FILE] [--set SECTION.KEY=VALUE ...] [--resume]``: stage 1.
+"""``fgjax train --data SCENE --out RUN [--config FILE] [--set SECTION.KEY=VALUE ...] [--resume | --overwrite]``.
+
+Stage 1 into a new run folder; an existing run is continued (``--resume``, on its own data) or replaced
+(``--overwrite``), never overwritten silently. RUN/provenance.json records what made the run.
 
 The configuration (stage 1's sections and, for a later ``fgjax stage2``, [stage2] and [articulate]) is saved as
 RUN/config.toml. Named configurations are in experiments/ (docs/architecture.md).
@@ -23,6 +26,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key, e.g. --set train.steps=3000 (repeatable)")
     p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
+    p.add_argument("--overwrite", action="store_true", help="replace the run in RUN (its stage-2 results too)")
     return p
 
 
@@ -35,8 +39,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = Path(args.out)
     try:
-        run(cfg, Path(args.data), out, resume=args.resume)
-    except CheckpointError as e:
+        if args.resume and args.overwrite:
+            raise ValueError("give --resume or --overwrite, not both")
+        run(cfg, Path(args.data), out, resume=args.resume, overwrite=args.overwrite)
+    except (CheckpointError, ValueError) as e:
         print(f"fgjax train: {e}", file=sys.stderr)
         return 2
     return 0

@@ -61,10 +61,10 @@ __all__ = ["run_articulated", "select_parts", "tracked_poses", "photometric_pose
 def select_parts(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stage2Config, acfg: ArticulateConfig,
                  candidates: Bool[np.ndarray, " N"], *, log=print, t_start: float | None = None):
     """Step 6 with motion: DBSCAN (or HDBSCAN) on the canonical centres [N, 3] of D, fragments whose motion
-    profiles correlate merged (``aacfg.merge_eps``), clusters whose members move at different times split
-    (``aacfg.split_motion``), a second selection pass in each cluster's own moving frames (``aacfg.local_radius``;
+    profiles correlate merged (``acfg.merge_eps``), clusters whose members move at different times split
+    (``acfg.split_motion``), a second selection pass in each cluster's own moving frames (``acfg.local_radius``;
     ``candidates`` [N] bool: the Gaussians it may join), and the size cut (after that pass with
-    ``aacfg.cut_after_local``). Returns (labels [N] in -1..K-1, largest first; `disc` with D widened by the joined
+    ``acfg.cut_after_local``). Returns (labels [N] in -1..K-1, largest first; `disc` with D widened by the joined
     Gaussians; `fgjax.cluster.cluster_report` of D's labels)."""
     t_start = time.perf_counter() if t_start is None else t_start
     n_dyn = int(disc.dynamic.sum())

@@ -68,7 +68,6 @@ __all__ = [
     "imread",
     "load_scene",
     "parse_transforms",
-    "viewmat_to_c2w",  # re-exported: `fgjax.geometry.viewmat_to_c2w`
 ]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -81,6 +80,8 @@ _PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADI
 
 
 def _read_json(path: Path) -> dict[str, Any]:
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder; a transforms JSON file is expected")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: file not found")
     try:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +39,9 @@ from fgjax.models.control_net import ControlNet, control_apply, control_init, pe
 from fgjax.models.deform import deform_apply
 from fgjax.models.model import render_params
 from fgjax.models.posed import fit_group_poses, label_onehot, transform_gaussians
+from fgjax.provenance import file_sha256
 from fgjax.render.api import rasterization
+from fgjax.train.checkpoint import CHECKPOINT_NAME
 
 __all__ = ["STAGE2_NAME", "FORMAT_VERSION", "Stage2Error", "Stage2Result", "LoadedRun", "load_stage2", "save_stage2",
            "controlled_gaussians", "cluster_vectors_at", "snap_vector", "render_controlled", "posed_base",
@@ -256,7 +259,7 @@ def load_stage2(run_dir: str | Path, *, require_stage2: bool = True) -> LoadedRu
                               f"fgjax stage2 --run {run_dir} --data DATA")
         return LoadedRun(run_dir, cfg, state, spec, meta, None)
     try:
-        with np.load(p, allow_pickle=False) as z:
+        with open(p, "rb") as fh, np.load(fh, allow_pickle=False) as z:  # our handle: closed on a bad zip too
             m = json.loads(str(z["meta"]))
             if m.get("format_version") != FORMAT_VERSION:
                 raise Stage2Error(f"{p}: format version {m.get('format_version')} != {FORMAT_VERSION}")
@@ -275,8 +278,15 @@ def load_stage2(run_dir: str | Path, *, require_stage2: bool = True) -> LoadedRu
                     raise Stage2Error(f"{p}: re-fitted Gaussians of shape {refit.means.shape} for "
                                       f"{tuple(state.params['gaussians'].means.shape)}")
             s2 = Stage2Result(z["labels"], z["dynamic"], z["scores"], z["traj"], z["traj_times"], control, m, refit)
-    except (OSError, ValueError, KeyError) as e:
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
         raise Stage2Error(f"{p} is not a readable stage-2 result: {e}") from e
+    built_on = s2.meta.get("stage1_checkpoint")
+    if built_on is not None:
+        now = file_sha256(run_dir / CHECKPOINT_NAME)
+        if built_on.get("sha256") != now:
+            raise Stage2Error(f"{p} was built on stage-1 checkpoint {str(built_on.get('sha256'))[:12]} (step "
+                              f"{built_on.get('step')}), but {run_dir / CHECKPOINT_NAME} is now {now[:12]} (step "
+                              f"{int(state.step)}): stage 1 was trained again; run stage 2 again")
     if len(s2.labels) != state.params["gaussians"].means.shape[0]:
         raise Stage2Error(f"{p}: {len(s2.labels)} labels for {state.params['gaussians'].means.shape[0]} Gaussians "
                           "(stage 1 was re-trained after stage 2; run stage 2 again)")

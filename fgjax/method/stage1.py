@@ -15,6 +15,7 @@ import dataclasses
 import functools
 import json
 import math
+import shutil
 import time
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -39,15 +40,17 @@ from fgjax.method.init_points import first_view_colors, flow_point_cloud, random
 from fgjax.method.poses import bundle_adjust
 from fgjax.models.deform import DeformSpec, deform_init
 from fgjax.models.model import deformed_gaussians, refined_viewmats, render_params, scene_extent
+from fgjax.provenance import PROVENANCE_NAME, read_provenance, scene_fingerprint, write_provenance
 from fgjax.render.api import count_intersections, round_capacity
 from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
 from fgjax.train.losses import isometry_loss, photometric_loss, scale_change_loss, scale_regularizer
 from fgjax.train.optim import OptimSpec, active_sh_degree, make_optimizer
+from fgjax.version import __version__
 
 __all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "FlowBatch",
            "estimate_training_flows", "previous_frames", "load_run", "render_frame", "evaluate", "template_state",
-           "refined_viewmats", "load_test_views", "make_step", "compute_capacity", "active_sh_mask", "StepSpec"]
+           "refined_viewmats", "load_test_views", "prepare_run_folder", "make_step", "compute_capacity", "active_sh_mask", "StepSpec"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -474,6 +477,9 @@ def train_stage1(
         if out is None or not (out / ckpt.CHECKPOINT_NAME).exists():
             raise FileNotFoundError(f"--resume: no checkpoint at {out}/{ckpt.CHECKPOINT_NAME}")
         state = ckpt.load_checkpoint(out / ckpt.CHECKPOINT_NAME, state)
+        if state.step > cfg.train.steps:
+            raise ValueError(f"--resume: {out / ckpt.CHECKPOINT_NAME} is at step {state.step}, beyond "
+                             f"train.steps={cfg.train.steps}; resume with at least that many steps")
         log(f"resumed from step {state.step}")
     t = cfg.train
     w, h = scene.width, scene.height
@@ -695,10 +701,13 @@ def evaluate(state: TrainState, spec, cfg: Config, test_scene, masks=None, out_d
 
 def load_test_views(data_dir: Path, cfg: Config, normalization):
     """Held-out test views evaluated by time (the synthetic scenes' "state" frames are skipped), plus
-    dynamic-region masks where the dataset has them (scene masks, or the synthetic gt object ids)."""
+    dynamic-region masks where the dataset has them (scene masks, or the synthetic gt object ids). (None, None,
+    None) where the dataset has no test split; a test split that exists but cannot be read raises, naming its file."""
     try:
         test = load_scene(data_dir, "test", normalize=normalization, downscale=cfg.data.downscale)
     except (FileNotFoundError, ValueError):
+        if (Path(data_dir) / "transforms_test.json").exists():
+            raise
         return None, None, None
     keep = list(range(test.num_frames))
     masks = None if test.masks is None else (np.asarray(test.masks) > 0)
@@ -732,8 +741,37 @@ def write_video(state, spec, cfg: Config, scene, path: Path, frames: int) -> Pat
 # ---------------------------------------------------------------------------------------------
 
 
-def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print) -> dict[str, Any]:
-    """Load, train, evaluate and write RUN/{config.toml, checkpoint.npz, metrics.json, test/*.png, sweep.mp4}."""
+def prepare_run_folder(out: Path, data_dir: Path, *, resume: bool = False, overwrite: bool = False) -> None:
+    """Check that stage 1 may write the run folder ``out`` for the data in ``data_dir``, and clear it with
+    ``overwrite``. A new run needs a missing or empty folder; an existing run is continued with ``resume`` (only on
+    the data it was trained on, by `fgjax.provenance.scene_fingerprint`) or replaced whole with ``overwrite`` (its
+    stage-2 results too). Raises ValueError naming the folder and what to pass otherwise."""
+    out, data_dir = Path(out), Path(data_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a folder")
+    is_run = any((out / n).exists() for n in ("config.toml", "model.json", ckpt.CHECKPOINT_NAME, PROVENANCE_NAME))
+    if resume:
+        rec = read_provenance(out)
+        if rec is not None and rec.get("data_fingerprint") not in (None, scene_fingerprint(data_dir)):
+            raise ValueError(f"--resume: {out} was trained on {rec.get('data_dir')}, whose data differ from "
+                             f"{data_dir}; resume it on its own data or train a new run")
+        return
+    if is_run and not overwrite:
+        raise ValueError(f"{out} holds a trained run; pass --resume to continue it or --overwrite to replace it "
+                         "(its stage-2 results too)")
+    if is_run:
+        shutil.rmtree(out)
+    elif out.is_dir() and any(out.iterdir()):
+        raise ValueError(f"--out {out} is a folder that is not empty and holds no run; choose another --out")
+
+
+def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print, *,
+        overwrite: bool = False) -> dict[str, Any]:
+    """Load, train, evaluate and write RUN/{config.toml, checkpoint.npz, metrics.json, provenance.json, test/*.png,
+    sweep.mp4}. The folder must be new or empty, or hold a run to continue (``resume``) or replace (``overwrite``):
+    `prepare_run_folder`."""
+    out, data_dir = Path(out), Path(data_dir)
+    prepare_run_folder(out, data_dir, resume=resume, overwrite=overwrite)
     scene = load_scene(data_dir, "train", downscale=cfg.data.downscale)
     test, masks, names = load_test_views(data_dir, cfg, scene.normalization)
     log(f"train: {scene.num_frames} frames {scene.width}x{scene.height}; "
@@ -747,9 +785,10 @@ def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print)
         metrics.update(m)
         log(f"test views: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}"
             + (f", dynamic-region PSNR {m['masked_psnr_dynamic']:.2f} dB" if "masked_psnr_dynamic" in m else ""))
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    atomic_write(out / "metrics.json", lambda f: f.write(json.dumps(metrics, indent=1).encode()))
     if cfg.train.video_frames > 0:
         v = write_video(res["state"], res["spec"], cfg, scene, out / "sweep.mp4", cfg.train.video_frames)
         log(f"time sweep: {v}")
+    write_provenance(out, data_dir, out / ckpt.CHECKPOINT_NAME, int(res["state"].step), __version__)
     return {**res, "metrics": metrics}
 

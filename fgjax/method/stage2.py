@@ -42,6 +42,8 @@ from fgjax.method.result import (
     save_stage2,
 )
 from fgjax.models.model import refined_viewmats
+from fgjax.provenance import file_sha256, read_provenance, scene_fingerprint
+from fgjax.train.checkpoint import CHECKPOINT_NAME
 
 __all__ = ["run_stage2", "prepare_run", "select_objects", "deformed_geometry", "finish"]
 
@@ -54,6 +56,10 @@ def prepare_run(run_dir: Path, data_dir: Path, log=print) -> tuple[LoadedRun, Sc
         Stage2Error: the images' size differs from the run's, or fewer than 2 training frames.
     """
     run = load_stage2(run_dir, require_stage2=False)
+    rec = read_provenance(run_dir)
+    if rec is not None and rec.get("data_fingerprint") not in (None, scene_fingerprint(data_dir)):
+        raise Stage2Error(f"{data_dir} is not the data {run_dir} was trained on ({rec.get('data_dir')}): their files "
+                          "differ; run stage 2 on the run's own data")
     scene = load_scene(data_dir, "train", normalize=Normalization.from_dict(run.meta["normalization"]),
                        downscale=run.cfg.data.downscale)
     if (scene.width, scene.height) != (run.meta["width"], run.meta["height"]):
@@ -117,6 +123,8 @@ def finish(run_dir: Path, data_dir: Path, run: LoadedRun, scene: Scene, order: I
         "num_noise": report.n_noise,
         "moving_pixel_fraction": float(disc.masks.mean()),
         "flow_loss": bool(stats.get("photometric", {}).get("flow_weight", 0.0) > 0),
+        "stage1_checkpoint": {"step": int(run.state.step), "sha256": file_sha256(run_dir / CHECKPOINT_NAME)},
+        "data_fingerprint": scene_fingerprint(data_dir),
         **meta,
         "time_s": time.perf_counter() - t_start,
         **stats,

@@ -16,15 +16,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 from fgjax import geometry
 from fgjax.geometry import HIGHEST
 
-__all__ = ["quat_multiply", "transform_gaussians", "fit_group_poses", "label_onehot"]
-
-
-def quat_multiply(a: Float[ArrayLike, "*batch 4"], b: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
-    """Hamilton product a * b of wxyz quaternions [..., 4] (rotation b first, then a)."""
-    aw, ax, ay, az = jnp.moveaxis(jnp.asarray(a), -1, 0)
-    bw, bx, by, bz = jnp.moveaxis(jnp.asarray(b), -1, 0)
-    return jnp.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                      aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+__all__ = ["transform_gaussians", "fit_group_poses", "label_onehot"]
 
 
 def transform_gaussians(means: Float[ArrayLike, "N 3"], quats: Float[ArrayLike, "N 4"], labels: Int[ArrayLike, " N"],
@@ -39,7 +31,7 @@ def transform_gaussians(means: Float[ArrayLike, "N 3"], quats: Float[ArrayLike, 
     rot = jnp.asarray(poses)[k, :3, :3]  # [N, 3, 3]
     tr = jnp.asarray(poses)[k, :3, 3]
     m = jnp.einsum("nij,nj->ni", rot, means, precision=HIGHEST) + tr
-    q = quat_multiply(geometry.rotmat_to_quat(rot), quats)
+    q = geometry.quat_multiply(geometry.rotmat_to_quat(rot), quats)
     return jnp.where(moved[:, None], m, means), jnp.where(moved[:, None], q, quats)
 
 

@@ -98,7 +98,6 @@ def round_capacity(x: int) -> int:
     return 2 * b
 
 
-_round_capacity = round_capacity  # old name, still imported by fgjax.method.stage1
 
 
 def _empty_render(means, colors, background, width, height, render_depth):

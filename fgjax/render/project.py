@@ -35,7 +35,11 @@ class Projected(NamedTuple):
 
 
 def quat_to_rotmat(quats: Float[Array, "N 4"]) -> Float[Array, "N 3 3"]:
-    """Rotation matrices of wxyz quaternions of any norm (a zero quaternion maps to identity)."""
+    """Rotation matrices of wxyz quaternions of any norm (a zero quaternion maps to identity).
+
+    The rasterizer's form (as gsplat's): q normalised first, then the unit-quaternion matrix. It agrees with
+    `fgjax.geometry.quat_to_rotmat` (the closed form R = I + 2/|q|^2 [...]) to rounding; the rasterizer keeps its own
+    so that its renders, and the runs built on them, stay bit-for-bit as they are."""
     n2 = jnp.sum(quats * quats, axis=-1, keepdims=True)  # [N, 1]
     ok = n2 > 0
     q = jnp.where(ok, quats, jnp.array([1.0, 0.0, 0.0, 0.0], quats.dtype))

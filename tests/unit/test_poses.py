@@ -1,4 +1,4 @@
-"""Camera poses from optical flow (`fgjax.pipeline.poses`): tracks, triangulation and the bundle adjustment,
+"""Camera poses from optical flow (`fgjax.method.poses`): tracks, triangulation and the bundle adjustment,
 against exact flows of a box room computed here independently (numpy ray casting)."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fgjax.pipeline.poses import FlowTracks, _triangulate_inverse_depth, bundle_adjust, flow_tracks
+from fgjax.method.poses import FlowTracks, _triangulate_inverse_depth, bundle_adjust, flow_tracks
 
 W, H = 64, 48
 K = np.array([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]])

@@ -8,14 +8,29 @@ import re
 import numpy as np
 import pytest
 
-from fgjax.pipeline import stage2
+from fgjax.apps import render as render_app
+from fgjax.articulate import labels as L
+from fgjax.articulate import pipeline as AP
+from fgjax.articulate import refit, trial
+from fgjax.articulate.pipeline import run_articulated
+from fgjax.config import ArticulateConfig, Stage2Config
+from fgjax.method import result
+from fgjax.method.control import train_control
+from fgjax.method.discover import discover_run
+
+
+def _cfgs(**kw) -> tuple[Stage2Config, ArticulateConfig]:
+    """(Stage2Config, ArticulateConfig) from one set of keyword arguments, each to the section that has it."""
+    names = set(Stage2Config.__dataclass_fields__)
+    return (Stage2Config(**{k: v for k, v in kw.items() if k in names}),
+            ArticulateConfig(**{k: v for k, v in kw.items() if k not in names}))
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     import sys
 
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1]))
     from _pipeline_run import shared_base, tiny_run
 
     return tiny_run(shared_base(tmp_path_factory) / "pipeline")
@@ -26,7 +41,7 @@ def test_stage2_outputs(tiny):
     summary = json.loads((run_dir / "stage2.json").read_text())
     assert summary["data_dir"] == str(data.resolve())
     assert not list(run_dir.glob("*.tmp"))  # atomic writes leave no temporaries
-    run = stage2.load_stage2(run_dir)
+    run = result.load_stage2(run_dir)
     s2 = run.s2
     n = run.state.params["gaussians"].means.shape[0]
     assert s2.labels.shape == (n,) and s2.dynamic.shape == (n,)
@@ -39,29 +54,29 @@ def test_stage2_outputs(tiny):
 
 
 def test_controlled_render_zero_vector_is_stage1_at_t0(tiny):
-    from fgjax.pipeline.stage1 import render_frame
+    from fgjax.method.stage1 import render_frame
 
-    run = stage2.load_stage2(tiny[0])
+    run = result.load_stage2(tiny[0])
     m = run.meta
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
 
     sc = load_scene(tiny[1], "train", normalize=Normalization.from_dict(m["normalization"]))
     k = max(run.s2.num_objects, 1)
-    img = stage2.render_controlled(run, np.zeros((k, 3)), sc.viewmats[0], sc.Ks[0], m["width"], m["height"])
+    img = result.render_controlled(run, np.zeros((k, 3)), sc.viewmats[0], sc.Ks[0], m["width"], m["height"])
     if run.s2.refit is None:  # v = 0 gives exactly the stage-1 scene at t0 (f(0) - f(0) = 0)
         ref = render_frame(run.state, run.spec, run.cfg, sc.viewmats[0], sc.Ks[0], run.s2.t0, m["width"], m["height"])
     else:  # ... or the re-fitted reference scene
         ref = np.clip(np.asarray(run.render_geometry(*run.base(), sc.viewmats[0], sc.Ks[0], m["width"], m["height"],
                                                      params=run.control_params())[0]), 0, 1)
     np.testing.assert_allclose(img, ref, atol=1e-5)  # float32 rendering tolerance
-    ids = stage2.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"])
+    ids = result.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"])
     assert ids.shape == (m["height"], m["width"]) and ids.min() >= 0 and ids.max() <= run.s2.num_objects
     # at the reference time both sources draw the same scene (zero control vectors)
-    ids_c = stage2.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"], source="control")
+    ids_c = result.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"], source="control")
     assert np.mean(ids_c == ids) > 0.99
     with pytest.raises(ValueError, match="source"):
-        stage2.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"], source="gt")
+        result.render_clusters(run, sc.viewmats[0], sc.Ks[0], m["width"], m["height"], source="gt")
 
 
 def test_rigid_control_moves_each_cluster_by_the_rigid_motion_nearest_the_network(tiny):
@@ -74,16 +89,15 @@ def test_rigid_control_moves_each_cluster_by_the_rigid_motion_nearest_the_networ
 
     from fgjax.geometry import quat_to_rotmat
 
-    run = stage2.load_stage2(tiny[0])
+    run = result.load_stage2(tiny[0])
     s2 = run.s2
-    assert s2.rigid  # the default
+    assert s2.rigid  # the tiny run sets control_rigid (the articulated configuration does)
     k = s2.num_objects
-    if k == 0:
-        pytest.skip("the tiny run found no object")
+    assert k > 0, "the tiny run found no object"
     base, can, lab = run.base(), run.state.params["gaussians"].means, jnp.asarray(s2.labels)
     vec = jnp.asarray(s2.traj[:, -1] - s2.traj[:, 0] + 0.05, jnp.float32)  # [K, 3]
-    free = stage2.controlled_gaussians(s2.control, base, can, lab, vec)
-    rig = stage2.controlled_gaussians(s2.control, base, can, lab, vec, rigid=True)
+    free = result.controlled_gaussians(s2.control, base, can, lab, vec)
+    rig = result.controlled_gaussians(s2.control, base, can, lab, vec, rigid=True)
     m0, mf, mr = (np.asarray(x, np.float64) for x in (base[0], free[0], rig[0]))
     static = s2.labels < 0
     np.testing.assert_array_equal(mr[static], m0[static])
@@ -99,23 +113,23 @@ def test_rigid_control_moves_each_cluster_by_the_rigid_motion_nearest_the_networ
         r0 = np.asarray(quat_to_rotmat(jnp.asarray(base[1])[sel]), np.float64)
         r1 = np.asarray(quat_to_rotmat(rig[1][sel]), np.float64)
         np.testing.assert_allclose(r1, np.einsum("ij,njk->nik", rot, r0), atol=1e-4)
-    zero = stage2.controlled_gaussians(s2.control, base, can, lab, jnp.zeros((k, 3)), rigid=True)
+    zero = result.controlled_gaussians(s2.control, base, can, lab, jnp.zeros((k, 3)), rigid=True)
     np.testing.assert_allclose(np.asarray(zero[0]), m0, atol=1e-5)
     # an older stage 2 (no control_rigid in its config): the network as it is
-    old = stage2.Stage2Result(s2.labels, s2.dynamic, s2.scores, s2.traj, s2.traj_times, s2.control,
+    old = result.Stage2Result(s2.labels, s2.dynamic, s2.scores, s2.traj, s2.traj_times, s2.control,
                               {**s2.meta, "config": {key: v for key, v in s2.meta["config"].items()
                                                      if key != "control_rigid"}}, s2.refit)
     assert not old.rigid
 
 
 def test_fit_group_poses_recovers_each_groups_motion_and_degrades_safely():
-    """`track.fit_group_poses`: exact poses of moved groups; a group of one or two points gets its shift only; an
+    """`fgjax.models.posed.fit_group_poses`: exact poses of moved groups; a group of one or two points gets its shift only; an
     empty group the identity; coincident points a finite pose; gradients 0, never NaN."""
     import jax
     import jax.numpy as jnp
 
     from fgjax import geometry
-    from fgjax.pipeline.track import fit_group_poses, transform_gaussians
+    from fgjax.models.posed import fit_group_poses, transform_gaussians
 
     rng = np.random.default_rng(0)
     src = rng.normal(size=(300, 3))
@@ -145,14 +159,14 @@ def test_cluster_map_of_the_stage1_source_is_the_stage1_model_at_t(tiny):
     from fgjax.gaussians import activate
     from fgjax.render.api import rasterization
 
-    run = stage2.load_stage2(tiny[0])
+    run = result.load_stage2(tiny[0])
     m = run.meta
     sc = load_scene(tiny[1], "train", normalize=Normalization.from_dict(m["normalization"]))
     t = float(sc.times[-1])
     labels = run.s2.labels.copy()
     labels[: len(labels) // 3] = 0  # make sure some Gaussians carry an object id
     run.s2.labels = labels
-    ids = stage2.render_clusters(run, sc.viewmats[-1], sc.Ks[-1], m["width"], m["height"], t=t)
+    ids = result.render_clusters(run, sc.viewmats[-1], sc.Ks[-1], m["width"], m["height"], t=t)
     mt, qt, st = run.deformed(t)
     g = run.state.params["gaussians"]
     q, s, o = activate(type(g)(mt, st, qt, g.opacity_logits, g.sh), run.state.densify.alive)
@@ -167,39 +181,38 @@ def test_cluster_map_of_the_stage1_source_is_the_stage1_model_at_t(tiny):
 
 
 def test_write_cluster_maps(tiny, tmp_path):
+    from fgjax.data.cameras import read_cameras
     from fgjax.data.scene import Normalization
-    from fgjax.pipeline.render import read_cameras
 
     run_dir, data = tiny
     meta = json.loads((run_dir / "model.json").read_text())
     cams = read_cameras(data / "transforms_test.json", Normalization.from_dict(meta["normalization"]),
                         meta["width"], meta["height"])[:1]
-    assert stage2.write_cluster_maps(run_dir, cams, tmp_path / "ids", log=lambda m: None) == 0
+    assert render_app.write_cluster_maps(run_dir, cams, tmp_path / "ids", log=lambda m: None) == 0
     ids = np.load(tmp_path / "ids" / f"{cams[0][0]}_ids.npy")
     assert ids.shape == (meta["height"], meta["width"]) and (tmp_path / "ids" / f"{cams[0][0]}_ids.png").is_file()
     # the default draws the controlled scene at the camera's time (what eval's ari_controlled scores); "stage1" the
     # stage-1 model
-    run = stage2.load_stage2(run_dir)
+    run = result.load_stage2(run_dir)
     name, vm, K, t, w, h = cams[0]
-    want = {src: stage2.render_clusters(run, vm, K, w, h, t=t, source=src) for src in ("control", "stage1")}
+    want = {src: result.render_clusters(run, vm, K, w, h, t=t, source=src) for src in ("control", "stage1")}
     np.testing.assert_array_equal(ids, want["control"])
-    assert stage2.write_cluster_maps(run_dir, cams, tmp_path / "ids1", log=lambda m: None, source="stage1") == 0
+    assert render_app.write_cluster_maps(run_dir, cams, tmp_path / "ids1", log=lambda m: None, source="stage1") == 0
     np.testing.assert_array_equal(np.load(tmp_path / "ids1" / f"{name}_ids.npy"), want["stage1"])
     assert np.any(want["control"] != want["stage1"])  # the two scenes differ here, so the checks above can fail
-    assert stage2.write_cluster_maps(tmp_path / "nope", cams, tmp_path / "ids") == 2
+    assert render_app.write_cluster_maps(tmp_path / "nope", cams, tmp_path / "ids") == 2
 
 
 def test_snap_and_vectors(tiny):
-    run = stage2.load_stage2(tiny[0])
+    run = result.load_stage2(tiny[0])
     s2 = run.s2
-    if s2.num_objects == 0:
-        pytest.skip("no clusters in the tiny run")
+    assert s2.num_objects > 0, "no clusters in the tiny run"
     v_end = s2.traj[0, -1] - s2.traj[0, 0]
-    v, t = stage2.snap_vector(s2, 0, v_end)  # a point on the trajectory snaps to itself
+    v, t = result.snap_vector(s2, 0, v_end)  # a point on the trajectory snaps to itself
     np.testing.assert_allclose(v, v_end, atol=1e-9)
-    np.testing.assert_allclose(stage2.cluster_vectors_at(s2, s2.t0), 0.0, atol=1e-12)
+    np.testing.assert_allclose(result.cluster_vectors_at(s2, s2.t0), 0.0, atol=1e-12)
     with pytest.raises(ValueError, match="out of range"):
-        stage2.snap_vector(s2, s2.num_objects, np.zeros(3))
+        result.snap_vector(s2, s2.num_objects, np.zeros(3))
 
 
 def test_missing_stage2_is_a_clear_error(tiny, tmp_path):
@@ -207,15 +220,12 @@ def test_missing_stage2_is_a_clear_error(tiny, tmp_path):
 
     run_dir = tmp_path / "run"
     shutil.copytree(tiny[0], run_dir)
-    (run_dir / stage2.STAGE2_NAME).unlink()
-    with pytest.raises(stage2.Stage2Error, match="no stage-2 results"):
-        stage2.load_stage2(run_dir)
-    (run_dir / stage2.STAGE2_NAME).write_bytes(b"not a zip")
-    with pytest.raises(stage2.Stage2Error, match="not a readable"):
-        stage2.load_stage2(run_dir)
-    with pytest.raises(ValueError, match="unknown stage-2 option"):
-        stage2.config_from_overrides(["nope=1"])
-    assert stage2.config_from_overrides(["eps=0.1", "auto_eps=true"]) == stage2.Stage2Config(eps=0.1, auto_eps=True)
+    (run_dir / result.STAGE2_NAME).unlink()
+    with pytest.raises(result.Stage2Error, match="no stage-2 results"):
+        result.load_stage2(run_dir)
+    (run_dir / result.STAGE2_NAME).write_bytes(b"not a zip")
+    with pytest.raises(result.Stage2Error, match="not a readable"):
+        result.load_stage2(run_dir)
 
 
 def test_control_training_uses_the_flow_loss(tiny):
@@ -226,7 +236,7 @@ def test_control_training_uses_the_flow_loss(tiny):
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
 
-    run = stage2.load_stage2(tiny[0])
+    run = result.load_stage2(tiny[0])
     sc = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
     order = np.argsort(sc.times, kind="stable")
     alive = np.flatnonzero(np.asarray(run.state.densify.alive))
@@ -241,8 +251,8 @@ def test_control_training_uses_the_flow_loss(tiny):
     flows[:, :4] = np.nan
     out = {}
     for beta in (0.0, 1.0):
-        cfg = stage2.Stage2Config(distill_steps=2, photo_steps=3, flow_weight=beta)
-        ctrl, stats = stage2._train_control(run, sc, order, labels, traj, cfg, teacher, flows, log=lambda m: None)
+        cfg = Stage2Config(distill_steps=2, photo_steps=3, flow_weight=beta)
+        ctrl, stats = train_control(run, sc, order, labels, traj, cfg, teacher, flows, log=lambda m: None)
         out[beta] = jax.tree_util.tree_leaves(ctrl)
         assert stats["photometric"]["flow_weight"] == beta
         assert all(np.all(np.isfinite(np.asarray(a))) for a in out[beta])
@@ -250,41 +260,32 @@ def test_control_training_uses_the_flow_loss(tiny):
     assert diff > 0
 
 
-def test_bad_trajectory_source_is_rejected_before_any_work(tiny, monkeypatch):
-    def no_discovery(*a, **k):
-        raise AssertionError("discovery ran before the config was checked")
-
-    monkeypatch.setattr(stage2, "discover_run", no_discovery)
-    with pytest.raises(ValueError, match="trajectories"):
-        stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(trajectories="bogus"), log=lambda m: None)
-
-
 def test_camera_correction_config_is_checked_and_wired_into_discovery(tiny, monkeypatch, tmp_path):
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
-    from fgjax.pipeline import track
+    from fgjax.method import discover
+    from fgjax.method import stage2 as paper
 
-    with pytest.raises(ValueError, match="track_joints"):
-        stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(track_joints="on"), log=lambda m: None)
-    with pytest.raises(ValueError, match="track_masks"):
-        stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(track_masks="later"), log=lambda m: None)
-    with pytest.raises(ValueError, match="camera_correction"):
-        stage2.run_stage2(tiny[0], tiny[1], stage2.Stage2Config(camera_correction="yes"), log=lambda m: None)
-    run = stage2.load_stage2(tiny[0], require_stage2=False)
+    with pytest.raises(ValueError, match="articulate.track_joints"):
+        run_articulated(tiny[0], tiny[1], *_cfgs(track_joints="on"), log=lambda m: None)
+    for run_ in (paper.run_stage2, lambda *a, **k: run_articulated(*a, ArticulateConfig(), **k)):
+        with pytest.raises(ValueError, match="stage2.camera_correction"):
+            run_(tiny[0], tiny[1], Stage2Config(camera_correction="yes"), log=lambda m: None)
+    run = result.load_stage2(tiny[0], require_stage2=False)
     scene = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
     calls = []
-    real = track.camera_correction
+    real = discover.camera_correction
 
     def spy(*a, **k):
         out = real(*a, **k)
         calls.append(out)
         return out
 
-    monkeypatch.setattr(track, "camera_correction", spy)
-    base = stage2.discover_run(run, scene, stage2.Stage2Config(), tmp_path, log=lambda m: None)
+    monkeypatch.setattr(discover, "camera_correction", spy)
+    base = discover_run(run, scene, Stage2Config(), tmp_path, log=lambda m: None)
     assert calls == []  # "auto" and a run without pose refinement: no correction
     logs = []
-    on = stage2.discover_run(run, scene, stage2.Stage2Config(camera_correction="on"), tmp_path, log=logs.append)
+    on = discover_run(run, scene, Stage2Config(camera_correction="on"), tmp_path, log=logs.append)
     assert len(calls) == scene.num_frames - 1 and any("corrected" in m for m in logs)
     # the correction fits the camera to the observed flow of the (mostly static) frame: the residual
     # |u - u_cam| that discovery thresholds shrinks (this 8-step run's depth is poor, so it is large)
@@ -300,7 +301,7 @@ def _moved_scene(run, sc, labels, poses):
 
     import jax.numpy as jnp
 
-    from fgjax.pipeline.track import transform_gaussians
+    from fgjax.models.posed import transform_gaussians
 
     order = np.argsort(sc.times, kind="stable")
     m0, q0, ls0 = run.deformed(float(sc.times[order[0]]))
@@ -318,7 +319,7 @@ def _sliding_part(tiny, dx: float):
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
 
-    run = stage2.load_stage2(tiny[0], require_stage2=False)
+    run = result.load_stage2(tiny[0], require_stage2=False)
     sc = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
     alive = np.asarray(run.state.densify.alive)
     m0 = np.asarray(run.state.params["gaussians"].means)
@@ -339,7 +340,7 @@ def test_refit_moves_the_objects_by_their_poses_and_repairs_damaged_colours(tiny
     t = poses.shape[1]
     def losses(poses_, steps):
         logs = []
-        g, _ = stage2.refit_gaussians(run, moved, order, labels, poses_, steps, log=logs.append)
+        g, _ = refit.refit_gaussians(run, moved, order, labels, poses_, steps, log=logs.append)
         first, last = (float(x) for x in logs[0].split("loss ")[1].split(" (")[0].split(" -> "))
         return g, first, last
 
@@ -365,8 +366,8 @@ def test_refit_lr_scale_scales_every_group_of_the_first_step(tiny):
     re-fit moves twice as far as with 1 (the means' schedule included), and the same direction."""
     run, labels, poses, moved, order = _sliding_part(tiny, 0.1)
     still = np.tile(np.eye(4), (1, poses.shape[1], 1, 1))  # the images disagree: real gradients
-    g0 = stage2._reference_scene(run, float(moved.times[order[0]]))
-    steps = {f: stage2.refit_gaussians(run, moved, order, labels, still, 1, lr_scale=f, log=lambda *_: None)[0]
+    g0 = result.reference_scene(run, float(moved.times[order[0]]))
+    steps = {f: refit.refit_gaussians(run, moved, order, labels, still, 1, lr_scale=f, log=lambda *_: None)[0]
              for f in (1.0, 2.0)}
     for field in ("means", "log_scales", "quats", "opacity_logits", "sh"):
         d1 = np.asarray(getattr(steps[1.0], field), np.float64) - np.asarray(getattr(g0, field), np.float64)
@@ -387,14 +388,14 @@ def test_refit_draws_only_the_given_frames(tiny):
 
     def first_loss(frames, seed):
         logs = []
-        stage2.refit_gaussians(run, moved, order, labels, wrong, 1, frames=frames, seed=seed, log=logs.append)
+        refit.refit_gaussians(run, moved, order, labels, wrong, 1, frames=frames, seed=seed, log=logs.append)
         return float(logs[0].split("loss ")[1].split(" -> ")[0])
 
     # three draws each (drawn from all 8 frames, the last would be hit by all three with probability 1/512)
     assert max(first_loss(np.arange(t - 1), s) for s in range(3)) < 1e-3 < min(first_loss([t - 1], s) for s in range(3))
     for bad in ([t], [-1], []):
         with pytest.raises(ValueError, match="frames must be indices"):
-            stage2.refit_gaussians(run, moved, order, labels, wrong, 1, frames=bad, log=lambda m: None)
+            refit.refit_gaussians(run, moved, order, labels, wrong, 1, frames=bad, log=lambda m: None)
 
 
 def test_refits_of_one_configuration_share_one_compiled_step(tiny):
@@ -406,39 +407,39 @@ def test_refits_of_one_configuration_share_one_compiled_step(tiny):
     wrong = poses.copy()
     wrong[0, -1] = np.eye(4)
     quiet = lambda m: None
-    stage2.refit_gaussians(run, moved, order, labels, poses, 2, seed=5, log=quiet)
-    n = stage2._posed_refit_step._cache_size()
-    a, _ = stage2.refit_gaussians(run, moved, order, labels, poses, 2, seed=5, log=quiet)
-    b, _ = stage2.refit_gaussians(run, moved, order, np.where(labels == 0, 0, -1), wrong, 2, seed=5, log=quiet)
-    assert stage2._posed_refit_step._cache_size() == n
+    refit.refit_gaussians(run, moved, order, labels, poses, 2, seed=5, log=quiet)
+    n = refit._posed_refit_step._cache_size()
+    a, _ = refit.refit_gaussians(run, moved, order, labels, poses, 2, seed=5, log=quiet)
+    b, _ = refit.refit_gaussians(run, moved, order, np.where(labels == 0, 0, -1), wrong, 2, seed=5, log=quiet)
+    assert refit._posed_refit_step._cache_size() == n
     assert not np.array_equal(np.asarray(a.means), np.asarray(b.means))
-    stage2.refit_gaussians(run, moved, order, labels, poses, 3, seed=5, log=quiet)
-    assert stage2._posed_refit_step._cache_size() == n + 1
+    refit.refit_gaussians(run, moved, order, labels, poses, 3, seed=5, log=quiet)
+    assert refit._posed_refit_step._cache_size() == n + 1
 
 
 def test_posed_losses_are_the_refits_loss_of_each_frame(tiny):
-    """`_posed_losses` renders each frame with the objects at their poses: ~0 on images made that way, and in a
+    """`posed_losses` renders each frame with the objects at their poses: ~0 on images made that way, and in a
     frame whose pose is wrong (the part left at rest) the same as the re-fit's first loss on that frame alone."""
     run, labels, poses, moved, order = _sliding_part(tiny, 0.1)
     t = poses.shape[1]
-    ref = stage2._reference_scene(run, float(moved.times[order[0]]))
-    assert stage2._posed_losses(run, moved, order, ref, labels, poses, np.arange(t)).max() < 1e-3
+    ref = result.reference_scene(run, float(moved.times[order[0]]))
+    assert refit.posed_losses(run, moved, order, ref, labels, poses, np.arange(t)).max() < 1e-3
     wrong = poses.copy()
     wrong[0, -1] = np.eye(4)
-    got = stage2._posed_losses(run, moved, order, ref, labels, wrong, [0, t - 1])
+    got = refit.posed_losses(run, moved, order, ref, labels, wrong, [0, t - 1])
     logs = []
-    stage2.refit_gaussians(run, moved, order, labels, wrong, 1, frames=[t - 1], log=logs.append)
+    refit.refit_gaussians(run, moved, order, labels, wrong, 1, frames=[t - 1], log=logs.append)
     assert got[0] < 1e-3 < got[1] and abs(got[1] - float(logs[0].split("loss ")[1].split(" -> ")[0])) < 1e-4
 
 
 def _trial_setup(tiny):
     """(run, scene, order, reference, labels, given poses [1, T, 4, 4], candidates for a faked search) for
-    `_hinge_trial`: part 0 of `_sliding_part` turning 20 degrees about an axis 4 radii off it."""
-    from fgjax.pipeline.articulation import articulated_pose
-    from fgjax.pipeline.phototrack import hinge_offset
+    `hinge_trial`: part 0 of `_sliding_part` turning 20 degrees about an axis 4 radii off it."""
+    from fgjax.articulate.articulation import articulated_pose
+    from fgjax.articulate.phototrack import hinge_offset
 
     run, labels, _, moved, order = _sliding_part(tiny, 0.1)
-    ref = stage2._reference_scene(run, float(moved.times[order[0]]))
+    ref = result.reference_scene(run, float(moved.times[order[0]]))
     pts = np.asarray(ref.means)[(labels == 0) & np.asarray(run.state.densify.alive)]
     c = pts.mean(0)
     r95 = np.percentile(np.linalg.norm(pts - c, axis=1), 95)
@@ -458,13 +459,13 @@ def _trial_setup(tiny):
 
 
 def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_closest(tiny, monkeypatch):
-    """`_hinge_trial` with the search and the re-fits faked: it searches the four `rect_hinges` of the part's alive
+    """`hinge_trial` with the search and the re-fits faked: it searches the four `rect_hinges` of the part's alive
     members (no fitted joint, no screening, no replacing), re-fits from the reference under each candidate (the
     given poses first) for ``hinge_trial`` steps on the frames some candidate displaces the part in, and takes the
     lowest re-fitted loss when it beats the given poses' by the margin; within the margin, or for a near hinge, a
     small turn, a slide or an object left out, the poses stay (no search for the last four)."""
-    from fgjax.pipeline import articulation
-    from fgjax.pipeline.phototrack import hinge_offset
+    from fgjax.articulate import articulation
+    from fgjax.articulate.phototrack import hinge_offset
 
     run, scene, order, ref, labels, given, cands, pts = _trial_setup(tiny)
     t = given.shape[1]
@@ -517,14 +518,14 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
                 return np.full(len(frames), loss_of[h])
         raise AssertionError("unknown poses")
 
-    monkeypatch.setattr(articulation, "search_articulations", fake_search)
-    monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
-    monkeypatch.setattr(stage2, "_posed_losses", fake_losses)
-    cfg = stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_search_slides=False, hinge_trial_edges=4)
+    monkeypatch.setattr(trial, "search_articulations", fake_search)
+    monkeypatch.setattr(trial, "refit_gaussians", fake_refit)
+    monkeypatch.setattr(trial, "posed_losses", fake_losses)
+    cfg = ArticulateConfig(hinge_trial=7, colour_radius=0.0, hinge_trial_search_slides=False, hinge_trial_edges=4)
     far = np.array([hinge_offset(pts, [1.0, 0.0, 0.0], pts.mean(0) + [0.0, 0.0, 1.0])[1]])
     far[0] = 4.0
     logs = []
-    out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg, np.ones(1, bool),
+    out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg, np.ones(1, bool),
                                    log=logs.append)
     np.testing.assert_array_equal(out[0], cands[1][3])
     kw = seen["search"]
@@ -546,14 +547,14 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     # within the margin: kept
     loss_of.update({-2: 1.05, -3: 1.03, 0: 0.99, 1: 0.985, 2: 0.995, 3: 1.2})
     refits.clear()
-    out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg, np.ones(1, bool),
+    out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg, np.ones(1, bool),
                                    log=logs.append)
     np.testing.assert_array_equal(out, given)
     assert not rec[0]["replaced"] and rec[0]["axis"] is None and rec[0]["offset"] is None and rec[0]["kind"] is None
     # the best slide within the margin of the given poses, or an edge that beats them but not that slide: the slide
     for update, axis in (({-2: 1.01}, slide_axis), ({-2: 0.4, 1: 0.5}, slide_axis), ({-3: 0.3}, snap_axis)):
         loss_of.update(update)
-        out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg,
+        out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far, cfg,
                                        np.ones(1, bool), log=logs.append)
         r = rec[0]
         assert r["replaced"] and r["kind"] == "prismatic" and r["offset"] is None
@@ -564,8 +565,8 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     assert any("replaced by the slide along a principal axis" in m for m in logs), logs
     # without ``hinge_trial_slide``: no slide is tried
     refits.clear()
-    out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_slide=False,
+    out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
+                                   ArticulateConfig(hinge_trial=7, colour_radius=0.0, hinge_trial_slide=False,
                                                        hinge_trial_edges=4),
                                    np.ones(1, bool), log=logs.append)
     assert len(refits) == 5 and [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, 0, 1, 2, 3]
@@ -580,8 +581,8 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     edge_scores[:] = [0.6, 0.3, 0.7, 0.2]
     loss_of.update({-4: 0.45, -5: 0.6, 1: 0.5})
     refits.clear()
-    out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_edges=2,
+    out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
+                                   ArticulateConfig(hinge_trial=7, colour_radius=0.0, hinge_trial_edges=2,
                                                        hinge_trial_search_slides=True),
                                    np.ones(1, bool), log=logs.append)
     assert [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, -2, -3, -4, -5, 1, 3] and len(refits) == 7
@@ -598,8 +599,8 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
         pts.astype(np.float64), given[0])[1])[:, None] * slide_axis + 4e-7
     searched[-4] = chord
     refits.clear()
-    out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   stage2.Stage2Config(hinge_trial=7, colour_radius=0.0, hinge_trial_edges=2,
+    out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
+                                   ArticulateConfig(hinge_trial=7, colour_radius=0.0, hinge_trial_edges=2,
                                                        hinge_trial_search_slides=True),
                                    np.ones(1, bool), log=logs.append)
     assert len(refits) == 6 and rec[0]["candidates"][3]["loss"] == rec[0]["candidates"][1]["loss"]
@@ -614,7 +615,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
                                        (given, ["revolute"], np.array([np.nan]), np.ones(1, bool)),
                                        (given, ["revolute"], far, np.zeros(1, bool))):
         seen.clear()
-        out, rec = stage2._hinge_trial(run, scene, order, ref, labels, 1, poses, kinds, off, cfg, objects,
+        out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, poses, kinds, off, cfg, objects,
                                        log=logs.append)
         assert rec == {} and "search" not in seen
         np.testing.assert_array_equal(out, poses)
@@ -623,14 +624,14 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     recoloured = np.where(labels == 0, -1, labels)
     recoloured[np.flatnonzero(labels == 0)[::2]] = 0  # half the part
     coloured = []
-    monkeypatch.setattr(stage2, "_refine_by_colour", lambda lab, gs, alive, cfg_, log=print: coloured.append(gs)
+    monkeypatch.setattr(trial, "refine_by_colour", lambda lab, gs, alive, cfg_, seed, log=print: coloured.append(gs)
                         or (recoloured, []))
     labels_seen = []
-    monkeypatch.setattr(stage2, "refit_gaussians", lambda run_, sc_, o_, lab, *a, init=None, **k: labels_seen.append(lab)
+    monkeypatch.setattr(trial, "refit_gaussians", lambda run_, sc_, o_, lab, *a, init=None, **k: labels_seen.append(lab)
                         or (init, lab))
     loss_of.update({1: 0.5})
-    stage2._hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                        stage2.Stage2Config(hinge_trial=7, hinge_trial_search_slides=False, hinge_trial_edges=4),
+    trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
+                        ArticulateConfig(hinge_trial=7, hinge_trial_search_slides=False, hinge_trial_edges=4),
                         np.ones(1, bool), log=logs.append)
     assert len(coloured) == 1 and coloured[0] is ref and len(labels_seen) in (6, 7)  # the snapped slide may run
     assert all(lab is recoloured for lab in labels_seen)
@@ -640,106 +641,105 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
 
 
 def test_trial_choice_takes_an_edge_by_the_margin_and_the_slide_within_it():
-    """`_trial_choice`: an edge must beat the given poses by the margin and be no worse than the slide; the slide
+    """`trial_choice`: an edge must beat the given poses by the margin and be no worse than the slide; the slide
     wins when within (1 + margin) of the given poses; else the given poses (0). Infinite losses (an overflowing
     render) never win; NaN or a list without the given poses first is refused."""
     m = 0.02
-    assert stage2._trial_choice([-1, -2, 0, 1], [1.0, 1.1, 0.9, 0.97], m) == 2
-    assert stage2._trial_choice([-1, -2, 0, 1], [1.0, 1.1, 0.99, 0.985], m) == 0
-    assert stage2._trial_choice([-1, -2, 0, 1], [1.0, 1.019, 0.99, 0.985], m) == 1
-    assert stage2._trial_choice([-1, -2, 0, 1], [1.0, 0.85, 0.9, 0.95], m) == 1  # the slide beats the best edge
-    assert stage2._trial_choice([-1, -2, -3, 0], [1.0, 0.86, 0.85, 0.9], m) == 2  # the better of two slides
-    assert stage2._trial_choice([-1, -2, -3, 0], [1.0, 1.5, 0.88, 0.87], m) == 3  # the best slide is what counts
-    assert stage2._trial_choice([-1, -2, 0], [1.0, 0.9, 0.9], m) == 2  # a tie with the slide goes to the edge
-    assert stage2._trial_choice([-1, 0, 1], [1.0, 0.99, 0.5], m) == 2
-    assert stage2._trial_choice([-1, 0, 1], [1.0, 0.99, 0.985], m) == 0
-    assert stage2._trial_choice([-1, -2], [1.0, 1.0], 0.0) == 1
-    assert stage2._trial_choice([-1, -2, 0], [1.0, np.inf, np.inf], m) == 0
-    assert stage2._trial_choice([-1, -2, 0], [np.inf, 2.0, np.inf], m) == 1  # an overflowing given render loses
+    assert trial.trial_choice([-1, -2, 0, 1], [1.0, 1.1, 0.9, 0.97], m) == 2
+    assert trial.trial_choice([-1, -2, 0, 1], [1.0, 1.1, 0.99, 0.985], m) == 0
+    assert trial.trial_choice([-1, -2, 0, 1], [1.0, 1.019, 0.99, 0.985], m) == 1
+    assert trial.trial_choice([-1, -2, 0, 1], [1.0, 0.85, 0.9, 0.95], m) == 1  # the slide beats the best edge
+    assert trial.trial_choice([-1, -2, -3, 0], [1.0, 0.86, 0.85, 0.9], m) == 2  # the better of two slides
+    assert trial.trial_choice([-1, -2, -3, 0], [1.0, 1.5, 0.88, 0.87], m) == 3  # the best slide is what counts
+    assert trial.trial_choice([-1, -2, 0], [1.0, 0.9, 0.9], m) == 2  # a tie with the slide goes to the edge
+    assert trial.trial_choice([-1, 0, 1], [1.0, 0.99, 0.5], m) == 2
+    assert trial.trial_choice([-1, 0, 1], [1.0, 0.99, 0.985], m) == 0
+    assert trial.trial_choice([-1, -2], [1.0, 1.0], 0.0) == 1
+    assert trial.trial_choice([-1, -2, 0], [1.0, np.inf, np.inf], m) == 0
+    assert trial.trial_choice([-1, -2, 0], [np.inf, 2.0, np.inf], m) == 1  # an overflowing given render loses
     for hyps, losses in (([-1, 0], [1.0, np.nan]), ([0, -1], [1.0, 0.5])):
-        with pytest.raises(ValueError, match="_trial_choice"):
-            stage2._trial_choice(hyps, losses, m)
+        with pytest.raises(ValueError, match="trial_choice"):
+            trial.trial_choice(hyps, losses, m)
 
 
 def test_trial_slides_offer_the_chord_and_the_principal_axis_unless_they_agree():
-    """`_trial_slides`: poses that slide a slab along its longest side give the chord alone (the principal axis
+    """`trial_slides`: poses that slide a slab along its longest side give the chord alone (the principal axis
     agrees with it); a turn about a far line gives the chord and the slab's nearest principal axis as well, each
     with no turn and the chord's shifts along its axis; poses that never move it give none."""
-    from fgjax.pipeline.articulation import articulated_pose
+    from fgjax.articulate.articulation import articulated_pose
 
     g = np.meshgrid(np.linspace(-1.0, 1.0, 11), np.linspace(-0.4, 0.4, 5), np.linspace(-0.1, 0.1, 3), indexing="ij")
     pts = np.stack([x.ravel() for x in g], 1)  # a slab on a grid: its principal axes are x (longest), y, z exactly
     amounts = np.linspace(0.0, 0.6, 7)
     slide = np.stack([np.asarray(articulated_pose(False, np.array([1.0, 0.0, 0.0]), np.zeros(3), a), np.float64)
                       for a in amounts])
-    got = stage2._trial_slides(pts, slide)
+    got = trial.trial_slides(pts, slide)
     assert [c[0] for c in got] == [-2] and got[0][1] == "prismatic"
     np.testing.assert_allclose(got[0][2], [1.0, 0.0, 0.0], atol=1e-9)
     np.testing.assert_allclose(got[0][4][:, :3, 3], slide[:, :3, 3], atol=1e-6)
     turn = np.stack([np.asarray(articulated_pose(True, np.array([0.0, 0.0, 1.0]), np.array([0.0, -6.0, 0.0]), a),
                                 np.float64) for a in np.radians(np.linspace(0.0, 25.0, 7))])
-    got = stage2._trial_slides(pts, turn)
+    got = trial.trial_slides(pts, turn)
     assert [c[0] for c in got] == [-2, -3]
     assert abs(got[1][2][0]) > 0.999  # the slab's longest side; the chord of a 25-degree arc is 12.5 degrees off it
     for _, kind, axis, pivot, pk in got:
         assert kind == "prismatic" and np.array_equal(pivot, np.zeros(3))
         np.testing.assert_array_equal(pk[:, :3, :3], np.broadcast_to(np.eye(3), (7, 3, 3)))
         np.testing.assert_allclose(pk[:, :3, 3] @ axis, np.linalg.norm(pk[:, :3, 3], axis=1), rtol=1e-5, atol=1e-7)
-    assert stage2._trial_slides(pts, np.tile(np.eye(4), (4, 1, 1))) == []
+    assert trial.trial_slides(pts, np.tile(np.eye(4), (4, 1, 1))) == []
 
 
 def test_trial_held_objects_are_those_a_trial_replaced_in_any_round():
     hist = [{"joint_kinds": ["revolute"] * 3}, {"hinge_trials": [None, {"replaced": False}, {"replaced": True}]},
             {"hinge_trials": [{"replaced": True}, None, None]}]
-    np.testing.assert_array_equal(stage2._trial_held(hist, 3), [True, False, True])
-    np.testing.assert_array_equal(stage2._trial_held(hist[:1], 3), [False, False, False])
+    np.testing.assert_array_equal(trial.trial_held(hist, 3), [True, False, True])
+    np.testing.assert_array_equal(trial.trial_held(hist[:1], 3), [False, False, False])
 
 
 def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch):
-    """With ``hinge_trial`` > 0 (the default), `_photometric_poses` hands the joint fit's kinds and offsets and the
-    scene it tracked to `_hinge_trial` and takes its poses; a replaced joint's kind, axis and offset follow the trial
+    """With ``hinge_trial`` > 0 (the default), `photometric_poses` hands the joint fit's kinds and offsets and the
+    scene it tracked to `hinge_trial` and takes its poses; a replaced joint's kind, axis and offset follow the trial
     and its record is kept; off, no trial runs and the record is None."""
-    from fgjax.pipeline import phototrack
+    from fgjax.articulate import phototrack
 
     run, scene, order, ref, labels, given, cands, pts = _trial_setup(tiny)
-    monkeypatch.setattr(phototrack, "track_photometric", lambda *a, **k: (given.copy(), None))
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts_, poses, *a, **k: (
+    monkeypatch.setattr(AP, "track_photometric", lambda *a, **k: (given.copy(), None))
+    monkeypatch.setattr(AP, "joint_poses", lambda pts_, poses, *a, **k: (
         poses, ["revolute"], np.array([0.5]), np.array([[1.0, 0.0, 0.0]]), np.array([4.0])))
     calls, refs = [], []
     chosen = {"replaced": True, "kind": "revolute", "axis": [0.0, 1.0, 0.0], "offset": 0.3}
 
-    def fake_trial(run_, scene_, order_, ref_, labels_, k_, poses, kinds, offsets, cfg, objects, log):
+    def fake_trial(run_, scene_, order_, ref_, labels_, k_, poses, kinds, offsets, cfg, objects, seed, log):
         calls.append((list(kinds), list(offsets), list(objects)))
         refs.append(ref_)
         out = poses.copy()
         out[0] = cands[1][3]
         return out, {0: dict(chosen)}
 
-    monkeypatch.setattr(stage2, "_hinge_trial", fake_trial)
-    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(hinge_trial=5),
+    monkeypatch.setattr(AP, "hinge_trial", fake_trial)
+    poses, joints = AP.photometric_poses(run, scene, order, ref, labels, 1, ArticulateConfig(hinge_trial=5),
                                               None, log=lambda m: None)
     assert calls == [(["revolute"], [4.0], [True])] and refs == [ref]  # the scene the round tracked
     np.testing.assert_array_equal(poses[0], cands[1][3])
     assert joints["joint_axes"] == [[0.0, 1.0, 0.0]] and joints["joint_hinge_offsets"] == [0.3]
     assert joints["hinge_trials"][0]["replaced"] and joints["joint_kinds"] == ["revolute"]
     chosen.update(kind="prismatic", axis=[0.0, 0.0, 1.0], offset=None)  # the slide: no hinge offset
-    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(hinge_trial=5),
+    poses, joints = AP.photometric_poses(run, scene, order, ref, labels, 1, ArticulateConfig(hinge_trial=5),
                                               None, log=lambda m: None)
     assert joints["joint_kinds"] == ["prismatic"] and joints["joint_axes"] == [[0.0, 0.0, 1.0]]
     assert joints["joint_hinge_offsets"] == [None]
     calls.clear()
     refs.clear()
-    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(hinge_trial=0),
+    poses, joints = AP.photometric_poses(run, scene, order, ref, labels, 1, ArticulateConfig(hinge_trial=0),
                                               None, log=lambda m: None)
-    assert stage2.Stage2Config().hinge_trial == 150  # on by default (session 39)
-    defaults = stage2.Stage2Config()
-    assert defaults.hinge_trial_search_slides and defaults.hinge_trial_edges == 2  # session 41
-    assert defaults.hinge_up_deg == 25.0  # on (session 43: all five runs measured)
+    defaults = ArticulateConfig()
+    assert defaults.hinge_trial == 150 and defaults.hinge_trial_search_slides and defaults.hinge_trial_edges == 2
+    assert defaults.hinge_up_deg == 25.0
     assert calls == [] and joints["hinge_trials"] == [None] and joints["joint_hinge_offsets"] == [4.0]
     np.testing.assert_array_equal(poses, given)
     assert refs == []
     # ``hinge_up_deg``: each round's revolute joint goes through `hinge_made_vertical` with the cameras' up
-    from fgjax.pipeline import articulation
+    from fgjax.articulate import articulation
 
     seen = {}
 
@@ -747,13 +747,13 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
         seen.update(n=len(points), up=np.asarray(up), max_deg=max_deg)
         return cands[1][3], np.array([0.0, 0.0, 1.0]), 7.0
 
-    monkeypatch.setattr(articulation, "hinge_made_vertical", fake_vertical)
-    far = phototrack.joint_poses  # the fake above: a hinge 4 radii off its part
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts_, poses, *a, **k: (
+    monkeypatch.setattr(AP, "hinge_made_vertical", fake_vertical)
+    far = AP.joint_poses  # the fake above: a hinge 4 radii off its part
+    monkeypatch.setattr(AP, "joint_poses", lambda pts_, poses, *a, **k: (
         poses, ["revolute"], np.array([0.5]), np.array([[1.0, 0.0, 0.0]]), np.array([0.5])))
     logs = []
-    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1,
-                                              stage2.Stage2Config(hinge_trial=0, hinge_up_deg=25.0), None,
+    poses, joints = AP.photometric_poses(run, scene, order, ref, labels, 1,
+                                              ArticulateConfig(hinge_trial=0, hinge_up_deg=25.0), None,
                                               log=logs.append)
     np.testing.assert_array_equal(poses[0], cands[1][3])
     assert joints["joint_axes"] == [[0.0, 0.0, 1.0]] and seen["max_deg"] == 25.0
@@ -761,22 +761,22 @@ def test_photometric_poses_runs_the_hinge_trial_and_records_it(tiny, monkeypatch
     np.testing.assert_allclose(seen["up"], articulation.camera_up(scene.viewmats[order]), atol=1e-12)
     assert any("made vertical" in m for m in logs)
     # cameras not held level (or an up they do not fix): hinges kept as tracked, and the log says why
-    monkeypatch.setattr(articulation, "camera_tilt", lambda vms: (articulation.LEVEL_TILT_DEG + 0.5, 0.01))
+    monkeypatch.setattr(AP, "camera_tilt", lambda vms: (articulation.LEVEL_TILT_DEG + 0.5, 0.01))
     seen.clear()
     logs = []
-    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1,
-                                              stage2.Stage2Config(hinge_trial=0, hinge_up_deg=25.0), None,
+    poses, joints = AP.photometric_poses(run, scene, order, ref, labels, 1,
+                                              ArticulateConfig(hinge_trial=0, hinge_up_deg=25.0), None,
                                               log=logs.append)
     np.testing.assert_array_equal(poses, given)
     assert seen == {} and any("not trusted" in m and "tilt 2.50" in m for m in logs)
     # a far hinge (4 radii off its part while it turns 5 degrees or more): kept as tracked, for the hinge trial
     monkeypatch.undo()
-    monkeypatch.setattr(phototrack, "track_photometric", lambda *a, **k: (given.copy(), None))
-    monkeypatch.setattr(phototrack, "joint_poses", far)
-    monkeypatch.setattr(articulation, "hinge_made_vertical", fake_vertical)
+    monkeypatch.setattr(AP, "track_photometric", lambda *a, **k: (given.copy(), None))
+    monkeypatch.setattr(AP, "joint_poses", far)
+    monkeypatch.setattr(AP, "hinge_made_vertical", fake_vertical)
     assert phototrack.is_far_hinge(4.0, phototrack.largest_turn_deg(given[0]))
-    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1,
-                                              stage2.Stage2Config(hinge_trial=0, hinge_up_deg=25.0), None,
+    poses, joints = AP.photometric_poses(run, scene, order, ref, labels, 1,
+                                              ArticulateConfig(hinge_trial=0, hinge_up_deg=25.0), None,
                                               log=lambda m: None)
     np.testing.assert_array_equal(poses, given)
     assert seen == {} and joints["joint_axes"] == [[1.0, 0.0, 0.0]]
@@ -791,24 +791,24 @@ def test_refit_is_saved_and_the_controlled_scene_starts_from_it(tiny, tmp_path):
 
     dst = tmp_path / "run"
     shutil.copytree(tiny[0], dst)
-    run = stage2.load_stage2(dst)
+    run = result.load_stage2(dst)
     g = run.state.params["gaussians"]
     m0, q0, ls0 = run.deformed(run.s2.t0)
     refit = Gaussians(np.asarray(m0) + 0.01, np.asarray(ls0), np.asarray(q0), np.asarray(g.opacity_logits) - 0.5,
                       np.asarray(g.sh) * 0.9)
     s2 = run.s2
-    stage2.save_stage2(dst, stage2.Stage2Result(s2.labels, s2.dynamic, s2.scores, s2.traj, s2.traj_times, s2.control,
+    result.save_stage2(dst, result.Stage2Result(s2.labels, s2.dynamic, s2.scores, s2.traj, s2.traj_times, s2.control,
                                                 s2.meta, refit))
-    back = stage2.load_stage2(dst)
+    back = result.load_stage2(dst)
     for f in ("means", "log_scales", "quats", "opacity_logits", "sh"):
         np.testing.assert_allclose(getattr(back.s2.refit, f), getattr(refit, f), rtol=1e-6)
     sc = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
     k = max(back.s2.num_objects, 1)
-    img = stage2.render_controlled(back, np.zeros((k, 3)), sc.viewmats[0], sc.Ks[0], sc.width, sc.height)
+    img = result.render_controlled(back, np.zeros((k, 3)), sc.viewmats[0], sc.Ks[0], sc.width, sc.height)
     ref = np.asarray(back.render_geometry(*(np.asarray(x) for x in (refit.means, refit.quats, refit.log_scales)),
                                           sc.viewmats[0], sc.Ks[0], sc.width, sc.height, params=back.control_params())[0])
     np.testing.assert_allclose(img, np.clip(ref, 0, 1), atol=1e-5)
-    stage1 = stage2.render_controlled(run, np.zeros((k, 3)), sc.viewmats[0], sc.Ks[0], sc.width, sc.height)
+    stage1 = result.render_controlled(run, np.zeros((k, 3)), sc.viewmats[0], sc.Ks[0], sc.width, sc.height)
     assert np.abs(img - stage1).max() > 1e-3  # it is not the stage-1 scene
 
 
@@ -824,10 +824,10 @@ def test_refit_relabelling_returns_mislabelled_gaussians_to_their_part(tiny):
     flip = seen & (rng.random(len(labels)) < 0.25)
     wrong = np.where(flip, np.where(labels == 0, -1, 0), labels)
     radius = float(np.ptp(m0[alive], 0).max())  # every Gaussian is a candidate
-    kept, same = stage2.refit_gaussians(run, moved, order, wrong, poses, 2, log=lambda m: None)
+    kept, same = refit.refit_gaussians(run, moved, order, wrong, poses, 2, log=lambda m: None)
     np.testing.assert_array_equal(same, wrong)
     logs = []
-    _, new = stage2.refit_gaussians(run, moved, order, wrong, poses, 80, relabel_steps=80, relabel_radius=radius, relabel_lr=0.3,
+    _, new = refit.refit_gaussians(run, moved, order, wrong, poses, 80, relabel_steps=80, relabel_radius=radius, relabel_lr=0.3,
                                     log=logs.append)
     assert any("relabelled by motion" in m for m in logs), logs
     before = np.mean(wrong[flip] == labels[flip])  # 0
@@ -843,22 +843,26 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     rounds are refused. (Rounds: `test_track_rounds_track_again_from_the_last_refit`.)"""
     import shutil
 
-    from fgjax.pipeline import phototrack
+    from fgjax.articulate import phototrack
 
     dst = tmp_path / "run"
     shutil.copytree(tiny[0], dst)
     logs, seen = [], []
     real = phototrack.track_photometric
-    monkeypatch.setattr(phototrack, "track_photometric",
+    monkeypatch.setattr(AP, "track_photometric",
                         lambda *a, **k: seen.append((k["only_moving"], k["subset_margin"], k["steps"], k["rest_check"]))
                         or real(*a, **k))
-    cfg = stage2.config_from_overrides(["auto_eps=true", "distill_steps=5", "photo_steps=2", "refit_steps=4",
-                                        "track_photo=5", "track_only_moving=false", "track_subset_margin=3",
-                                        "track_photo_next=3", "track_rounds=1", "track_rest=true"])
-    res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
-    assert seen == [(False, 3, (2, 2, 1), True)] and stage2.Stage2Config().track_only_moving
-    assert stage2.Stage2Config().track_rest  # on by default (session 26)
-    assert stage2.Stage2Config().track_subset_margin == 2
+    from fgjax.config import Config, apply_overrides
+
+    cfg = apply_overrides(Config(), ["stage2.auto_eps=true", "stage2.distill_steps=5", "stage2.photo_steps=2",
+                                     "articulate.refit_steps=4", "articulate.track_photo=5",
+                                     "articulate.track_only_moving=false", "articulate.track_subset_margin=3",
+                                     "articulate.track_photo_next=3", "articulate.track_rounds=1",
+                                     "articulate.track_rest=true"])
+    res = run_articulated(dst, tiny[1], cfg.stage2, cfg.articulate, log=logs.append)
+    defaults = ArticulateConfig()
+    assert seen == [(False, 3, (2, 2, 1), True)] and defaults.track_only_moving
+    assert defaults.track_rest and defaults.track_subset_margin == 2
     assert res.num_objects > 0, logs
     assert sum(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs) == 1, logs
     assert sum("-> revolute" in m or "-> prismatic" in m for m in logs) == res.num_objects, logs
@@ -867,15 +871,15 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert any("inside the hulls" in m for m in logs) and any("re-fitted" in m and "100 steps" in m for m in logs), logs
     assert sum("along the hinges" in m for m in logs) == 1, logs  # `hinge_fill`, on by default, shares that re-fit
     assert not any("round 2" in m for m in logs), logs
-    # `ghost_radius` (0.03 by default, session 29): the round's re-fit, not the hull fill's, starts with the static
+    # `ghost_radius` (0.03 by default): the round's re-fit, not the hull fill's, starts with the static
     # Gaussians by the parts' swept volume faded
-    assert stage2.Stage2Config().ghost_radius == 0.03
+    assert defaults.ghost_radius == 0.03
     assert sum("swept volume faded" in m and "(within" not in m and "within 0.03)" in m for m in logs) == 1, logs
     # numbers in the log are rounded for reading (the distillation's first loss was once printed to 17 digits)
     assert not [m for m in logs if m.startswith("stage 2:") and re.search(r"\d\.\d{7,}", m)], logs
     assert np.all(np.isfinite(res.traj)) and res.refit is not None
-    meta = stage2.load_stage2(dst).s2.meta
-    assert meta["config"]["track_photo"] == 5
+    meta = result.load_stage2(dst).s2.meta
+    assert meta["variant"] == "articulated" and meta["articulate"]["track_photo"] == 5
     assert len(meta["joint_kinds"]) == len(meta["joint_costs"]) == len(meta["joint_axes"]) == res.num_objects, meta
     assert all(a is None or abs(np.linalg.norm(a) - 1.0) < 1e-6 for a in meta["joint_axes"]), meta["joint_axes"]
     # a hinge's axis offset from its part's centre (radii) is recorded, and only for hinges
@@ -893,68 +897,17 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
                        ({"hinge_radius": -0.1}, "hinge_radius"), ({"hinge_reach": float("inf")}, "hinge_reach"),
                        ({"hinge_min_deg": 0.0}, "hinge_min_deg"), ({"hinge_min_deg": 200.0}, "hinge_min_deg")):
         with pytest.raises(ValueError, match=field):
-            stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(**bad), log=logs.append)
-    # rounds without photometric tracking: said, not silently ignored (stopped before any work by a bad option)
-    with pytest.raises(ValueError, match="camera_correction"):
-        stage2.run_stage2(dst, tiny[1], stage2.Stage2Config(track_rounds=2, track_photo=0, camera_correction="x"), log=logs.append)
+            run_articulated(dst, tiny[1], Stage2Config(), ArticulateConfig(**bad), log=logs.append)
+    # rounds without photometric tracking: said, not silently ignored (stopped before any work by a missing run)
+    with pytest.raises(FileNotFoundError):
+        run_articulated(tmp_path / "none", tiny[1], Stage2Config(), ArticulateConfig(track_rounds=2, track_photo=0),
+                        log=logs.append)
     assert any("track_rounds=2 has no effect" in m for m in logs), logs
-
-
-def test_colour_rounds_relabel_by_colour_between_the_rounds(tiny, tmp_path, monkeypatch):
-    """``colour_rounds``: after each round's re-fit but the last, the outlines are relabelled by colour on that
-    re-fit, and the next round tracks those labels; the fills' colour step runs once more at the end. Off (the
-    default): only that last one. Tracking, re-fit and the colour step are recorders."""
-    import shutil
-
-    import jax
-
-    for on in (True, False):
-        dst = tmp_path / f"run{on}"
-        shutil.copytree(tiny[0], dst)
-        calls = []
-
-        def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
-                       prev_joints=None, search=False):
-            calls.append(("track", np.asarray(labels).copy()))
-            poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
-            return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": [[1.0, 0, 0]] * k}
-
-        def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
-                       init=None, lr_scale=1.0, log=print):
-            out = jax.tree_util.tree_map(lambda a: a + 0, init)
-            calls.append(("refit", out))
-            return out, labels
-
-        def fake_col(labels, gs, alive, cfg, log=print):
-            calls.append(("col", gs))
-            new = np.asarray(labels).copy()
-            new[np.flatnonzero(new < 0)[:1]] = 0  # one static Gaussian joins cluster 0
-            return new, [{"joined": 0, "left": 0}] * (int(new.max()) + 1)
-
-        monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
-        monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
-        monkeypatch.setattr(stage2, "_refine_by_colour", fake_col)
-        cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
-                                  track_rounds=2, track_converged_deg=0.0, hull_fill=False, hinge_fill=False,
-                                  isolated_factor=0.0, through_prune=0.0, ghost_radius=0.0, colour_rounds=on,
-                                  hull_refit_steps=0)
-        res = stage2.run_stage2(dst, tiny[1], cfg, log=lambda m: None)
-        if res.num_objects == 0:
-            pytest.skip("no clusters in the tiny run")
-        kinds = [c[0] for c in calls]
-        if on:
-            assert kinds == ["track", "refit", "col", "track", "refit", "col"], kinds
-            assert calls[2][1] is calls[1][1]  # on round 1's re-fit
-            assert int(np.sum(calls[3][1] >= 0)) == int(np.sum(calls[0][1] >= 0)) + 1  # round 2 tracks its labels
-        else:
-            assert kinds == ["track", "refit", "track", "refit", "col"], kinds
-        assert int(np.sum(res.labels >= 0)) == int(np.sum(calls[0][1] >= 0)) + (2 if on else 1)
 
 
 def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatch):
     """``track_rounds=2``: round 2 tracks again rendering round 1's re-fit and starting from round 1's poses,
-    and its re-fit continues from round 1's (with the next seed); the last re-fit is the one kept. With
-    ``joint_search=2`` only round 2's tracking searches the joints. The
+    and its re-fit continues from round 1's (with the next seed); the last re-fit is the one kept. The
     tracking and the re-fit are replaced by recorders (the real ones: the test above and
     tests/test_phototrack.py), so this checks the wiring in seconds."""
     import shutil
@@ -963,12 +916,11 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
 
     dst = tmp_path / "run"
     shutil.copytree(tiny[0], dst)
-    calls, searched = [], []
+    calls = []
 
     def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
-                   prev_joints=None, search=False):
+                   prev_joints=None, seed=0):
         assert fixed is None  # two rounds: no convergence test (`test_later_rounds_track_only_...`)
-        searched.append(search)
         poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
         poses[:, :, 0, 3] = 0.01 * (len(calls) + 1)  # each call's poses told apart by their shift
         calls.append(("track", ref, init_poses, poses))
@@ -980,17 +932,16 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
         calls.append(("refit", init, poses, seed, out))
         return out, labels
 
-    monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
-    monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
+    monkeypatch.setattr(AP, "photometric_poses", fake_track)
+    monkeypatch.setattr(AP, "refit_gaussians", fake_refit)
     logs = []
-    cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
-                              track_rounds=2, seed=3, hull_fill=False, joint_search=2,
+    cfg = _cfgs(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
+                              track_rounds=2, seed=3, hull_fill=False,
                               hinge_fill=False, isolated_factor=0.0,  # (their re-fit: test_hull_and_hinge_...)
                               through_prune=0.0, colour_radius=0.0,
                               ghost_radius=0.0)  # (its fade makes a new start: test_stage2_with_photometric_...)
-    res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
+    res = run_articulated(dst, tiny[1], *cfg, log=logs.append)
     assert [c[0] for c in calls] == ["track", "refit", "track", "refit"], [c[0] for c in calls]
-    assert searched == [False, True]  # joint_search=2: the joints are searched from round 2 on
     (_, ref1, init1, poses1), (_, rinit1, rposes1, seed1, refit1) = calls[0], calls[1]
     (_, ref2, init2, poses2), (_, rinit2, rposes2, seed2, refit2) = calls[2], calls[3]
     assert init1 is None and rinit1 is ref1 and rposes1 is poses1 and seed1 == 3
@@ -1002,7 +953,7 @@ def test_track_rounds_track_again_from_the_last_refit(tiny, tmp_path, monkeypatc
 
 
 def _recording_refit(calls: list):
-    """A stand-in for `stage2.refit_gaussians` that records ("refit",) in ``calls`` and returns its start unchanged."""
+    """A stand-in for `refit.refit_gaussians` that records ("refit",) in ``calls`` and returns its start unchanged."""
     import jax
 
     def fake_refit(run, scene, order, labels, poses, steps, *, init=None, **kw):
@@ -1029,25 +980,23 @@ def test_later_rounds_track_only_the_objects_whose_joint_has_not_converged(tiny,
         calls = []
 
         def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
-                       prev_joints=None, search=False):
-            assert not search  # joint_search=0, the default
+                       prev_joints=None, seed=0):
             n = sum(c[0] == "track" for c in calls)
             poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
             axes = [turned(0.0)] * k if n == 0 else [turned(40.0)] + [turned(5.0)] * (k - 1)
             calls.append(("track", None if fixed is None else np.asarray(fixed).copy(), init_poses))
             return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": axes}
 
-        monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
-        monkeypatch.setattr(stage2, "refit_gaussians", _recording_refit(calls))
+        monkeypatch.setattr(AP, "photometric_poses", fake_track)
+        monkeypatch.setattr(AP, "refit_gaussians", _recording_refit(calls))
         logs = []
-        cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
+        cfg = _cfgs(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                                   track_rounds=4, track_converged_deg=limit, hull_fill=False,
                                   hinge_fill=False, isolated_factor=0.0, through_prune=0.0, colour_radius=0.0)
-        res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
+        res = run_articulated(dst, tiny[1], *cfg, log=logs.append)
         tracks = [c for c in calls if c[0] == "track"]
         assert [c[0] for c in calls] == ["track", "refit"] * want, [c[0] for c in calls]
-        if res.num_objects == 0:
-            pytest.skip("no clusters in the tiny run")
+        assert res.num_objects > 0, "no clusters in the tiny run"
         assert tracks[0][1] is None and tracks[1][1] is None  # rounds 1 and 2: every object
         if limit > 0:
             np.testing.assert_array_equal(tracks[2][1], [False] + [True] * (res.num_objects - 1))
@@ -1071,7 +1020,7 @@ def test_later_rounds_keep_the_joints_a_hinge_trial_chose(tiny, tmp_path, monkey
         calls = []
 
         def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
-                       prev_joints=None, search=False):
+                       prev_joints=None, seed=0):
             calls.append(("track", None if fixed is None else np.asarray(fixed).copy()))
             poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
             trials = [{"replaced": replaced, "axis": [1.0, 0.0, 0.0] if replaced else None, "offset": None}] * k
@@ -1079,16 +1028,15 @@ def test_later_rounds_keep_the_joints_a_hinge_trial_chose(tiny, tmp_path, monkey
                            "joint_axes": [[1.0, 0.0, 0.0]] * k, "joint_hinge_offsets": [0.5] * k,
                            "hinge_trials": trials}
 
-        monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
-        monkeypatch.setattr(stage2, "refit_gaussians", _recording_refit(calls))
+        monkeypatch.setattr(AP, "photometric_poses", fake_track)
+        monkeypatch.setattr(AP, "refit_gaussians", _recording_refit(calls))
         logs = []
-        cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
+        cfg = _cfgs(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, track_photo=5,
                                   track_rounds=3, track_converged_deg=0.0, hull_fill=False, hinge_fill=False,
                                   isolated_factor=0.0, through_prune=0.0, colour_radius=0.0, hinge_trial=3)
-        res = stage2.run_stage2(dst, tiny[1], cfg, log=logs.append)
-        if res.num_objects == 0:
-            pytest.skip("no clusters in the tiny run")
-        meta = stage2.load_stage2(dst).s2.meta
+        res = run_articulated(dst, tiny[1], *cfg, log=logs.append)
+        assert res.num_objects > 0, "no clusters in the tiny run"
+        meta = result.load_stage2(dst).s2.meta
         if replaced:
             assert [c[0] for c in calls] == ["track", "refit"], calls
             assert any("chosen by a hinge trial; no round 2" in m for m in logs), logs
@@ -1099,176 +1047,8 @@ def test_later_rounds_keep_the_joints_a_hinge_trial_chose(tiny, tmp_path, monkey
             assert len(meta["hinge_trials"]) == 3 and not any(r["replaced"] for x in meta["hinge_trials"] for r in x)
 
 
-def test_hull_and_hinge_fills_run_after_the_last_round_and_are_refitted(tiny, tmp_path, monkeypatch):
-    """``hull_fill`` then ``hinge_fill`` then ``isolated_factor`` then ``colour_radius`` then ``settle_rest``: after
-    the last round's re-fit the hulls are filled once, then the hinges (given the hull's labels and the last round's
-    poses), then the isolated members are dropped (given the filled labels), then the outlines relabelled by colour
-    (the members that leave start the re-fit faded, as the isolated ones do), then the still spans settled (on stage
-    1's scene with the final labels; the seen-through prune and the re-fit get its poses), and ``hull_refit_steps``
-    steps of re-fit without relabelling follow under the final labels; their scene and those labels are the ones
-    kept, and stage2.json records what joined, left and settled. ``hull_refit_steps=0``: the fills alone; any one alone; all off: none of them nor
-    the extra re-fit. The tracking, re-fit and fills are recorders (the real fills: tests/test_cluster.py; the real
-    re-fit: the tests above)."""
-    import shutil
-
-    import jax
-
-    rounds = ["track", "refit", "track", "refit"]
-    for hull, hinge, iso, col, st, thr, steps, want in (
-            (True, True, False, False, False, False, 7, rounds + ["fill", "hinge", "refit"]),
-            (True, True, True, False, False, False, 7, rounds + ["fill", "hinge", "iso", "refit"]),
-            (True, True, True, True, True, True, 7, rounds + ["fill", "hinge", "iso", "col", "settle", "thr", "refit"]),
-            (True, True, False, False, False, False, 0, rounds + ["fill", "hinge"]),
-            (True, False, False, False, False, False, 7, rounds + ["fill", "refit"]),
-            (False, True, False, False, False, False, 7, rounds + ["hinge", "refit"]),
-            (False, False, True, False, False, False, 7, rounds + ["iso", "refit"]),
-            (False, False, False, True, False, False, 7, rounds + ["col", "refit"]),
-            (False, False, False, False, True, False, 7, rounds + ["settle", "refit"]),
-            (False, False, False, False, False, True, 7, rounds + ["thr", "refit"]),
-            (False, False, False, False, False, False, 7, rounds)):
-        dst = tmp_path / f"{hull}{hinge}{iso}{col}{st}{thr}{steps}"
-        shutil.copytree(tiny[0], dst)
-        calls = []
-
-        def fake_track(run, scene, order, ref, labels, k, cfg, moving, log=print, init_poses=None, fixed=None,
-                       prev_joints=None, search=False):
-            assert not search  # joint_search=0, the default
-            calls.append(("track", np.asarray(labels).copy()))
-            poses = np.tile(np.eye(4, dtype=np.float32), (k, len(order), 1, 1))
-            poses[..., 0, 3] = 0.01 * len(calls)  # a small shift, told apart per call
-            return poses, {"joint_kinds": ["revolute"] * k, "joint_costs": [1.0] * k, "joint_axes": [[1.0, 0, 0]] * k}
-
-        def fake_refit(run, scene, order, labels, poses, steps, *, seed=0, relabel_steps=0, relabel_radius=0.1,
-                       init=None, lr_scale=1.0, log=print):
-            calls.append(("refit", np.asarray(labels).copy(), steps, relabel_steps, np.asarray(init.opacity_logits),
-                          np.asarray(poses).copy()))
-            return jax.tree_util.tree_map(lambda a: a + 1, init), labels  # each re-fit shifts every leaf by 1
-
-        def fake_fill(labels, gs, alive, min_opacity, max_growth, log=print):
-            assert min_opacity == 0.6 and max_growth == 0.25
-            calls.append(("fill", np.asarray(labels).copy()))
-            new = np.asarray(labels).copy()
-            new[np.flatnonzero(new < 0)[:1]] = 0  # one static Gaussian joins cluster 0
-            return new
-
-        def fake_hinge(labels, gs, alive, poses, cfg, log=print):
-            assert (cfg.hinge_radius, cfg.hinge_reach, cfg.hinge_min_deg) == (0.3, 0.1, 25.0)
-            calls.append(("hinge", np.asarray(labels).copy(), np.asarray(poses).copy()))
-            new = np.asarray(labels).copy()
-            new[np.flatnonzero(new < 0)[:2]] = 0  # two static Gaussians join cluster 0
-            return new, [None] * (int(new.max()) + 1)
-
-        def fake_iso(labels, gs, alive, factor, log=print):
-            assert factor == 1.5
-            calls.append(("iso", np.asarray(labels).copy()))
-            new = np.asarray(labels).copy()
-            new[np.flatnonzero(new == 0)[:1]] = -1  # one member of cluster 0 leaves
-            return new, [1] + [0] * int(new.max())
-
-        def fake_col(labels, gs, alive, cfg, log=print):
-            assert (cfg.colour_radius, cfg.colour_components, cfg.colour_separation) == (0.07, 3, 0.6)
-            calls.append(("col", np.asarray(labels).copy()))
-            new = np.asarray(labels).copy()
-            new[np.flatnonzero(new == 0)[-1:]] = -1  # one member of cluster 0 leaves ...
-            new[np.flatnonzero(new < 0)[-4:-1]] = 0  # ... and three static Gaussians join it (not the last)
-            k = int(new.max()) + 1
-            return new, [{"joined": 3 if c == 0 else 0, "left": 1 if c == 0 else 0} for c in range(k)]
-
-        def fake_settle(run, scene, order, ref, labels, poses, moving, log=print):
-            calls.append(("settle", np.asarray(labels).copy(), np.asarray(poses).copy()))
-            assert np.asarray(moving).shape == (poses.shape[0], len(order) - 1)
-            np.testing.assert_array_equal(np.asarray(ref.opacity_logits),  # stage 1's scene, not a re-fit's
-                                          np.asarray(run.state.params["gaussians"].opacity_logits))
-            poses = np.asarray(poses).copy()
-            poses[..., 0, 3] = 0.05  # told apart from the tracks' shifts
-            return poses, [(0, 1, 2)]
-
-        def fake_thr(gs, labels, poses, run, scene, order, max_ratio, log=print):
-            assert max_ratio == 0.4
-            calls.append(("thr", np.asarray(labels).copy(), np.asarray(poses).copy()))
-            o = np.asarray(gs.opacity_logits).copy()
-            o[np.flatnonzero(np.asarray(labels) < 0)[-1:]] = -13.8  # the last static Gaussian pruned
-            return stage2.Gaussians(gs.means, gs.log_scales, gs.quats, o, gs.sh), 1
-
-        monkeypatch.setattr(stage2, "_photometric_poses", fake_track)
-        monkeypatch.setattr(stage2, "refit_gaussians", fake_refit)
-        monkeypatch.setattr(stage2, "_prune_seen_through", fake_thr)
-        monkeypatch.setattr(stage2, "_fill_hulls", fake_fill)
-        monkeypatch.setattr(stage2, "_fill_hinges", fake_hinge)
-        monkeypatch.setattr(stage2, "_drop_isolated", fake_iso)
-        monkeypatch.setattr(stage2, "_refine_by_colour", fake_col)
-        monkeypatch.setattr(stage2, "_settle", fake_settle)
-        cfg = stage2.Stage2Config(auto_eps=True, distill_steps=2, photo_steps=0, refit_steps=4, relabel_steps=3,
-                                  track_photo=5, track_rounds=2, track_converged_deg=0.0, settle_rest=st, hull_fill=hull,
-                                  hull_opacity=0.6, hull_max_growth=0.25, hull_refit_steps=steps, hinge_fill=hinge,
-                                  hinge_radius=0.3, hinge_reach=0.1, hinge_min_deg=25.0,
-                                  isolated_factor=1.5 if iso else 0.0, through_prune=0.4 if thr else 0.0,
-                                  colour_radius=0.07 if col else 0.0, colour_components=3, colour_separation=0.6)
-        res = stage2.run_stage2(dst, tiny[1], cfg, log=lambda m: None)
-        if res.num_objects == 0:
-            pytest.skip("no clusters in the tiny run")
-        assert [c[0] for c in calls] == want, (hull, hinge, steps, [c[0] for c in calls])
-        before = calls[3][1]  # the labels the last round's re-fit was given
-        assert int(np.sum(res.labels >= 0)) == (int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge) - int(iso)
-                                                + 2 * int(col))
-        if hinge:  # the hinges see the hull's labels and the last round's poses
-            (fill_in,) = [c for c in calls if c[0] == "hinge"]
-            assert int(np.sum(fill_in[1] >= 0)) == int(np.sum(before >= 0)) + int(hull)
-            np.testing.assert_allclose(fill_in[2][..., 0, 3], 0.03)  # the second track call's poses
-        if iso:  # the drop sees the fills' labels; the one dropped starts the last re-fit faded, as the ghosts do
-            (iso_in,) = [c for c in calls if c[0] == "iso"]
-            assert int(np.sum(iso_in[1] >= 0)) == int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge)
-            gone = np.flatnonzero(iso_in[1] == 0)[0]  # the member fake_iso drops
-            assert res.labels[gone] < 0
-            cap = np.log(0.05 / 0.95)
-            assert calls[-2 - int(thr) - int(st) - int(col)][0] == "iso" and calls[-1][0] == "refit"
-            assert calls[-1][4][gone] <= cap + 1e-5
-        if col:  # colour sees the labels after the drop; the member that left starts the last re-fit faded too
-            (col_in,) = [c for c in calls if c[0] == "col"]
-            assert int(np.sum(col_in[1] >= 0)) == (int(np.sum(before >= 0)) + int(hull) + 2 * int(hinge)
-                                                   - int(iso))
-            left = np.flatnonzero(col_in[1] == 0)[-1]  # the member fake_col sends away
-            assert res.labels[left] < 0
-            assert calls[-1][0] == "refit" and calls[-1][4][left] <= np.log(0.05 / 0.95) + 1e-5
-        if thr:  # the prune sees the final labels and the last round's poses; what it pruned starts the re-fit so
-            (thr_in,) = [c for c in calls if c[0] == "thr"]
-            np.testing.assert_array_equal(thr_in[1], res.labels)
-            np.testing.assert_allclose(thr_in[2][..., 0, 3], 0.05 if st else 0.03)
-            gone = np.flatnonzero(res.labels < 0)[-1]
-            assert calls[-1][0] == "refit" and calls[-1][4][gone] == pytest.approx(-13.8)
-        if st:  # the settling sees the final labels and the last round's poses; the re-fit follows even alone
-            (st_in,) = [c for c in calls if c[0] == "settle"]
-            np.testing.assert_array_equal(st_in[1], res.labels)
-            np.testing.assert_allclose(st_in[2][..., 0, 3], 0.03)
-            np.testing.assert_allclose(calls[-1][5][..., 0, 3], 0.05)  # the last re-fit: the settled poses
-        refits = [c for c in calls if c[0] == "refit"]
-        assert [c[2:4] for c in refits[:2]] == [(4, 3), (4, 3)]
-        ref0 = stage2._reference_scene(stage2.load_stage2(dst, require_stage2=False), 0.0)
-        if len(refits) == 3:  # the fills' re-fit: its steps, no relabelling, the filled labels
-            assert refits[2][2:4] == (7, 0)
-            np.testing.assert_array_equal(refits[2][1], res.labels)
-        # the scene kept is the last re-fit's (one shift per re-fit; a member throughout, which no fade touches)
-        j = np.flatnonzero((before >= 0) & (res.labels >= 0))[-1]
-        shift = float(np.asarray(res.refit.opacity_logits)[j] - np.asarray(ref0.opacity_logits)[j])
-        assert shift == pytest.approx(len(refits), abs=1e-4), (shift, len(refits))
-        meta = stage2.load_stage2(dst).s2.meta
-        assert ("hull_joined" in meta) == hull and ("hinge_joined" in meta) == hinge and ("hinges" in meta) == hinge
-        if hull:
-            assert meta["hull_joined"][0] == 1
-        if hinge:
-            assert meta["hinge_joined"][0] == 2 and meta["hinges"] == [None] * res.num_objects
-        assert ("isolated_dropped" in meta) == iso
-        if iso:
-            assert meta["isolated_dropped"][0] == 1
-        assert meta.get("through_pruned") == (1 if thr else None)
-        assert ("colour_joined" in meta) == ("colour_left" in meta) == col
-        if col:
-            assert meta["colour_joined"][0] == 3 and meta["colour_left"][0] == 1
-        assert meta.get("settled") == ([[0, 1, 2]] if st else None)
-
-
 def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quiet():
-    """`stage2._fill_hulls`: the hull's core is the cluster's alive members with opacity >= the cut; a faint member
+    """`labels.fill_hulls`: the hull's core is the cluster's alive members with opacity >= the cut; a faint member
     (logit -800, which overflowed exp() in a hand-written sigmoid) and a dead one do not widen it, without warnings."""
     import warnings
 
@@ -1285,12 +1065,12 @@ def test_fill_hulls_core_is_the_alive_opaque_members_and_extreme_logits_are_quie
     alive[9] = False  # the member at x = 2 is dead
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        out = stage2._fill_hulls(labels, g, alive, 0.7, log=lambda m: None)
+        out = L.fill_hulls(labels, g, alive, 0.7, log=lambda m: None)
     np.testing.assert_array_equal(out, np.r_[np.zeros(10, int), 0, -1, -1])  # only the point inside the cube joins
 
 
 def test_refine_by_colour_takes_the_dc_colours_of_the_alive_visible_gaussians(monkeypatch):
-    """`stage2._refine_by_colour` hands `fgjax.cluster.refine_by_colour` the centres, the RGB of the SH DC term
+    """`labels.refine_by_colour` hands `fgjax.cluster.refine_by_colour` the centres, the RGB of the SH DC term
     (C0 sh0 + 0.5), the alive Gaussians with opacity >= 0.1 as usable (a faint one, logit -800, and a dead one
     are not), and the config's radius, components, separation and seed; it returns the labels and report and
     logs what joined and left and why a part was left alone."""
@@ -1317,10 +1097,10 @@ def test_refine_by_colour_takes_the_dc_colours_of_the_alive_visible_gaussians(mo
 
     monkeypatch.setattr(cluster, "refine_by_colour", fake)
     logs = []
-    cfg = stage2.Stage2Config(colour_radius=0.07, colour_components=3, colour_separation=0.6, seed=5)
+    cfg = ArticulateConfig(colour_radius=0.07, colour_components=3, colour_separation=0.6)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        out, rep = stage2._refine_by_colour(labels, g, alive, cfg, log=logs.append)
+        out, rep = L.refine_by_colour(labels, g, alive, cfg, 5, log=logs.append)
     np.testing.assert_array_equal(out, [0, -1, 0, 1, -1])
     assert rep[1]["skipped"] == "colours apart"
     np.testing.assert_allclose(seen["points"], means)
@@ -1332,7 +1112,7 @@ def test_refine_by_colour_takes_the_dc_colours_of_the_alive_visible_gaussians(mo
 
 
 def test_fill_hinges_takes_the_hinge_from_the_poses_and_the_core_from_the_alive_opaque_members():
-    """`stage2._fill_hinges`: the hinge is the poses' axis (a door turning about the z axis through (0, 0, 0));
+    """`labels.fill_hinges`: the hinge is the poses' axis (a door turning about the z axis through (0, 0, 0));
     its cylinder is sized and bounded by the cluster's alive members with opacity >= ``hull_opacity``: a faint
     member (logit -800) and a dead one far out along the axis do not stretch it. An object that turns by less
     than ``hinge_min_deg`` has no hinge. What joined and the hinges are logged and returned."""
@@ -1357,36 +1137,33 @@ def test_fill_hinges_takes_the_hinge_from_the_poses_and_the_core_from_the_alive_
     alive = np.ones(n, bool)
     alive[7] = False  # the member at z = -2 is dead
     poses = np.stack([[about_z(d) for d in (0.0, 30.0, 70.0)]])
-    cfg = stage2.Stage2Config()
+    cfg = ArticulateConfig()
     logs = []
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        out, hinges = stage2._fill_hinges(labels, g, alive, poses, cfg, log=logs.append)
+        out, hinges = L.fill_hinges(labels, g, alive, poses, cfg, log=logs.append)
     np.testing.assert_array_equal(out, np.r_[np.zeros(8, int), 0, -1, -1])  # only the point beside the door joins
     assert abs(abs(hinges[0]["axis"][2]) - 1.0) < 1e-9 and np.allclose(hinges[0]["pivot"], 0.0, atol=1e-9)
     assert hinges[0]["angle_deg"] == pytest.approx(70.0)
     assert logs == ["stage 2: [1] static Gaussians (objects 1, 2, ...) along the hinges of the objects that turn by "
                     ">= 20 degrees [1] joined them"], logs
     small = np.stack([[about_z(d) for d in (0.0, 10.0, 19.0)]])
-    out_small, hinges_small = stage2._fill_hinges(labels, g, alive, small, cfg, log=lambda m: None)
+    out_small, hinges_small = L.fill_hinges(labels, g, alive, small, cfg, log=lambda m: None)
     np.testing.assert_array_equal(out_small, labels)
     assert hinges_small == [None]
 
 
 def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
-    """`_photometric_poses` gives the tracker ``track_photo`` steps per frame (2:2:1 over its blur levels) in the
+    """`photometric_poses` gives the tracker ``track_photo`` steps per frame (2:2:1 over its blur levels) in the
     first round and ``track_photo_next`` in a round started from earlier poses; ``track_photo_next=0`` keeps
-    ``track_photo``. The tracker and the joint fit are recorders (the real ones: tests/test_phototrack.py).
-    Also: the joint search's wiring (``search=True``)."""
+    ``track_photo``. The tracker and the joint fit are recorders (the real ones: tests/test_phototrack.py)."""
     from types import SimpleNamespace
 
-    from fgjax.pipeline import phototrack
-
     seen = []
-    monkeypatch.setattr(phototrack, "track_photometric",
+    monkeypatch.setattr(AP, "track_photometric",
                         lambda g, alive, labels, k, imgs, vms, Ks, **kw: seen.append(kw["steps"])
                         or (np.tile(np.eye(4, dtype=np.float32), (k, len(vms), 1, 1)), None))
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False,
+    monkeypatch.setattr(AP, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False,
                         return_offsets=False: (poses, ["revolute"], [1.0])
                         + ((np.array([[1.0, 0.0, 0.0]]),) if return_axes else ())
                         + ((np.array([0.5]),) if return_offsets else ()))
@@ -1398,46 +1175,28 @@ def test_track_photo_next_sets_the_steps_of_the_later_rounds_only(monkeypatch):
     ref = SimpleNamespace(means=np.zeros((4, 3)))
     labels, order = np.array([0, 0, -1, -1]), np.arange(3)
     earlier = np.tile(np.eye(4, dtype=np.float32), (1, 3, 1, 1))
-    for cfg, init, want in ((stage2.Stage2Config(track_photo=40, track_photo_next=20), None, (16, 16, 8)),
-                            (stage2.Stage2Config(track_photo=40, track_photo_next=20), earlier, (8, 8, 4)),
-                            (stage2.Stage2Config(track_photo=40), earlier, (16, 16, 8))):
-        stage2._photometric_poses(run, scene, order, ref, labels, 1, cfg, None, log=lambda m: None, init_poses=init)
+    for cfg, init, want in ((ArticulateConfig(track_photo=40, track_photo_next=20), None, (16, 16, 8)),
+                            (ArticulateConfig(track_photo=40, track_photo_next=20), earlier, (8, 8, 4)),
+                            (ArticulateConfig(track_photo=40), earlier, (16, 16, 8))):
+        AP.photometric_poses(run, scene, order, ref, labels, 1, cfg, None, log=lambda m: None, init_poses=init)
         assert seen[-1] == want, (cfg.track_photo_next, init is None, seen)
     # a fixed object: no joint fit (no points reach it) and the earlier round's joint is kept
     pts_seen = []
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False,
+    monkeypatch.setattr(AP, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False,
                         return_offsets=False: pts_seen.append(pts)
                         or (poses, ["kept"], [np.nan], np.full((1, 3), np.nan), np.full(1, np.nan)))
     prev = {"joint_kinds": ["prismatic"], "joint_costs": [0.5], "joint_axes": [[0.0, 1.0, 0.0]],
             "joint_hinge_offsets": [None]}
-    _, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(track_photo=40), None,
+    _, joints = AP.photometric_poses(run, scene, order, ref, labels, 1, ArticulateConfig(track_photo=40), None,
                                           log=lambda m: None, init_poses=earlier, fixed=np.array([True]),
                                           prev_joints=prev)
     assert joints == {**prev, "hinge_trials": [None]} and len(pts_seen[-1][0]) == 0  # an older record lacks trials
-    # search=True: the joint fit's poses, kinds and the objects not fixed go to the search; where it replaces a
-    # joint, its kind and axis are the ones reported (the real search: tests/test_articulation.py)
-    from fgjax.pipeline import articulation
-
-    monkeypatch.setattr(phototrack, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False,
+    # a joint fitted afresh reports its hinge offset
+    monkeypatch.setattr(AP, "joint_poses", lambda pts, poses, vms, Ks, log=print, return_axes=False,
                         return_offsets=False: (poses, ["revolute"], [1.0])
                         + ((np.array([[1.0, 0.0, 0.0]]),) if return_axes else ())
                         + ((np.array([0.5]),) if return_offsets else ()))
-    got = []
-
-    def fake_search(g, alive, labels, k, imgs, vms, Ks, poses, *, kinds, objects, **kw):
-        got.append((list(kinds), np.asarray(objects).tolist(), kw["capacity"]))
-        out = poses.copy()
-        out[:, :, 1, 3] = 0.5
-        return out, [{"replaced": True, "kind": "prismatic", "axis": [0.0, 0.0, 1.0]}]
-
-    monkeypatch.setattr(articulation, "search_articulations", fake_search)
-    poses, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(track_photo=40),
-                                              None, log=lambda m: None, search=True)
-    assert got == [(["revolute"], [True], None)]
-    assert joints["joint_kinds"] == ["prismatic"] and joints["joint_axes"] == [[0.0, 0.0, 1.0]]
-    assert joints["joint_hinge_offsets"] == [None]  # the search's joint replaced the fitted hinge and its offset
-    assert np.all(poses[:, :, 1, 3] == 0.5)
-    _, joints = stage2._photometric_poses(run, scene, order, ref, labels, 1, stage2.Stage2Config(track_photo=40),
+    _, joints = AP.photometric_poses(run, scene, order, ref, labels, 1, ArticulateConfig(track_photo=40),
                                           None, log=lambda m: None)
     assert joints["joint_hinge_offsets"] == [0.5] and joints["joint_kinds"] == ["revolute"]
 
@@ -1447,7 +1206,7 @@ def _selection_case(seed=0, c_missed=0):
     part B that moves in frames 20-24 (30 dynamic Gaussians, its 200 others missed by discovery but on moving pixels
     in B's frames) and a false fragment C (30 dynamic Gaussians moving in B's frames, ``c_missed`` others around it
     on moving pixels in those frames, like the static Gaussians a lid uncovers)."""
-    from fgjax.pipeline.discover import Discovery, Scores
+    from fgjax.method.discover import Discovery, Scores
 
     rng = np.random.default_rng(seed)
     blob = lambda c, n: np.asarray(c) + rng.uniform(-0.04, 0.04, (n, 3))  # noqa: E731
@@ -1470,86 +1229,35 @@ def test_size_cut_after_the_second_pass_keeps_a_part_that_moves_in_few_frames():
     """B's first cluster (30) is under 5% of D (660: 33), like the default scene's lid after a long stage 1; the
     second pass in B's own frames grows it to 230, so the cut after that pass keeps it and drops C. A false
     fragment that the second pass grows to 6.7% of the clustered Gaussians (as the close pair's and the pose-noise
-    scene's did, session 20) passes a 5% cut and not the default 10%."""
+    scene's did) passes a 5% cut and not the default 10%."""
     pts, disc = _selection_case()
     quiet = lambda *_: None  # noqa: E731
-    early = stage2.Stage2Config(cut_after_local=False)
-    labels, _, report = stage2.select_objects(pts, disc, early, np.ones(len(pts), bool), log=quiet)
+    early = ArticulateConfig(cut_after_local=False)
+    labels, _, report = AP.select_parts(pts, disc, Stage2Config(), early, np.ones(len(pts), bool), log=quiet)
     assert report.n_clusters == 1 and np.all(labels[:600] == 0) and np.all(labels[600:] == -1)
-    late = stage2.Stage2Config()
+    late = ArticulateConfig()
     assert late.cut_after_local
-    labels, disc2, report = stage2.select_objects(pts, disc, late, np.ones(len(pts), bool), log=quiet)
+    labels, disc2, report = AP.select_parts(pts, disc, Stage2Config(), late, np.ones(len(pts), bool), log=quiet)
     assert report.n_clusters == 2, list(report.sizes)
     assert np.all(labels[:600] == 0) and np.all(labels[600:830] == 1) and np.all(labels[830:] == -1)
     assert np.all(disc2.dynamic[600:830]) and np.array_equal(disc2.dynamic[830:], disc.dynamic[830:])
     # without candidates B cannot grow and the late cut drops it as well
-    _, _, report = stage2.select_objects(pts, disc, late, np.zeros(len(pts), bool), log=quiet)
+    _, _, report = AP.select_parts(pts, disc, Stage2Config(), late, np.zeros(len(pts), bool), log=quiet)
     assert report.n_clusters == 1
     # C grown to 60 by the Gaussians around it (6.7% of the 890 clustered): over a 5% cut, under the default 10%
     pts, disc = _selection_case(c_missed=30)
     for frac, kept in ((0.05, 3), (late.local_min_fraction, 2)):
-        labels, _, report = stage2.select_objects(pts, disc, stage2.Stage2Config(local_min_fraction=frac),
+        labels, _, report = AP.select_parts(pts, disc, Stage2Config(), ArticulateConfig(local_min_fraction=frac),
                                                   np.ones(len(pts), bool), log=quiet)
         assert report.n_clusters == kept and np.sum(labels >= 0) == 830 + 60 * (kept == 3), (frac, list(report.sizes))
     with pytest.raises(ValueError, match="local_min_fraction"):
-        stage2.run_stage2("nowhere", "nowhere", stage2.Stage2Config(local_min_fraction=-0.1))
+        run_articulated("nowhere", "nowhere", Stage2Config(), ArticulateConfig(local_min_fraction=-0.1))
     with pytest.raises(ValueError, match="local_floor"):
-        stage2.run_stage2("nowhere", "nowhere", stage2.Stage2Config(local_floor=1.0))
-
-
-def test_config_from_overrides_parses_strictly_and_names_the_key():
-    """`fgjax stage2 --set` / `fgjax demo --set stage2.*`: values of the wrong type are refused (a typo in a
-    bool used to read as False), the message names the key, and `base` keeps the fields not set."""
-    base = stage2.Stage2Config(track_photo=40, refit_steps=300)
-    cfg = stage2.config_from_overrides(["track_rest=ON", "hinge_fill=0", "eps= 0.07", "track_rounds=2",
-                                        "threshold_px=1.5", "score_threshold=otsu"], base=base)
-    assert (cfg.track_rest, cfg.hinge_fill, cfg.eps, cfg.track_rounds) == (True, False, 0.07, 2)
-    assert (cfg.threshold_px, cfg.score_threshold) == (1.5, "otsu")
-    assert (cfg.track_photo, cfg.refit_steps) == (40, 300)  # from base
-    assert stage2.config_from_overrides([]) == stage2.Stage2Config()
-    for item, msg in (("track_rest=maybe", "track_rest=maybe: expected true or false"),
-                      ("track_rounds=1.5", "track_rounds=1.5: expected an integer"),
-                      ("eps=wide", "eps=wide: expected a number$"),
-                      ("score_threshold=high", "score_threshold=high: expected a number or 'otsu'"),
-                      ("eps", "--set stage2.eps: expected KEY=VALUE")):
-        with pytest.raises(ValueError, match=msg):
-            stage2.config_from_overrides([item], prefix="stage2.")
-
-
-def test_validate_config_names_the_field():
-    stage2.validate_config(stage2.Stage2Config())
-    for kw, msg in (({"hinge_radius": -1.0}, "hinge_radius"), ({"track_rounds": 0}, "track_rounds"),
-                    ({"camera_correction": "maybe"}, "camera_correction"), ({"hull_opacity": 1.5}, "hull_opacity"),
-                    ({"refit_lr_scale": 0.0}, "refit_lr_scale"), ({"refit_lr_scale": float("nan")}, "refit_lr_scale"),
-                    ({"ghost_radius": -0.1}, "ghost_radius"), ({"ghost_radius": float("inf")}, "ghost_radius"),
-                    ({"ghost_opacity": 0.0}, "ghost_opacity"), ({"ghost_opacity": 1.0}, "ghost_opacity"),
-                    ({"mask_guide_radius": -1}, "mask_guide_radius"), ({"mask_guide_radius": 2.5}, "mask_guide_radius"),
-                    ({"mask_guide_eps": 0.0}, "mask_guide_eps"), ({"isolated_factor": -1.0}, "isolated_factor"),
-                    ({"isolated_factor": 0.5}, "isolated_factor"),
-                    ({"isolated_factor": float("nan")}, "isolated_factor"), ({"through_prune": -0.1}, "through_prune"),
-                    ({"through_prune": 1.5}, "through_prune"), ({"through_prune": float("nan")}, "through_prune"),
-                    ({"joint_search": -1}, "joint_search"), ({"joint_search": True}, "joint_search"),
-                    ({"joint_search": 1.5}, "joint_search"), ({"colour_radius": -0.1}, "colour_radius"),
-                    ({"colour_radius": float("nan")}, "colour_radius"), ({"colour_components": 0}, "colour_components"),
-                    ({"colour_components": True}, "colour_components"),
-                    ({"colour_separation": 1.5}, "colour_separation"),
-                    ({"colour_separation": float("nan")}, "colour_separation"),
-                    ({"hinge_trial": -1}, "hinge_trial"), ({"hinge_trial": 1.5}, "hinge_trial"),
-                    ({"hinge_trial": True}, "hinge_trial"), ({"hinge_trial_margin": 1.0}, "hinge_trial_margin"),
-                    ({"hinge_trial_margin": -0.1}, "hinge_trial_margin"),
-                    ({"hinge_trial_margin": float("nan")}, "hinge_trial_margin"),
-                    ({"hinge_trial_slide": "yes"}, "hinge_trial_slide"), ({"hinge_trial_slide": 1}, "hinge_trial_slide"),
-                    ({"control_rigid": "no"}, "control_rigid"), ({"control_rigid": 0}, "control_rigid"),
-                    ({"hinge_trial_edges": 5}, "hinge_trial_edges"), ({"hinge_trial_edges": True}, "hinge_trial_edges"),
-                    ({"hinge_trial_search_slides": 1}, "hinge_trial_search_slides"),
-                    ({"hinge_up_deg": 90.0}, "hinge_up_deg"), ({"hinge_up_deg": -1.0}, "hinge_up_deg"),
-                    ({"hinge_up_deg": True}, "hinge_up_deg"), ({"hinge_up_deg": float("nan")}, "hinge_up_deg")):
-        with pytest.raises(ValueError, match=f"Stage2Config.{msg}"):
-            stage2.validate_config(stage2.Stage2Config(**kw))
+        run_articulated("nowhere", "nowhere", Stage2Config(), ArticulateConfig(local_floor=1.0))
 
 
 def test_fade_ghosts_caps_the_opacity_of_the_alive_static_gaussians_near_the_swept_volume():
-    """`stage2._fade_ghosts`: a part (one member at the origin) slides to x = 1; of the static Gaussians by its
+    """`labels.fade_ghosts`: a part (one member at the origin) slides to x = 1; of the static Gaussians by its
     path, the opaque alive ones are capped at ``ghost_opacity``, a fainter one keeps its logit, a dead one is
     left; far ones and the member keep theirs, and nothing but the opacities changes."""
     from scipy.special import expit
@@ -1565,8 +1273,8 @@ def test_fade_ghosts_caps_the_opacity_of_the_alive_static_gaussians_near_the_swe
     poses[0, :, 0, 3] = np.linspace(0.0, 1.0, 5)
     alive = np.array([1, 1, 1, 1, 0, 1], bool)
     msgs = []
-    cfg = stage2.Stage2Config(ghost_radius=0.1, ghost_opacity=0.05)
-    out = stage2._fade_ghosts(g, np.array([0, -1, -1, -1, -1, -1]), poses, alive, cfg, log=msgs.append)
+    cfg = ArticulateConfig(ghost_radius=0.1, ghost_opacity=0.05)
+    out = L.fade_ghosts(g, np.array([0, -1, -1, -1, -1, -1]), poses, alive, cfg, log=msgs.append)
     np.testing.assert_allclose(expit(out.opacity_logits[1:3]), 0.05, rtol=1e-5)
     np.testing.assert_array_equal(out.opacity_logits[[0, 3, 4, 5]], logits[[0, 3, 4, 5]])
     for f in ("means", "log_scales", "quats", "sh"):
@@ -1575,7 +1283,7 @@ def test_fade_ghosts_caps_the_opacity_of_the_alive_static_gaussians_near_the_swe
 
 
 def test_seen_through_matches_the_dense_reference_weights():
-    """`stage2.seen_through` against an independent float64 reference: the dense rasterizer
+    """`labels.seen_through` against an independent float64 reference: the dense rasterizer
     (`fgjax.render.reference`) with one colour channel per Gaussian gives every Gaussian's T alpha at every
     pixel, so the members' coverage is the sum of their channels and each Gaussian's share follows by sums.
     A member plane at z = 3 that slides sideways between two frames (a translation, so its isotropic
@@ -1601,7 +1309,7 @@ def test_seen_through_matches_the_dense_reference_weights():
     g = Gaussians(means, log_scales, np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), logits, np.zeros((n, 1, 3)))
     poses = np.tile(np.eye(4), (1, 2, 1, 1))
     poses[0, 1, 0, 3] = 0.35  # frame 1: the plane slides right, over the static Gaussian behind it
-    got = stage2.seen_through(g, alive, labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h)
+    got = L.seen_through(g, alive, labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h)
 
     inside, total = np.zeros(n), np.zeros(n)
     op = 1.0 / (1.0 + np.exp(-logits)) * alive
@@ -1620,15 +1328,15 @@ def test_seen_through_matches_the_dense_reference_weights():
     assert got[16] > 0.5 and 0.05 < got[18] < got[16]  # behind: seen through the plane; the one in front less so
     assert np.all(np.isfinite(got)) and got.min() >= 0 and got.max() <= 1
     with pytest.raises(ValueError, match="poses must be"):
-        stage2.seen_through(g, alive, labels, poses[:, :1], np.stack([vm, vm]), np.stack([K, K]), w, h)
+        L.seen_through(g, alive, labels, poses[:, :1], np.stack([vm, vm]), np.stack([K, K]), w, h)
     with pytest.raises(ValueError, match="labels and alive"):
-        stage2.seen_through(g, alive[:-1], labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h)
-    with pytest.raises(stage2.TileOverflow, match="overflowed the tile capacity"):
-        stage2.seen_through(g, alive, labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h, capacity=4)
+        L.seen_through(g, alive[:-1], labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h)
+    with pytest.raises(L.TileOverflow, match="overflowed the tile capacity"):
+        L.seen_through(g, alive, labels, poses, np.stack([vm, vm]), np.stack([K, K]), w, h, capacity=4)
 
 
 def test_prune_seen_through_prunes_nothing_on_an_overflow_and_lets_other_errors_through(monkeypatch):
-    """`stage2._prune_seen_through`: a `TileOverflow` from `seen_through` leaves the scene as it is and says so;
+    """`labels.prune_seen_through`: a `TileOverflow` from `seen_through` leaves the scene as it is and says so;
     any other error (a shape mismatch: a bug) is raised; otherwise the alive static Gaussians above the cut get
     `_PRUNED_OPACITY` and nothing else changes."""
     from types import SimpleNamespace
@@ -1651,14 +1359,70 @@ def test_prune_seen_through_prunes_nothing_on_an_overflow_and_lets_other_errors_
         return f
 
     msgs = []
-    monkeypatch.setattr(stage2, "seen_through", raises(stage2.TileOverflow("frame 0 overflowed")))
-    out, k = stage2._prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
+    monkeypatch.setattr(L, "seen_through", raises(L.TileOverflow("frame 0 overflowed")))
+    out, k = L.prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
     assert k == 0 and out is g and "no static Gaussians pruned" in msgs[0] and "overflowed" in msgs[0]
-    monkeypatch.setattr(stage2, "seen_through", raises(ValueError("seen_through: poses must be ...")))
+    monkeypatch.setattr(L, "seen_through", raises(ValueError("seen_through: poses must be ...")))
     with pytest.raises(ValueError, match="poses must be"):
-        stage2._prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
-    monkeypatch.setattr(stage2, "seen_through", lambda *a, **k: np.array([0.9, 0.9, 0.3, 0.9]))
-    out, k = stage2._prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
+        L.prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
+    monkeypatch.setattr(L, "seen_through", lambda *a, **k: np.array([0.9, 0.9, 0.3, 0.9]))
+    out, k = L.prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
     assert k == 1  # the member, the one below the cut and the dead one are kept
     np.testing.assert_allclose(expit(np.asarray(out.opacity_logits, np.float64)), [expit(2.0), 1e-6, expit(2.0), expit(2.0)],
                                rtol=1e-4)
+
+
+def test_label_passes_apply_the_enabled_passes_in_order_and_refit_only_after_a_change(tiny):
+    """`fgjax.articulate.pipeline.label_passes` on the sliding part of the tiny run (real passes, nothing faked):
+    with every pass off it returns its inputs and an empty record and does not re-fit; with the hull fill alone its
+    labels are `labels.fill_hulls`'s and the record lists who joined; with the isolated-member drop as well, that
+    drop runs on the filled labels; ``hull_refit_steps`` > 0 re-fits the scene (new parameters), 0 keeps it."""
+    run, labels, poses, moved, order = _sliding_part(tiny, 0.1)
+    ref = result.reference_scene(run, float(moved.times[order[0]]))
+    alive = run.state.densify.alive
+    quiet = lambda *_: None  # noqa: E731
+    off = ArticulateConfig(hull_fill=False, hinge_fill=False, isolated_factor=0.0, colour_radius=0.0,
+                           settle_rest=False, through_prune=0.0, hull_refit_steps=3)
+    # a few part members made static, so that the hull fill has something to take back
+    lab = labels.copy()
+    inside = np.flatnonzero(labels == 0)[::7]
+    lab[inside] = -1
+    g, out, p, fills = AP.label_passes(run, moved, order, ref, ref, lab, poses, None, off, 0, 1, quiet)
+    assert g is ref and out is lab and p is poses and fills == {}
+    import dataclasses
+
+    # every alive member spans the hull (this 8-step run's opacities are low)
+    hull = dataclasses.replace(off, hull_fill=True, hull_opacity=0.0, hull_refit_steps=0)
+    g, out, _, fills = AP.label_passes(run, moved, order, ref, ref, lab, poses, None, hull, 0, 1, quiet)
+    want = L.fill_hulls(lab, ref, alive, hull.hull_opacity, hull.hull_max_growth, quiet)
+    np.testing.assert_array_equal(out, want)
+    assert fills["hull_joined"] == L.joined(lab, want) and fills["hull_joined"][0] > 0, fills
+    assert g is ref  # no re-fit steps: the scene as it was
+    both = dataclasses.replace(hull, isolated_factor=1.0)  # the tightest drop: some members always go
+    _, out2, _, fills2 = AP.label_passes(run, moved, order, ref, ref, lab, poses, None, both, 0, 1, quiet)
+    want2, dropped = L.drop_isolated(want, ref, alive, 1.0, quiet)
+    np.testing.assert_array_equal(out2, want2)
+    assert fills2["isolated_dropped"] == dropped and fills2["hull_joined"] == fills["hull_joined"]
+    refitted = dataclasses.replace(hull, hull_refit_steps=2)
+    g, out3, _, _ = AP.label_passes(run, moved, order, ref, ref, lab, poses, None, refitted, 0, 1, quiet)
+    np.testing.assert_array_equal(out3, want)
+    assert not np.array_equal(np.asarray(g.sh), np.asarray(ref.sh))  # re-fitted under the filled labels
+
+
+def test_paper_chain_writes_a_stage2_result_that_loads_back(tiny, tmp_path):
+    """`fgjax.method.run_stage2` (the paper's chain: discovery, DBSCAN, trajectories from the deformation field, the
+    control network) on the tiny run writes stage2.npz and stage2.json; `load_stage2` reads them back with
+    ``variant`` "paper", the labels and trajectories of the returned result, and no re-fitted scene."""
+    import shutil
+
+    from fgjax.method import run_stage2
+
+    dst = tmp_path / "run"
+    shutil.copytree(tiny[0], dst, ignore=shutil.ignore_patterns(result.STAGE2_NAME, "stage2.json"))
+    res = run_stage2(dst, tiny[1], Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2), log=lambda m: None)
+    back = result.load_stage2(dst)
+    assert back.s2.meta["variant"] == "paper" and json.loads((dst / "stage2.json").read_text())["variant"] == "paper"
+    np.testing.assert_array_equal(back.s2.labels, res.labels)
+    np.testing.assert_allclose(back.s2.traj, res.traj)
+    assert back.s2.refit is None and back.s2.traj.shape == (back.s2.num_objects, 8, 3)
+    assert np.all(back.s2.dynamic[back.s2.labels >= 0])

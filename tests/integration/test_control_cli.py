@@ -11,12 +11,14 @@ import numpy as np
 import pytest
 
 from fgjax import cli
-from fgjax.pipeline.control import parse_vector
+from fgjax.apps.control import parse_vector
+
+ARI_FLOOR = -0.1  # the tiny run measures -0.023 (ARI) and -0.016 (controlled): see test_eval_writes_metrics
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    sys.path.insert(0, str(Path(__file__).parent))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from _pipeline_run import shared_base, tiny_run
 
     return tiny_run(shared_base(tmp_path_factory) / "pipeline")
@@ -30,12 +32,11 @@ def test_parse_vector():
 
 
 def test_control_renders_and_sweeps(tiny, tmp_path, capsys):
-    from fgjax.pipeline import stage2
+    from fgjax.method import result as stage2
 
     run_dir, _ = tiny
     n = stage2.load_stage2(run_dir).s2.num_objects
-    if n == 0:
-        pytest.skip("no clusters in the tiny run")
+    assert n > 0, "no clusters in the tiny run"
     out = tmp_path / "ctl"
     assert cli.main(["control", "--run", str(run_dir), "--object", "1", "--vector", "0.01,0,0", "--out", str(out)]) == 0
     pngs = list(out.glob("object1_*.png"))
@@ -45,13 +46,22 @@ def test_control_renders_and_sweeps(tiny, tmp_path, capsys):
     vids = list(out.glob("object1_sweep.*"))
     assert vids and vids[0].stat().st_size > 0
     capsys.readouterr()
-    # errors: object out of range, malformed vector, missing run
-    assert cli.main(["control", "--run", str(run_dir), "--object", str(n + 1), "--out", str(out)]) == 2
+    # errors: object out of range, malformed vector, missing run, no vector, both vector and sweep
+    v = ["--vector", "0.01,0,0"]
+    assert cli.main(["control", "--run", str(run_dir), "--object", str(n + 1), *v, "--out", str(out)]) == 2
     assert "out of range" in capsys.readouterr().err
     assert cli.main(["control", "--run", str(run_dir), "--object", "1", "--vector", "1,2", "--out", str(out)]) == 2
     assert "--vector" in capsys.readouterr().err
-    assert cli.main(["control", "--run", str(tmp_path / "none"), "--object", "1", "--out", str(out)]) == 2
+    assert cli.main(["control", "--run", str(tmp_path / "none"), "--object", "1", *v, "--out", str(out)]) == 2
     assert "does not exist" in capsys.readouterr().err
+    assert cli.main(["control", "--run", str(run_dir), "--object", "1", "--out", str(out)]) == 2
+    assert "--vector x,y,z" in capsys.readouterr().err
+    assert cli.main(["control", "--run", str(run_dir), "--object", "1", *v, "--sweep", "--out", str(out)]) == 2
+    assert "not both" in capsys.readouterr().err
+    # a vector far off the trajectory is snapped, and the command says by how much
+    assert cli.main(["control", "--run", str(run_dir), "--object", "1", "--vector", "1e9,0,0", "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "snapped to" in said and "far off it" in said
 
 
 def test_eval_writes_metrics(tiny, tmp_path, capsys):
@@ -59,10 +69,15 @@ def test_eval_writes_metrics(tiny, tmp_path, capsys):
     shutil.copytree(tiny[0], run_dir)
     assert cli.main(["eval", "--run", str(run_dir), "--maps", str(tmp_path / "maps")]) == 0
     m = json.loads((run_dir / "metrics.json").read_text())["control"]
-    assert -1.0 <= m["ari"] <= 1.0 and -1.0 <= m["ari_controlled"] <= 1.0 and np.isfinite(m["state_psnr"])
+    # the tiny deterministic run (8 stage-1 steps) finds one object; its ARIs are at chance level (measured -0.023,
+    # controlled -0.016: the geometry after 8 steps is poor) and its held-out state PSNR 16.7 dB. The floors below
+    # leave a margin; the quality floors of real runs are in tests/regression.
+    assert m["num_objects_found"] == 1, m["num_objects_found"]
+    assert m["ari"] > ARI_FLOOR and m["ari_controlled"] > ARI_FLOOR, (m["ari"], m["ari_controlled"])
+    assert m["state_psnr"] > 15.0, m["state_psnr"]
     assert len(m["ari_per_view"]) == len(m["ari_controlled_per_view"]) >= 1
-    if m["num_objects_found"] > 0:  # the ceilings: the same renders with labels from the gt
-        assert -1.0 <= m["ari_gt_labels"] <= 1.0 and -1.0 <= m["ari_controlled_gt_labels"] <= 1.0
+    # the ceilings: the same renders with labels from the gt
+    assert -1.0 <= m["ari_gt_labels"] <= 1.0 and -1.0 <= m["ari_controlled_gt_labels"] <= 1.0
     assert m["num_objects_gt"] == 3
     # the tiny scene's poses are written exactly and not refined: both camera errors ~0
     assert m["camera_rotation_error_written_deg"] < 1e-3 and m["camera_centre_error_written"] < 1e-5
@@ -75,10 +90,9 @@ def test_eval_writes_metrics(tiny, tmp_path, capsys):
     assert abs(m["state_psnr_run_cameras"] - m["state_psnr"]) < 1e-3
     assert len(m["state_psnr_run_cameras_per_frame"]) == len(m["state_psnr_per_frame"])
     assert abs(m["view_psnr_stage1_unaligned"] - m["view_psnr_stage1"]) < 1e-3 and np.isfinite(m["view_psnr_stage1"])
-    if m["num_objects_found"]:
-        assert np.isfinite(m["state_psnr_true_motion"]) and np.isfinite(m["state_psnr_true_motion_labels"])
-        assert -1.0 <= m["ari_controlled_true_motion"] <= 1.0
-        assert -1.0 <= m["ari_controlled_true_motion_gt_labels"] <= 1.0
+    assert np.isfinite(m["state_psnr_true_motion"]) and np.isfinite(m["state_psnr_true_motion_labels"])
+    assert -1.0 <= m["ari_controlled_true_motion"] <= 1.0
+    assert -1.0 <= m["ari_controlled_true_motion_gt_labels"] <= 1.0
     # where the state frames' error lies: per gt id, shares that sum to each frame's MSE (its PSNR)
     shares = np.array(list(m["state_mse_by_object"].values()))  # [ids, frames]
     pixels = np.array(list(m["state_pixels_by_object"].values()))
@@ -105,7 +119,7 @@ def test_eval_writes_metrics(tiny, tmp_path, capsys):
 def test_error_by_object_splits_the_squared_error_by_gt_id():
     """Shares of a hand-made error: id 2's four pixels off by 0.5 in one channel, id 0 by 0.1 everywhere,
     id -1 (no gt) left out even when wrong."""
-    from fgjax.pipeline.evaluate import error_by_object
+    from fgjax.method.evaluate import error_by_object
 
     image = np.zeros((4, 5, 3))
     ids = np.zeros((4, 5), int)
@@ -126,7 +140,7 @@ def test_error_by_object_splits_the_squared_error_by_gt_id():
 def test_swept_mask_and_error_map_image():
     """`swept_mask`: the union of the two frames' part pixels, grown by the radius (a square); `error_map_image`:
     render | image | |difference| x gain, clipped."""
-    from fgjax.pipeline.evaluate import error_map_image, swept_mask
+    from fgjax.method.evaluate import error_map_image, swept_mask
 
     a = np.zeros((7, 9), int)
     b = np.zeros((7, 9), int)
@@ -155,7 +169,8 @@ def test_motion_preference_compares_the_three_renders_with_the_same_frames(tiny,
     """With the gt motion replaced by the identity and the learned render by the unmoved reference (both
     then draw the same scene), every frame ties: l1_learned == l1_true and the true motion never wins; a
     learned render that is all black loses every frame to the true motion."""
-    from fgjax.pipeline import evaluate, stage2
+    from fgjax.method import evaluate
+    from fgjax.method import result as stage2
 
     run_dir, data = tiny
     seen = {}
@@ -163,8 +178,7 @@ def test_motion_preference_compares_the_three_renders_with_the_same_frames(tiny,
     monkeypatch.setattr(evaluate, "_motion_preference", lambda *a, **kw: seen.setdefault("args", a) and {})
     evaluate.evaluate_control(stage2.load_stage2(run_dir), Path(data))
     run, train, objs = seen["args"][:3]
-    if run.s2.num_objects == 0:
-        pytest.skip("the tiny run found no object")
+    assert run.s2.num_objects > 0, "the tiny run found no object"
     args = list(seen["args"])
     args[3] = {c: 1 + c % len(objs) for c in range(run.s2.num_objects)}  # every cluster on a gt object
 
@@ -184,7 +198,7 @@ def test_motion_preference_compares_the_three_renders_with_the_same_frames(tiny,
 
 
 def test_render_clusters_writes_id_maps(tiny, tmp_path):
-    from fgjax.pipeline import stage2
+    from fgjax.method import result as stage2
 
     run_dir, data = tiny
     out = tmp_path / "ids"
@@ -202,9 +216,12 @@ def test_gt_point_motion_matches_hinge_and_slide_geometry():
     """The evaluation's gt motion of a point, against closed forms: a point at distance r from a hinge
     turned by theta moves by 2 r sin(theta / 2) and keeps its distance to the axis; a drawer point
     moves by s * distance along the direction. In the run's scene units (centre and scale applied)."""
+    from conftest import synth
+
     from fgjax.data.scene import Normalization
-    from fgjax.data.synth import SynthObject
-    from fgjax.pipeline.evaluate import gt_point_motion
+
+    SynthObject = synth.SynthObject
+    from fgjax.method.evaluate import gt_point_motion
 
     norm = Normalization(centre=np.array([0.3, -0.2, 0.5]), scale=0.8)
     z = np.zeros(3)
@@ -227,9 +244,12 @@ def test_gt_point_motion_matches_hinge_and_slide_geometry():
 def test_gt_motion_scene_matches_point_motion():
     """The gt motion as a scene-unit matrix moves points where the world-space round trip does (scene ->
     world, the object's transform, world -> scene; written out here), and `gt_point_motion` agrees."""
+    from conftest import synth
+
     from fgjax.data.scene import Normalization
-    from fgjax.data.synth import SynthObject, object_transform
-    from fgjax.pipeline.evaluate import gt_motion_scene, gt_point_motion
+
+    SynthObject, object_transform = synth.SynthObject, synth.object_transform
+    from fgjax.method.evaluate import gt_motion_scene, gt_point_motion
 
     norm = Normalization(centre=np.array([0.3, -0.2, 0.5]), scale=0.8)
     z = np.zeros(3)
@@ -249,9 +269,12 @@ def test_gt_motion_scene_matches_point_motion():
 def test_gt_labels_of_gaussians_labels_the_gt_parts(tiny):
     """The gt Gaussians themselves, moved to some states and put in scene units, get their own labels
     through the cluster matching; a point far from everything is static."""
+    from conftest import synth
+
     from fgjax.data.scene import Normalization
-    from fgjax.data.synth import SynthObject, object_transform
-    from fgjax.pipeline.evaluate import gt_labels_of_gaussians
+
+    SynthObject, object_transform = synth.SynthObject, synth.object_transform
+    from fgjax.method.evaluate import gt_labels_of_gaussians
 
     _, data = tiny
     gt = data / "gt"
@@ -266,7 +289,7 @@ def test_gt_labels_of_gaussians_labels_the_gt_parts(tiny):
     norm = Normalization(centre=np.array([0.1, 0.2, -0.1]), scale=0.5)
     query = np.concatenate([norm.points_to_scene(pts), [[50.0, 50.0, 50.0]]])
     match = {c: c + 1 for c in range(len(meta["objects"]))}  # cluster c <-> gt object c + 1
-    from fgjax.pipeline.evaluate import gt_objects
+    from fgjax.method.evaluate import gt_objects
 
     got = gt_labels_of_gaussians(query, gt, gt_objects(meta), states, norm, match, radius=1e-6)
     np.testing.assert_array_equal(got[:-1], np.where(lab > 0, lab - 1, -1))
@@ -277,9 +300,10 @@ def test_render_source_control_draws_the_controlled_scene(tiny, tmp_path, capsys
     """``fgjax render --source control`` writes the controlled scene at each camera's time (each object at its
     trajectory there); ``--clusters --source stage1`` the stage-1 ids; a run without stage 2: exit 2, naming the
     file it lacks."""
+    from fgjax.data.cameras import read_cameras
     from fgjax.data.scene import Normalization
-    from fgjax.pipeline import stage2
-    from fgjax.pipeline.render import read_cameras
+    from fgjax.method import result as stage2
+    from fgjax.viz import to_u8
 
     run_dir, data = tiny
     cams_file = data / "transforms_test.json"
@@ -294,7 +318,7 @@ def test_render_source_control_draws_the_controlled_scene(tiny, tmp_path, capsys
 
     got = iio.imread(tmp_path / "ctl" / f"{name}.png")
     want = stage2.render_controlled(run, stage2.cluster_vectors_at(run.s2, t), vm, K, w, h)
-    np.testing.assert_array_equal(got, stage2._to_u8(want))
+    np.testing.assert_array_equal(got, to_u8(want))
     assert np.any(got != iio.imread(tmp_path / "s1" / f"{name}.png"))
     assert cli.main(args + ["--out", str(tmp_path / "ids"), "--clusters", "--source", "stage1"]) == 0
     np.testing.assert_array_equal(np.load(tmp_path / "ids" / f"{name}_ids.npy"),
@@ -313,12 +337,11 @@ def test_render_clusters_with_given_labels(tiny):
     weight joins the static channel), and somewhere when the full map has object 1 in view."""
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
-    from fgjax.pipeline import stage2
+    from fgjax.method import result as stage2
 
     run_dir, data = tiny
     run = stage2.load_stage2(run_dir)
-    if run.s2.num_objects == 0:
-        pytest.skip("no clusters in the tiny run")
+    assert run.s2.num_objects > 0, "no clusters in the tiny run"
 
     train = load_scene(data, "train", normalize=Normalization.from_dict(run.meta["normalization"]),
                        downscale=run.cfg.data.downscale)
@@ -342,13 +365,12 @@ def test_render_clusters_with_poses(tiny):
     it out of that camera's map while the others stay where they were."""
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
-    from fgjax.pipeline import stage2
+    from fgjax.method import result as stage2
 
     run_dir, data = tiny
     run = stage2.load_stage2(run_dir)
     k = run.s2.num_objects
-    if k == 0:
-        pytest.skip("no clusters in the tiny run")
+    assert k > 0, "no clusters in the tiny run"
     train = load_scene(data, "train", normalize=Normalization.from_dict(run.meta["normalization"]),
                        downscale=run.cfg.data.downscale)
     w, h = train.width, train.height
@@ -360,7 +382,7 @@ def test_render_clusters_with_poses(tiny):
         if (at_rest == 1).any():
             break
     else:
-        pytest.skip("no training camera sees object 1 in the tiny run")
+        raise AssertionError("no training camera sees object 1 in the tiny run")
     away = eye.copy()
     away[0, :3, 3] = -1e3 * np.linalg.inv(np.asarray(vm, np.float64))[:3, 2]  # far behind the camera
     gone = stage2.render_clusters(run, vm, K, w, h, poses=away)
@@ -380,7 +402,7 @@ def test_render_clusters_with_poses(tiny):
 def test_camera_errors_against_a_known_perturbation():
     """A camera turned by 3 degrees about its own centre and one moved by (0.3, 0.4, 0) without turning:
     rotation errors (3, 0), centre errors (0, 0.5)."""
-    from fgjax.pipeline.evaluate import camera_errors
+    from fgjax.method.evaluate import camera_errors
 
     a = np.radians(3.0)
     rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
@@ -408,7 +430,7 @@ def test_run_camera_carries_a_test_camera_by_way_of_its_training_camera():
     tested above); when the run's camera of the source frame is off, the test camera is off by the same
     camera-side error; D = I gives the run's camera itself."""
     from fgjax import geometry
-    from fgjax.pipeline.evaluate import apply_alignment, run_camera
+    from fgjax.method.evaluate import apply_alignment, run_camera
 
     rng = np.random.default_rng(1)
     true = _cameras_around(6, rng)
@@ -436,7 +458,7 @@ def test_align_cameras_recovers_a_similarity_and_keeps_every_image():
     cameras project every moved point where the original ones project the point; with per-camera noise the fit
     is still close; one camera gives scale 1; wrong shapes are refused."""
     from fgjax import geometry
-    from fgjax.pipeline.evaluate import align_cameras, apply_alignment, camera_errors
+    from fgjax.method.evaluate import align_cameras, apply_alignment, camera_errors
 
     rng = np.random.default_rng(0)
     true = _cameras_around(12, rng)

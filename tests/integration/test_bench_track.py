@@ -13,7 +13,7 @@ from fgjax.bench import track
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    sys.path.insert(0, str(Path(__file__).parent))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from _pipeline_run import shared_base, tiny_run
 
     return tiny_run(shared_base(tmp_path_factory) / "pipeline")

@@ -1,4 +1,4 @@
-"""Rigid object tracking from flow (fgjax.pipeline.track) against known motions."""
+"""Rigid object tracking from flow (`fgjax.articulate.track`; the rigid camera increment of `fgjax.method.camera`) against known motions."""
 
 from __future__ import annotations
 
@@ -8,13 +8,10 @@ import pytest
 from conftest import look_at
 
 from fgjax import geometry
-from fgjax.pipeline.track import (
-    chained_joint_poses,
-    quat_multiply,
-    rigid_increment,
-    track_objects,
-    transform_gaussians,
-)
+from fgjax.articulate.track import track_objects
+from fgjax.geometry import quat_multiply
+from fgjax.method.camera import rigid_increment
+from fgjax.models.posed import transform_gaussians
 
 K = np.array([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])
 W, H = 64, 48
@@ -171,7 +168,7 @@ def test_track_objects_recovers_rigid_poses_from_exact_flow():
 
 def test_camera_correction_removes_a_pose_error_from_u_cam_despite_moving_pixels():
     from fgjax import flow as fl
-    from fgjax.pipeline.track import camera_correction
+    from fgjax.method.camera import camera_correction
 
     rng = np.random.default_rng(3)
     h, w = 48, 64
@@ -234,7 +231,7 @@ def _hinged_patch_pairs(kind, amounts, seed=0):
 
 
 def test_fit_joint_recovers_a_hinge_and_a_slide_over_all_pairs():
-    from fgjax.pipeline.track import fit_joint
+    from fgjax.articulate.track import fit_joint
 
     amounts = np.array([0.06, 0.17, 0.24, 0.26, 0.0, -0.2, -0.25])  # radians per pair (a door opening 42 deg)
     pts, tgt, w, vms, Ks, axis, _ = _hinged_patch_pairs("revolute", amounts)
@@ -281,32 +278,3 @@ def _hinge_scene(t: int, step: float):
     return means, quats, scales, np.full(len(means), 0.9), labels, vms, np.stack(true)
 
 
-def test_chained_joint_poses_recovers_a_hinge_from_the_reference_points():
-    """From identity poses (nothing tracked), the reference points followed through exact chained flow
-    give the hinge's absolute poses; a resting pair keeps the pose; an object that never moves is left."""
-    t = 6
-    means, quats, scales, opac, labels, vms, true = _hinge_scene(t, 0.15)
-    flows = np.stack([_rendered_flow(means, quats, scales, opac, labels, true[i], true[i + 1], vms[i], vms[i + 1])
-                      for i in range(t - 1)])
-    Ks = np.stack([K] * t)
-    start = np.tile(np.eye(4), (1, t, 1, 1))
-    logs = []
-    est, rms = chained_joint_poses(means, quats, scales, opac, labels, start, np.ones((1, t - 1), bool), vms, Ks,
-                                   flows, W, H, log=logs.append)
-    assert any("-> revolute" in m for m in logs), logs
-    assert rms[0] < 0.3, rms
-    np.testing.assert_allclose(est[0, :, :3, :3], true[:, :3, :3], atol=0.02)
-    np.testing.assert_allclose(est[0, :, :3, 3], true[:, :3, 3], atol=0.02)
-    # the last pair rests (the flow there is the camera's alone): the last pose repeats the one before
-    flows_r = flows.copy()
-    flows_r[-1] = _rendered_flow(means, quats, scales, opac, labels, true[-2], true[-2], vms[-2], vms[-1])
-    moving = np.array([[True] * (t - 2) + [False]])
-    est_r, _ = chained_joint_poses(means, quats, scales, opac, labels, start, moving, vms, Ks, flows_r, W, H,
-                                   log=lambda m: None)
-    np.testing.assert_allclose(est_r[0, -1], est_r[0, -2])
-    np.testing.assert_allclose(est_r[0, -2, :3, :3], true[-2, :3, :3], atol=0.02)
-    # no moving pair: the poses come back unchanged, with no fit (NaN RMS)
-    still, rms_s = chained_joint_poses(means, quats, scales, opac, labels, start, np.zeros((1, t - 1), bool), vms,
-                                       Ks, flows, W, H, log=lambda m: None)
-    np.testing.assert_array_equal(still, start)
-    assert np.isnan(rms_s[0])

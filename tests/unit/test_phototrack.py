@@ -1,4 +1,4 @@
-"""Photometric tracking (`fgjax.pipeline.phototrack`): blur against OpenCV, pose updates, poses recovered from
+"""Photometric tracking (`fgjax.articulate.phototrack`): blur against OpenCV, pose updates, poses recovered from
 rendered images, and the articulation fitted to per-frame poses."""
 
 from __future__ import annotations
@@ -10,16 +10,15 @@ import pytest
 from test_track import H, K, W, _hinge_scene, _pose
 
 from fgjax import geometry
-from fgjax.gaussians import Gaussians
-from fgjax.pipeline.phototrack import (
+from fgjax.articulate.phototrack import (
     blur,
     blur_kernel,
     blur_with,
     converged_joints,
     hinge_offset,
     is_far_hinge,
-    largest_turn_deg,
     joint_poses,
+    largest_turn_deg,
     mixed_copies,
     pose_delta,
     rects_meeting,
@@ -29,7 +28,8 @@ from fgjax.pipeline.phototrack import (
     tile_region,
     track_photometric,
 )
-from fgjax.pipeline.track import transform_gaussians
+from fgjax.gaussians import Gaussians
+from fgjax.models.posed import transform_gaussians
 
 
 @pytest.mark.parametrize("sigma", [0.7, 2.0, 4.0])
@@ -77,7 +77,7 @@ def _coloured_hinge(t: int, step: float):
 
 
 def _images(g, labels, vms, poses, k=K, width=W, height=H):
-    from fgjax.pipeline.stage1 import render_params
+    from fgjax.models.model import render_params
 
     out = []
     for i in range(len(vms)):
@@ -94,7 +94,7 @@ def test_track_photometric_recovers_a_turning_part_from_its_images_and_joint_pos
     (each start extrapolated from the last two poses), the fitted poses follow the turn; the articulation
     fitted to them is revolute about the hinge and as close to the truth. (Whether it is closer than the
     per-frame poses is not stable on this toy: perturbing the images by 1e-6 moves the per-frame errors
-    by up to 50% and flips that order, measured in session 12; so the bound is absolute.) A part that
+    by up to 50% and flips that order; so the bound is absolute.) A part that
     rests (no moving pair) keeps the identity."""
     t = 6
     g, labels, vms, true = _coloured_hinge(t, 0.12)
@@ -124,7 +124,7 @@ def test_track_photometric_recovers_a_turning_part_from_its_images_and_joint_pos
     assert kinds == ["revolute"] and costs[0] < 1.0, (logs, costs)
     assert not any("warning" in m for m in logs), logs
     # per-frame poses that no one joint explains (each frame turned by 2 rad about its own random axis and shifted
-    # by 0.5, as a lost tracking gives: session 20) cost more than 4 px^2 (9.0) and are warned of
+    # by 0.5, as a lost tracking gives) cost more than 4 px^2 (9.0) and are warned of
     rng = np.random.default_rng(0)
     axes = rng.normal(size=(t, 3))
     rot = np.asarray(geometry.so3_exp(jnp.asarray(2.0 * axes / np.linalg.norm(axes, axis=1, keepdims=True))))
@@ -171,7 +171,7 @@ def test_largest_turn_and_the_far_hinge_rule():
 def test_joint_poses_warns_of_a_hinge_far_off_its_part(far):
     """Poses that turn a box 0.06 rad a frame about a vertical line: through its edge (0.8 radii from its
     centre, a door) they are fitted as a hinge there without a warning; about a line 4 radii away (a turn that
-    mostly shifts the part, as the synthetic lid's failed tracking gives: session 38) also as a hinge, which is
+    mostly shifts the part, as the synthetic lid's failed tracking gives) also as a hinge, which is
     then warned of."""
     t = 6
     means, _, _, _, labels, vms, _ = _hinge_scene(t, 0.0)
@@ -198,17 +198,17 @@ def test_joint_poses_warns_of_a_hinge_far_off_its_part(far):
 
 
 def test_joint_poses_on_the_default_scenes_tracked_drawer_and_door():
-    """The per-frame poses the photometric tracker gave the default scene's drawer and door in session 17's
-    full demo (tests/data/SOURCE.txt). The door turns 70 degrees in 4 of 60 frames: fitted as a hinge about
-    the vertical, and the drawer as a slide. Under the rule before session 18 (inlier RMS per inlier fraction)
-    the door's two fits were within 5% of each other and the door became a slide: a slide's large residuals
-    in those 4 frames count as outliers, which that RMS leaves out. The robust cost keeps them. Both fit with
+    """The per-frame poses the photometric tracker gave the default scene's drawer and door in a full demo
+    (tests/data/SOURCE.txt). The door turns 70 degrees in 4 of 60 frames: fitted as a hinge about the vertical,
+    and the drawer as a slide. An inlier RMS per inlier fraction would put the door's two fits within 5% of each
+    other and make the door a slide: a slide's large residuals in those 4 frames count as outliers, which that
+    RMS leaves out. The robust cost keeps them. Both fit with
     costs under 4 px^2, so no warning."""
     from pathlib import Path
 
-    from fgjax.pipeline.track import fit_joint
+    from fgjax.articulate.track import fit_joint
 
-    z = np.load(Path(__file__).parent / "data" / "tracked_drawer_and_door.npz")
+    z = np.load(Path(__file__).resolve().parents[1] / "data" / "tracked_drawer_and_door.npz")
     poses, vms, Ks = (z[k].astype(np.float64) for k in ("poses", "viewmats", "Ks"))
     pts = [z["pts0"].astype(np.float64), z["pts1"].astype(np.float64)]
     logs = []
@@ -400,8 +400,8 @@ def test_track_photometric_drawing_only_the_gaussians_near_the_moving_parts_give
     """A frame's steps draw the changing Gaussians and only the others whose rectangles meet the tiles they
     reach (`subset_margin`): the same poses and memberships as drawing every Gaussian, with fewer drawn. The
     check is sensitive: leaving out the static Gaussians in front of and behind the part (`rects_meeting`
-    always false) moved the poses by more than 1e-3 (session 17; that run is not repeated here, for time)."""
-    from fgjax.pipeline import phototrack
+    always false) moved the poses by more than 1e-3 (not repeated here, for time)."""
+    from fgjax.articulate import phototrack
 
     t = 3
     g, labels, vms, hinge = _coloured_hinge(t, 0.12)

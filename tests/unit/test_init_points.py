@@ -1,4 +1,4 @@
-"""Flow-triangulated initial points (fgjax.pipeline.init_points) against exact geometry and synthetic depth."""
+"""Flow-triangulated initial points (`fgjax.method.init_points`) against exact geometry and synthetic depth."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import look_at
 
-from fgjax.pipeline.init_points import flow_point_cloud, pixel_rays, triangulate_midpoint
+from fgjax.method.init_points import flow_point_cloud, pixel_rays, triangulate_midpoint
 
 
 def _proj(vm, K, p):
@@ -38,7 +38,8 @@ def test_triangulation_recovers_points_exactly():
 
 @pytest.fixture(scope="module")
 def synth_scene(tmp_path_factory):
-    from fgjax.data import synth
+    from conftest import synth
+
     from fgjax.data.loaders import load_scene
 
     d = tmp_path_factory.mktemp("initpts") / "scene"
@@ -90,11 +91,10 @@ def test_flow_point_cloud_degenerate_inputs(synth_scene):
 def test_ghost_filter_pairs_each_depth_map_with_its_own_camera(synth_scene, monkeypatch):
     """A pair with no consistent match still counts as a (empty) reference: the free-space test must get
     each reference's own depth map, never a neighbour pair's map under the wrong camera."""
-    import fgjax.data.opticalflow as of
-    import fgjax.pipeline.init_points as ip
+    import fgjax.method.init_points as ip
 
     scene, _ = synth_scene
-    orig_mask, calls, seen = of.forward_backward_mask, [0], []
+    orig_mask, calls, seen = ip.forward_backward_mask, [0], []
 
     def first_pair_empty(a, b, **kw):
         calls[0] += 1
@@ -107,7 +107,7 @@ def test_ghost_filter_pairs_each_depth_map_with_its_own_camera(synth_scene, monk
         seen.append((depth_maps, viewmats))
         return orig_fsv(points, depth_maps, viewmats, Ks, **kw)
 
-    monkeypatch.setattr(of, "forward_backward_mask", first_pair_empty)
+    monkeypatch.setattr(ip, "forward_backward_mask", first_pair_empty)
     monkeypatch.setattr(ip, "free_space_violations", recording)
     pc = flow_point_cloud(scene, gap=2, stride=1, log=lambda m: None)
     first = pc["pairs"][0][0]

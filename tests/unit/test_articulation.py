@@ -1,9 +1,10 @@
-"""The articulation search (`fgjax.pipeline.articulation`): its hypotheses, joints read back from poses, and the
+"""The articulation search (`fgjax.articulate.articulation`): its hypotheses, joints read back from poses, and the
 search recovering a hinge from rendered images where the given joint is wrong, never leaving better poses."""
 
 from __future__ import annotations
 
 import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,8 +14,7 @@ from test_phototrack import _coloured_hinge, _images
 from test_track import K
 
 from fgjax import geometry
-from fgjax.gaussians import Gaussians
-from fgjax.pipeline.articulation import (
+from fgjax.articulate.articulation import (
     LEVEL_AMBIGUITY,
     LEVEL_TILT_DEG,
     articulated_pose,
@@ -28,6 +28,7 @@ from fgjax.pipeline.articulation import (
     search_articulations,
     slide_from_poses,
 )
+from fgjax.gaussians import Gaussians
 
 
 def _box(n=400, seed=0):

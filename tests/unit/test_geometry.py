@@ -284,3 +284,14 @@ def test_jit_vmap():
     w = _rand_axis(jr.key(14), (14,)) * ANGLES[:, None]
     r = exp_j(w)
     np.testing.assert_allclose(jax.jit(jax.vmap(g.so3_log))(r), log_j(r), atol=1e-15)
+
+
+def test_the_rasterizers_quaternion_matrix_agrees_with_geometrys():
+    """`fgjax.render.project.quat_to_rotmat` (normalise first, as gsplat) and `fgjax.geometry.quat_to_rotmat` (closed
+    form) are two forms of one map: equal to float64 rounding for any norm, the identity for a zero quaternion."""
+    from fgjax.render.project import quat_to_rotmat as raster_form
+
+    q = np.random.default_rng(0).normal(size=(64, 4)) * np.random.default_rng(1).uniform(0.01, 10.0, (64, 1))
+    q = np.concatenate([q, np.zeros((1, 4))])
+    np.testing.assert_allclose(np.asarray(raster_form(jnp.asarray(q))), np.asarray(g.quat_to_rotmat(q)),
+                               rtol=0, atol=1e-12)

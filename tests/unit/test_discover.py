@@ -1,4 +1,4 @@
-"""Discovery of dynamic Gaussians (fgjax.pipeline.discover) on a synthetic scene with ground truth.
+"""Discovery of dynamic Gaussians (`fgjax.method.discover`) on a synthetic scene with ground truth.
 
 One small scene (64 x 48, 12 frames, a door, a drawer and a lid, each opening and closing in its own
 time window) is rendered once per module. Ground truth: per-Gaussian labels (0 = static, k = object
@@ -25,11 +25,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import synth
 from sklearn.metrics import adjusted_rand_score
 
 from fgjax import cluster
-from fgjax.data import synth
-from fgjax.pipeline import discover as D
+from fgjax.method import discover as D
 
 
 @pytest.fixture(scope="module")
@@ -173,76 +173,6 @@ def test_residual_and_binarize():
         D.residual_flow(np.zeros((4, 4, 2)), np.zeros((4, 5, 2)))
     with pytest.raises(ValueError, match="threshold_px"):
         D.binarize(r, "median")  # type: ignore[arg-type]
-
-
-def _square_scene():
-    """A 48 x 64 frame: a red part (16 x 20 px) on a textured ramp, and a mask that spills 2 px past the part."""
-    import cv2
-
-    h, w = 48, 64
-    yy, xx = np.mgrid[:h, :w]
-    img = np.stack([0.2 + 0.3 * xx / w, 0.3 + 0.05 * (((xx // 6) + (yy // 6)) % 2), 0.25 + 0.2 * yy / h], -1)
-    part = (yy >= 16) & (yy < 32) & (xx >= 24) & (xx < 44)
-    img[part] = [0.85, 0.2, 0.1]
-    spill = cv2.dilate(part.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-    return img, part, spill
-
-
-def test_guide_masks_snaps_a_spilled_mask_to_the_part_edge():
-    """The guided filter removes a 2 px spill past a part whose outline is an image edge and keeps the part; a box
-    filter of the same window (the same filter without the guide) keeps most of the spill."""
-    import cv2
-
-    img, part, spill = _square_scene()
-    g = D.guide_masks(spill, img, 6, 0.01)
-    assert g.dtype == bool and g.shape == part.shape
-    ring = spill & ~part
-    assert np.sum(g & part) == part.sum()  # measured: every part pixel kept
-    assert np.sum(g & ring) <= 0.05 * ring.sum()  # measured: none of the 160 spilled pixels left
-    box = cv2.blur(spill.astype(np.float32), (13, 13)) > 0.5
-    assert np.sum(box & ring) >= 0.5 * ring.sum()  # the guide is what removes it
-    # a stack of frames is filtered frame by frame; radius 0 is the identity
-    two = D.guide_masks(np.stack([spill, part]), np.stack([img, img]), 6, 0.01)
-    np.testing.assert_array_equal(two[0], g)
-    np.testing.assert_array_equal(D.guide_masks(spill, img, 0), spill)
-    # an empty mask stays empty, and non-finite pixels of the guide do not spread
-    bad = img.copy()
-    bad[0, 0] = np.nan
-    assert not D.guide_masks(np.zeros_like(spill), bad, 6).any()
-    for kw, msg in (({"radius": -1}, "radius"), ({"radius": 1.5}, "radius"), ({"eps": 0.0}, "eps"),
-                    ({"eps": float("nan")}, "eps")):
-        args = {"radius": 4, "eps": 0.01, **kw}
-        with pytest.raises(ValueError, match=msg):
-            D.guide_masks(spill, img, args["radius"], args["eps"])
-    with pytest.raises(ValueError, match="images"):
-        D.guide_masks(spill, img[:, :-1], 4)
-
-
-def test_guided_masks_on_real_flow_gain_precision_at_the_same_recall(scene, real_flow):
-    """On the scene's real optical flow (DIS + DeepFlow at 64 x 48) the moving-pixel masks spill onto static
-    surfaces; snapped to the frames' edges (radius 4) they hold a larger share of pixels of moving objects at about
-    the same recall. Measured: precision 0.328 -> 0.483, recall 0.435 -> 0.428 (the gt moving-object pixels)."""
-    r, f = scene["r"], scene["f"]
-    flows, cam_flow, valid = real_flow
-    raw = D.binarize(D.residual_flow(flows, cam_flow), valid=valid, min_px=1.0)
-    ids = r.object_id[:-1]
-    truth = np.zeros_like(raw)
-    for j, k in zip(*np.nonzero(f["moving"])):
-        truth[j] |= ids[j] == k + 1
-
-    def pr(m):
-        return np.sum(m & truth) / max(m.sum(), 1), np.sum(m & truth) / truth.sum()
-
-    p0, r0 = pr(raw)
-    p1, r1 = pr(D.guide_masks(raw, r.rgb[:-1], 4, 0.01))
-    print(f"precision {p0:.3f} -> {p1:.3f}, recall {r0:.3f} -> {r1:.3f}")
-    assert p1 >= p0 + 0.1, (p0, p1)
-    assert r1 >= r0 - 0.02, (r0, r1)
-    # wired into discover: the guided masks are the ones it back-projects
-    res = _run(scene, flows, cam_flow, valid, min_px=1.0, images=r.rgb[:-1], guide_radius=4)
-    np.testing.assert_array_equal(res.masks, D.guide_masks(raw, r.rgb[:-1], 4, 0.01))
-    with pytest.raises(ValueError, match="images"):
-        _run(scene, flows, cam_flow, valid, guide_radius=4)
 
 
 def test_accumulate_scores_contract(scene):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import pathlib
 import subprocess
 import sys
 import textwrap
@@ -17,11 +18,13 @@ from conftest import look_at
 from fgjax import config as C
 from fgjax.data.scene import Scene
 from fgjax.gaussians import init_random
-from fgjax.pipeline import stage1
+from fgjax.method import stage1
+from fgjax.models.model import refined_viewmats
 from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import densify_apply, densify_init
+from fgjax.train.optim import make_optimizer
 
-QUICK = str(stage1.Path(__file__).resolve().parents[1] / "experiments" / "quick.toml")
+QUICK = str(pathlib.Path(__file__).resolve().parents[2] / "experiments" / "quick.toml")
 
 
 def _tiny_scene(dynamic: bool, frames: int = 6, w: int = 32, h: int = 24) -> Scene:
@@ -147,17 +150,21 @@ def test_config_overrides_and_errors(tmp_path):
         C.apply_overrides(cfg, ["train.steps=many"])
     with pytest.raises(C.ConfigError, match="densify.enabled"):
         C.apply_overrides(cfg, ["densify.enabled=maybe"])
-    C.load_config(str(stage1.Path(QUICK).parent / "default.toml"))
+    C.load_config(str(pathlib.Path(QUICK).parent / "articulated.toml"))
+    C.load_config(str(pathlib.Path(QUICK).parent / "paper.toml"))
 
 
 def test_cli_train_and_render(tmp_path):
-    from fgjax.data.synth import SynthConfig, generate
-    from fgjax.pipeline import render
+    from conftest import synth
+
+    from fgjax.apps import render, train
+
+    SynthConfig, generate = synth.SynthConfig, synth.generate
 
     data = tmp_path / "data"
     generate(SynthConfig(objects=("drawer",), width=32, height=24, frames=6, test_views=2, test_states=1), data)
     run = tmp_path / "run"
-    rc = stage1.main(["--data", str(data), "--out", str(run), "--config", QUICK])
+    rc = train.main(["--data", str(data), "--out", str(run), "--config", QUICK])
     assert rc == 0
     m = json.loads((run / "metrics.json").read_text())
     assert m["num_views"] == 2 and np.isfinite(m["psnr"]) and 0 < m["ssim"] <= 1
@@ -167,16 +174,16 @@ def test_cli_train_and_render(tmp_path):
     out = tmp_path / "renders"
     assert render.main(["--run", str(run), "--cameras", str(data / "transforms_test.json"), "--out", str(out)]) == 0
     assert len(list(out.glob("*.png"))) == 3
-    assert stage1.main(["--data", str(data), "--out", str(run), "--set", "train.nope=1"]) == 2
+    assert train.main(["--data", str(data), "--out", str(run), "--set", "train.nope=1"]) == 2
 
 
 _TWO_DEVICES = textwrap.dedent(
     """
     import json, sys
     import jax
-    sys.path.insert(0, {tests!r})
+    sys.path[:0] = [{tests!r}, {root!r}]
     from test_stage1 import _tiny_scene, _cfg
-    from fgjax.pipeline import stage1
+    from fgjax.method import stage1
     assert len(jax.devices()) == 2, jax.devices()
     cfg = _cfg("train.batch_size=2", "densify.enabled=false", "train.warmup_steps=0", "static.force=dynamic")
     scene = _tiny_scene(True)
@@ -194,7 +201,8 @@ def test_data_parallel_two_devices_matches_one():
     env = dict(os.environ)
     env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
     env["JAX_PLATFORMS"] = "cpu"
-    code = _TWO_DEVICES.format(tests=str(stage1.Path(__file__).parent))
+    here = pathlib.Path(__file__).resolve()
+    code = _TWO_DEVICES.format(tests=str(here.parent), root=str(here.parents[1]))
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     res = json.loads(out.stdout.strip().splitlines()[-1])
@@ -288,10 +296,9 @@ def test_pose_refinement_off_by_default_and_moves_noisy_poses_towards_truth():
     ospec = OptimSpec(steps=60, lr_means=tiny, lr_means_final=tiny, lr_deform=tiny, lr_deform_final=tiny,
                       lr_opacity=tiny, lr_scales=tiny, lr_quats=tiny, lr_sh=tiny, lr_pose=3e-3, lr_pose_final=1e-3)
     ss = stage1.StepSpec(None, 1, scene.width, scene.height, 16384, 8, 0.0, 0.0, 0.05, True)
-    step = stage1._make_step(ss, ospec, 4, (1.0, 1.0, 1.0))
+    step = stage1.make_step(ss, ospec, 4, (1.0, 1.0, 1.0))
     params = {"gaussians": g, "deform": state.params["deform"], "pose": jnp.zeros((4, 6), jnp.float32)}
     params = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), params)
-    from fgjax.train.optim import make_optimizer
 
     opt_state = make_optimizer(ospec, 4).init(params)
     ds = densify_init(alive)
@@ -335,9 +342,9 @@ def test_cameras_looped_or_vmapped_give_the_same_step():
     outs = []
     for vm in (False, True):
         ss = stage1.StepSpec(spec, 1, scene.width, scene.height, 16384, 8, 0.2, 0.0, 0.05, False, vmap_cameras=vm)
-        step = stage1._make_step(ss, ospec, 4, (0.0, 0.0, 0.0))
+        step = stage1.make_step(ss, ospec, 4, (0.0, 0.0, 0.0))
         copy = lambda x: jax.tree_util.tree_map(lambda a: jnp.array(a, copy=True), x)
-        opt_state = stage1.make_optimizer(ospec, 4).init(state.params)
+        opt_state = make_optimizer(ospec, 4).init(state.params)
         outs.append(step(copy(state.params), opt_state, copy(state.densify), *args))
     (p0, _, d0, l0, m0, b0), (p1, _, d1, l1, m1, b1) = outs
     assert not bool(b0) and not bool(b1) and np.asarray(m0).shape == (batch,)
@@ -352,14 +359,14 @@ def test_coarse_to_fine_and_no_recompilation_as_the_count_changes(monkeypatch):
     """The first `coarse_to_fine` steps run a half-resolution step; with a fixed tile capacity each step
     function compiles exactly once although densification changes the number of live Gaussians."""
     made = []
-    orig = stage1._make_step
+    orig = stage1.make_step
 
     def recording(ss, *a):
         fn = orig(ss, *a)
         made.append((ss, fn))
         return fn
 
-    monkeypatch.setattr(stage1, "_make_step", recording)
+    monkeypatch.setattr(stage1, "make_step", recording)
     scene = _tiny_scene(True)
     logs = []
     cfg = _cfg("train.steps=24", "train.coarse_to_fine=6", "train.warmup_steps=4", "densify.start=2",
@@ -423,16 +430,16 @@ def test_time_curriculum_window_opens_from_the_earliest_frames():
 
 def test_refined_viewmats_apply_the_learned_pose_deltas():
     vms = np.stack([look_at(np.array([2.0, -1.0, 0.5])), look_at(np.array([0.0, -2.0, 0.3]))])
-    np.testing.assert_array_equal(stage1.refined_viewmats({"gaussians": None}, vms), vms)  # no refinement
+    np.testing.assert_array_equal(refined_viewmats({"gaussians": None}, vms), vms)  # no refinement
     deltas = np.zeros((2, 6))
     deltas[1, 3:] = [0.01, -0.02, 0.03]  # twist [omega, v]: a pure translation of camera 1
-    out = stage1.refined_viewmats({"pose": jnp.asarray(deltas)}, vms)
+    out = refined_viewmats({"pose": jnp.asarray(deltas)}, vms)
     np.testing.assert_allclose(out[0], vms[0], atol=1e-12)
     shift = np.eye(4)
     shift[:3, 3] = deltas[1, 3:]
     np.testing.assert_allclose(out[1], shift @ vms[1], atol=1e-12)
     with pytest.raises(ValueError, match="refined 2 camera poses but the scene has 1"):
-        stage1.refined_viewmats({"pose": jnp.asarray(deltas)}, vms[:1])
+        refined_viewmats({"pose": jnp.asarray(deltas)}, vms[:1])
 
 
 def test_error_sampling_draws_the_worst_frames_more_often():
@@ -475,7 +482,7 @@ def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
     """``pose.bundle``: without ``pose.enabled`` a ConfigError; with it, the bundle adjustment's corrections
     (stubbed here; `tests/test_poses.py` tests the solver) become the initial pose deltas and the initial
     Gaussians are placed with the corrected cameras."""
-    from fgjax.pipeline import poses
+    from fgjax.method import poses
 
     scene = _tiny_scene(False, frames=4)
     with pytest.raises(C.ConfigError, match="pose.bundle"):
@@ -490,7 +497,7 @@ def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
         vm = np.asarray(se3_exp(jnp.asarray(deltas, jnp.float32)), np.float64) @ viewmats
         return poses.BundleResult(vm, deltas, np.zeros(0), 1.0, 0.1, 1.0, 3, 0.0)
 
-    monkeypatch.setattr(poses, "bundle_adjust", fake)
+    monkeypatch.setattr(stage1, "bundle_adjust", fake)
     placed = {}
     real_init = stage1.init_gaussians
 
@@ -504,7 +511,7 @@ def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
     state, _, _ = stage1.initial_state(cfg, scene)
     np.testing.assert_allclose(np.asarray(state.params["pose"]), deltas, atol=1e-7)
     assert seen["cauchy_px"] == 0.5 and seen["flows"] == (4, scene.height, scene.width, 2)
-    np.testing.assert_allclose(placed["viewmats"], stage1.refined_viewmats(state.params, scene.viewmats), atol=1e-5)
+    np.testing.assert_allclose(placed["viewmats"], refined_viewmats(state.params, scene.viewmats), atol=1e-5)
     # the round-trip check's backward flows (frame i -> i - 1 on frame i's grid; none into the first frame)
     assert seen["fb_px"] == 0.1 and seen["backward"].shape == (4, scene.height, scene.width, 2)
     assert np.isnan(seen["backward"][0]).all() and np.isfinite(seen["backward"][1:]).all()

@@ -29,19 +29,24 @@ def test_demo_tiny(tmp_path, capsys):
 
 
 def test_demo_set_overrides(tmp_path, capsys):
-    """`fgjax demo --set`: stage2.* on top of the demo's own stage-2 settings, SECTION.KEY on top of stage 1's
-    TOML; a bad override exits 2 naming the key, before anything is written."""
-    from fgjax.pipeline import demo
+    """`fgjax demo --set`: stage2.*, articulate.* and SECTION.KEY on top of the demo's named configuration
+    (experiments/articulated.toml, or demo_quick.toml with --quick); a bad override exits 2 naming the key, before
+    anything is written."""
+    from fgjax.apps import demo
 
-    s1, s2 = demo.pipeline_configs(tmp_path / "fc", quick=False,
-                                   overrides=["stage2.track_rest=false", "train.steps=123", "stage2.eps=0.07"])
-    assert not s2.track_rest and s2.eps == 0.07 and s1.train.steps == 123
-    assert s2.track_photo == 40 and s2.track_rounds == 3 and s2.flow_cache == str(tmp_path / "fc")  # the demo's own
-    q1, q2 = demo.pipeline_configs(tmp_path / "fc", quick=True, overrides=[])
-    assert q2.track_photo == 0 and q1.train.video_frames == 0
-    for bad, msg in (("stage2.track_rest=maybe", "stage2.track_rest=maybe: expected true or false"),
-                     ("stage2.nope=1", "stage2.nope: unknown stage-2 option"),
-                     ("stage2.hinge_radius=-1", "hinge_radius must be"),
+    cfg = demo.pipeline_configs(tmp_path / "fc", quick=False,
+                                overrides=["articulate.track_rest=false", "train.steps=123", "stage2.eps=0.07"])
+    assert not cfg.articulate.track_rest and cfg.stage2.eps == 0.07 and cfg.train.steps == 123
+    # the demo's own settings (experiments/articulated.toml) and flow cache
+    assert cfg.stage2.variant == "articulated" and cfg.stage2.control_rigid
+    assert cfg.articulate.track_photo == 40 and cfg.articulate.track_rounds == 3
+    assert cfg.stage2.flow_cache == str(tmp_path / "fc")
+    quick = demo.pipeline_configs(tmp_path / "fc", quick=True, overrides=[])
+    assert quick.articulate.track_photo == 0 and quick.train.video_frames == 0
+    for bad, msg in (("articulate.track_rest=maybe", "articulate.track_rest' expects a bool"),
+                     ("stage2.nope=1", "unknown config key 'stage2.nope'"),
+                     ("stage2.track_rest=false", "unknown config key 'stage2.track_rest'"),  # moved to articulate
+                     ("articulate.hinge_radius=-1", "articulate.hinge_radius must be"),
                      ("train.stepz=3", "train.stepz")):
         out = tmp_path / "bad"
         assert cli.main(["demo", "--out", str(out), "--quick", "--set", bad]) == 2

@@ -20,6 +20,7 @@ import fgjax
 from fgjax import flow, geometry
 from fgjax.articulate import phototrack, track
 from fgjax.method import camera
+from fgjax.models import posed
 from fgjax.render.project import project_gaussians
 
 W, H = 32, 24
@@ -153,7 +154,7 @@ def test_tracking_transforms_at_full_precision():
     _check(lambda x: phototrack.pose_delta(x, jnp.ones((1, 3)), jnp.ones(1)), x)
     means, quats = _scene()[:2]
     poses = geometry.se3_exp(x)
-    _check(lambda m, q: track.transform_gaussians(m, q, jnp.zeros(len(m), jnp.int32), poses), means, quats)
+    _check(lambda m, q: posed.transform_gaussians(m, q, jnp.zeros(len(m), jnp.int32), poses), means, quats)
 
 
 def test_stage1_step_at_full_precision_but_the_fields_mlps():

@@ -1,0 +1,76 @@
+"""Stage-2 configuration: every field's type and range is checked, and the error names the field."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from fgjax.config import (
+    ArticulateConfig,
+    ConfigError,
+    Stage2Config,
+    load_config,
+    validate_articulate,
+    validate_stage2,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+SECTIONS = [("stage2", Stage2Config, validate_stage2), ("articulate", ArticulateConfig, validate_articulate)]
+
+
+def _wrong_type(value):
+    """A value of another type than ``value``'s that no field's type accepts."""
+    return [1, 2] if not isinstance(value, list) else "x"
+
+
+@pytest.mark.parametrize("section,cls,validate", SECTIONS)
+def test_every_field_rejects_a_value_of_the_wrong_type_naming_it(section, cls, validate):
+    validate(cls())  # the defaults are valid
+    for f in dataclasses.fields(cls):
+        bad = dataclasses.replace(cls(), **{f.name: _wrong_type(getattr(cls(), f.name))})
+        with pytest.raises(ConfigError, match=rf"^{section}\.{f.name} "):
+            validate(bad)
+
+
+@pytest.mark.parametrize("section,cls,validate", SECTIONS)
+def test_a_bool_is_not_a_number(section, cls, validate):
+    numeric = [f.name for f in dataclasses.fields(cls) if type(getattr(cls(), f.name)) in (int, float)]
+    assert numeric
+    for name in numeric:
+        with pytest.raises(ConfigError, match=rf"^{section}\.{name} "):
+            validate(dataclasses.replace(cls(), **{name: True}))
+
+
+@pytest.mark.parametrize("section,field,value", [
+    ("stage2", "variant", "other"), ("stage2", "eps", 0.0), ("stage2", "eps", -1.0), ("stage2", "min_samples", 0),
+    ("stage2", "threshold_px", "sometimes"), ("stage2", "threshold_px", -0.5), ("stage2", "lr", 0.0),
+    ("stage2", "distill_steps", -1), ("stage2", "camera_correction", "maybe"), ("stage2", "cluster_method", "kmeans"),
+    ("articulate", "track_rounds", 0), ("articulate", "hinge_up_deg", 90.0), ("articulate", "ghost_opacity", 1.0),
+    ("articulate", "isolated_factor", 0.5), ("articulate", "hinge_trial_edges", 5), ("articulate", "local_floor", 1.0),
+    ("articulate", "track_joints", "sometimes"), ("articulate", "refit_lr_scale", 0.0),
+    ("articulate", "merge_eps", float("nan")), ("articulate", "track_subset_margin", -2),
+])
+def test_out_of_range_values_are_refused_naming_the_field(section, field, value):
+    cls, validate = {"stage2": (Stage2Config, validate_stage2), "articulate": (ArticulateConfig, validate_articulate)}[
+        section]
+    with pytest.raises(ConfigError, match=rf"^{section}\.{field} "):
+        validate(dataclasses.replace(cls(), **{field: value}))
+
+
+def test_overrides_parse_numbers_and_otsu_and_are_validated():
+    cfg = load_config(None, ["stage2.threshold_px=1.5", "stage2.score_threshold=otsu", "articulate.track_rounds=2"])
+    assert cfg.stage2.threshold_px == 1.5 and cfg.stage2.score_threshold == "otsu"
+    assert cfg.articulate.track_rounds == 2
+    with pytest.raises(ConfigError, match=r"^articulate\.track_rounds "):
+        load_config(None, ["articulate.track_rounds=0"])
+    with pytest.raises(ConfigError, match="stage2.eps"):
+        load_config(None, ["stage2.eps=wide"])
+
+
+@pytest.mark.parametrize("name,variant", [("paper", "paper"), ("articulated", "articulated"),
+                                          ("demo_quick", "articulated"), ("quick", "paper")])
+def test_named_configurations_load_and_name_their_variant(name, variant):
+    cfg = load_config(REPO / "experiments" / f"{name}.toml")
+    assert cfg.stage2.variant == variant

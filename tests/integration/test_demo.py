@@ -19,12 +19,15 @@ def test_demo_tiny(tmp_path, capsys):
     video = out / "demo.mp4" if (out / "demo.mp4").exists() else out / "demo.gif"
     assert video.stat().st_size > 0 and str(video) in printed
     assert (out / "scene" / "transforms_train.json").is_file()
-    # re-running replaces the demo's own scene
-    assert cli.main(args) == 0
-    # but never a folder that is not a demo scene
+    # re-running refuses the folder, and with --overwrite replaces the demo's own
+    capsys.readouterr()
+    assert cli.main(args) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert cli.main([*args, "--overwrite"]) == 0
+    # but never a folder that is not a demo
     (tmp_path / "other" / "scene").mkdir(parents=True)
     (tmp_path / "other" / "scene" / "keep.txt").write_text("x")
-    assert cli.main(["demo", "--out", str(tmp_path / "other"), "--quick", "--synth-only"]) == 2
+    assert cli.main(["demo", "--out", str(tmp_path / "other"), "--quick", "--synth-only", "--overwrite"]) == 2
     assert (tmp_path / "other" / "scene" / "keep.txt").read_text() == "x"
 
 

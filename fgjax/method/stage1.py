@@ -38,6 +38,7 @@ from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
 from fgjax.method.init_points import first_view_colors, flow_point_cloud, random_points, scene_box
 from fgjax.method.poses import bundle_adjust
+from fgjax.method.static import detect_static
 from fgjax.models.deform import DeformSpec, deform_init
 from fgjax.models.model import deformed_gaussians, refined_viewmats, render_params, scene_extent
 from fgjax.provenance import PROVENANCE_NAME, read_provenance, scene_fingerprint, write_provenance
@@ -401,23 +402,6 @@ def load_run(run_dir: str | Path) -> tuple[Config, TrainState, DeformSpec, dict[
     return cfg, state, spec, meta
 
 
-def detect_static(params, alive, scene, cfg: Config, capacity: int) -> tuple[bool, float]:
-    """Static-scene test after the warm-up (no deformation yet): a static model of a dynamic scene leaves
-    localised residual blobs. Score = max over frames of the fraction of pixels with |error| > 0.15;
-    static when the score is below ``static.threshold``."""
-    bg = jnp.asarray(cfg.model.background, jnp.float32)
-    score = 0.0
-    idx = np.linspace(0, scene.num_frames - 1, min(scene.num_frames, 12)).round().astype(int)
-    for i in idx:
-        img, _, _, _ = render_params(params, alive, jnp.asarray(scene.viewmats[i], jnp.float32),
-                                     jnp.asarray(scene.Ks[i], jnp.float32), 0.0, spec=None, sh_degree=0,
-                                     width=scene.width, height=scene.height, background=bg, capacity=capacity)
-        err = np.abs(np.asarray(img) - scene.images[i]).max(-1)
-        thr = max(0.1, 4.0 * float(np.median(err)))  # relative: an unconverged model errs everywhere
-        score = max(score, float(np.mean(err > thr)))
-    return score < cfg.static.threshold, score
-
-
 def _check_train_config(cfg: Config) -> None:
     """Range checks of the stage-1 keys that would otherwise fail late or silently (ConfigError)."""
     t = cfg.train
@@ -555,7 +539,8 @@ def train_stage1(
         s = state.step
         if state.static is None and s >= t.warmup_steps:
             if cfg.static.detect:
-                state.static, score = detect_static(state.params, state.densify.alive, scene, cfg, state.capacity)
+                state.static, score = detect_static(state.params, state.densify.alive, scene, cfg, state.capacity,
+                                                     None if out is None else out / "flow_cache")
                 log(f"static-scene check after warm-up: score {score:.4f} (threshold {cfg.static.threshold}) -> "
                     + ("static: training without the deformation field" if state.static else "dynamic"))
             else:

@@ -519,3 +519,21 @@ def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
     assert seen["backward"] is None
     with pytest.raises(C.ConfigError, match="pose.bundle_fb_px"):
         stage1._check_train_config(_cfg("pose.enabled=true", "pose.bundle=true", "pose.bundle_fb_px=-1"))
+
+
+def test_a_scene_whose_flow_shows_moving_parts_is_not_called_static(tmp_path):
+    """A 64x48, 8-frame synthetic scene whose three parts are small on screen: after the warm-up the photometric test
+    alone scores it under the threshold (1.6% of the pixels), but the parts' optical flow departs from the camera
+    flow, so stage 1 keeps the deformation field."""
+    from conftest import synth
+
+    from fgjax.data.loaders import load_scene
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=8), tmp_path / "scene", overwrite=True,
+                   progress=None)
+    scene = load_scene(tmp_path / "scene", "train")
+    cfg = C.load_config(pathlib.Path(QUICK).parent / "demo_quick.toml", ["train.steps=101", "densify.enabled=false",
+                                                                         "train.video_frames=0"])
+    said = []
+    res = stage1.train_stage1(cfg, scene, None, progress=False, log=said.append)
+    assert res["static"] is False, said

@@ -16,10 +16,7 @@ import pytest  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_default_matmul_precision", "highest")
 
-try:  # the synthetic-scene generator is moving from fgjax.data.synth to the package fgjax.synth
-    from fgjax import synth  # noqa: E402, F401
-except ImportError:
-    from fgjax.data import synth  # noqa: E402, F401
+from fgjax import synth  # noqa: E402, F401  (re-exported for the tests: `from conftest import synth`)
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fgjax import synth
 from fgjax.articulate.pipeline import run_articulated
 from fgjax.config import Stage2Config, load_config
 from fgjax.data.loaders import load_scene
@@ -25,11 +26,6 @@ from fgjax.method.result import load_stage2
 from fgjax.method.stage1 import run as run_stage1
 from fgjax.method.stage2 import run_stage2
 from fgjax.viz import to_u8
-
-try:
-    from fgjax import synth
-except ImportError:  # pragma: no cover - the package's older place
-    from fgjax.data import synth
 
 pytestmark = pytest.mark.slow
 

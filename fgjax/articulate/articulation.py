@@ -34,6 +34,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Bool, Float, Int
 
 from fgjax import geometry
 from fgjax.articulate.phototrack import blur_kernel, blur_with
@@ -49,7 +50,7 @@ __all__ = ["articulation_hypotheses", "rect_hinges", "joint_from_poses", "slide_
 REVOLUTE, PRISMATIC = "revolute", "prismatic"
 
 
-def articulation_hypotheses(points) -> list[tuple[str, np.ndarray, np.ndarray]]:
+def articulation_hypotheses(points: Float[ArrayLike, "M 3"]) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """Candidate joints of a part from its reference points [M, 3] (M >= 3): a list of (kind, unit axis [3],
     pivot [3]). Principal axes e_a of the centred points, extents lo_a..hi_a their 5th and 95th percentiles
     along each; for each axis a, a hinge along e_a through each of the 4 edges of the box lo..hi in the other
@@ -74,7 +75,7 @@ def articulation_hypotheses(points) -> list[tuple[str, np.ndarray, np.ndarray]]:
     return out
 
 
-def rect_hinges(points, step_deg: float = 1.0) -> list[tuple[str, np.ndarray, np.ndarray]]:
+def rect_hinges(points: Float[ArrayLike, "M 3"], step_deg: float = 1.0) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """The four hinges along the edges of a flat part (a lid, a door, a flap): a list of (``"revolute"``, unit
     axis [3], pivot [3]) from its reference points [M, 3] (M >= 3).
 
@@ -134,7 +135,7 @@ def joint_from_poses(poses, kind: str):
     raise ValueError(f"joint_from_poses: kind must be {REVOLUTE!r} or {PRISMATIC!r}, got {kind!r}")
 
 
-def slide_from_poses(points, poses, *, snap: bool = False):
+def slide_from_poses(points: Float[ArrayLike, "M 3"], poses: Float[ArrayLike, "T 4 4"], *, snap: bool = False):
     """The slide nearest a part's trajectory: (unit axis [3], amounts [T]) from its reference points [M, 3] and
     poses [T, 4, 4], or None when no pose moves the points' centroid.
 
@@ -175,7 +176,7 @@ def articulated_pose(revolute, axis, pivot, amount):
     return geometry.make_pose(rot, t)
 
 
-def camera_up(viewmats) -> np.ndarray:
+def camera_up(viewmats: Float[ArrayLike, "T 4 4"]) -> Float[np.ndarray, "3"]:
     """[3] unit world "up" from world-to-camera ``viewmats`` [T, 4, 4] (OpenCV: x right, y down) held level: the
     direction most nearly orthogonal to every camera's right axis (the last right singular vector of their stack),
     signed towards the cameras' mean up (-y). Unlike the mean of the cameras' up axes, it does not tilt when the
@@ -189,7 +190,7 @@ LEVEL_TILT_DEG = 2.0  # `camera_tilt`: the largest RMS tilt for cameras taken as
 LEVEL_AMBIGUITY = 0.1  # `camera_tilt`: the largest ambiguity for a usable up (synthetic scenes 0.02-0.04)
 
 
-def camera_tilt(viewmats) -> tuple[float, float]:
+def camera_tilt(viewmats: Float[ArrayLike, "T 4 4"]) -> tuple[float, float]:
     """How well `camera_up` is determined by world-to-camera ``viewmats`` [T, 4, 4]: (tilt, ambiguity). The tilt is
     the RMS angle in degrees of the cameras' right axes out of the plane normal to that up (0 for cameras held level;
     roll and pose noise raise it). The ambiguity is the ratio of the smallest to the middle singular value of the
@@ -203,7 +204,8 @@ def camera_tilt(viewmats) -> tuple[float, float]:
     return tilt, float(s[2] / s[1]) if s[1] > 0 else float("inf")
 
 
-def hinge_made_vertical(points, poses, up, max_deg: float):
+def hinge_made_vertical(points: Float[ArrayLike, "M 3"], poses: Float[ArrayLike, "T 4 4"], up: Float[ArrayLike, "3"],
+                        max_deg: float):
     """A hinge within ``max_deg`` degrees of ``up`` [3] turned onto it: (poses [T, 4, 4], axis [3], degrees it was
     off), or None where ``poses`` [T, 4, 4] do not turn or their hinge (`joint_from_poses`) is farther off. The new
     hinge passes through the point of the old one nearest the part's centroid (reference points [M, 3]), and each
@@ -246,7 +248,9 @@ def displaced_frames(points, poses, tol: float) -> np.ndarray:
     return _largest_displacement(points, poses) > tol
 
 
-def search_articulations(gaussians, alive, labels, num_objects: int, images, viewmats, Ks, poses, *, kinds,
+def search_articulations(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels: Int[ArrayLike, " N"], num_objects: int,
+                         images: Float[ArrayLike, "T H W 3"], viewmats: Float[ArrayLike, "T 4 4"],
+                         Ks: Float[ArrayLike, "T 3 3"], poses: Float[ArrayLike, "K T 4 4"], *, kinds,
                          sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                          objects=None, sigma: float = 2.0, grid: int = 21, refine: int = 3,
                          max_turn_deg: float = 100.0, max_shift: float = 2.0, screen_frames: int = 4, keep: int = 2,

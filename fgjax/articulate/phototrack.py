@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jaxtyping import ArrayLike, Bool, Float, Int
 from sklearn.neighbors import NearestNeighbors
 
 from fgjax import geometry
@@ -244,7 +245,9 @@ def _spans_to_rest(poses: np.ndarray, spans, loss, *, extend: bool = False) -> t
     return poses, tried
 
 
-def settle_at_rest(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, poses, moving, *,
+def settle_at_rest(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels: Int[ArrayLike, " N"], num_objects: int,
+                   images: Float[ArrayLike, "T H W 3"], viewmats: Float[ArrayLike, "T 4 4"], Ks: Float[ArrayLike, "T 3 3"],
+                   poses: Float[ArrayLike, "K T 4 4"], moving: Bool[ArrayLike, "K T-1"], *,
                    sh_degree: int, background, capacity: int | None = None, tile_size: int = 8, sigma: float = 0.7,
                    log=print) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """Each object's still spans put back at rest where the images say so, judged with hard labels on a given scene.
@@ -313,7 +316,9 @@ def settle_at_rest(gaussians: Gaussians, alive, labels, num_objects: int, images
     return poses, settled
 
 
-def track_photometric(gaussians: Gaussians, alive, labels, num_objects: int, images, viewmats, Ks, *, moving=None,
+def track_photometric(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels: Int[ArrayLike, " N"], num_objects: int,
+                      images: Float[ArrayLike, "T H W 3"], viewmats: Float[ArrayLike, "T 4 4"],
+                      Ks: Float[ArrayLike, "T 3 3"], *, moving: Bool[ArrayLike, "K T-1"] | None = None,
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
                       radius: float = 0.1, translation_scale: float = 3.0, init_poses=None, only_moving: bool = True,
@@ -590,7 +595,7 @@ FAR_HINGE_RADII = 2.0
 FAR_HINGE_TURN_DEG = 5.0
 
 
-def largest_turn_deg(poses) -> float:
+def largest_turn_deg(poses: Float[ArrayLike, "*batch 4 4"]) -> float:
     """The largest rotation angle, in degrees, of the poses [T, 4, 4] (0 for none; `rotation_angle_deg`)."""
     P = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     return float(np.max(rotation_angle_deg(P[:, :3, :3]), initial=0.0))
@@ -603,7 +608,8 @@ def is_far_hinge(ratio: float, turn_deg: float, *, radii: float = FAR_HINGE_RADI
     return bool(np.isfinite(ratio) and ratio > radii and turn_deg >= turn)
 
 
-def hinge_offset(points, axis, pivot) -> tuple[float, float]:
+def hinge_offset(points: Float[ArrayLike, "M 3"], axis: Float[ArrayLike, "3"], pivot: Float[ArrayLike, "3"]
+                 ) -> tuple[float, float]:
     """How far a hinge lies from its part: (the distance of the axis line (unit ``axis`` [3] through ``pivot``
     [3]) from the centroid of ``points`` [M, 3], that distance over the 95th percentile of the points' distances
     from their centroid). A door or a lid turns about one of its own edges (a ratio up to about 1); a turn about a
@@ -617,7 +623,8 @@ def hinge_offset(points, axis, pivot) -> tuple[float, float]:
     return off, off / max(radius, 1e-12)
 
 
-def joint_poses(points, poses, viewmats, Ks, *, huber_px: float = 2.0, revolute_margin: float = 0.95,
+def joint_poses(points: list, poses: Float[ArrayLike, "K T 4 4"], viewmats: Float[ArrayLike, "T 4 4"],
+                Ks: Float[ArrayLike, "T 3 3"], *, huber_px: float = 2.0, revolute_margin: float = 0.95,
                 warn_cost: float = 4.0, warn_offset: float = FAR_HINGE_RADII,
                 warn_turn_deg: float = FAR_HINGE_TURN_DEG,
                 return_axes: bool = False, return_offsets: bool = False, log=print):

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
+from jaxtyping import ArrayLike, Bool, Float, Int
 
 from fgjax import geometry
 from fgjax.geometry import HIGHEST, full_precision
@@ -113,7 +114,9 @@ def _fit_joint_jit(x0, pts, target, weights, viewmats, K, centre, *, kind: str, 
     return x, rms, frac, cost
 
 
-def fit_joint(pts, target, weights, viewmats, K, kind: str, *, axes=None, huber_px: float = 1.0, irls: int = 2):
+def fit_joint(pts: Float[ArrayLike, "J M 3"], target: Float[ArrayLike, "J M 2"], weights: Float[ArrayLike, "J M"],
+              viewmats: Float[ArrayLike, "J 4 4"], K: Float[ArrayLike, "J 3 3"], kind: str, *, axes=None,
+              huber_px: float = 1.0, irls: int = 2):
     """One articulation explaining an object's flow over J frame pairs: the same axis (and pivot) or
     direction in every pair, one amount per pair.
 
@@ -184,8 +187,11 @@ def _joint_arrays(data: list, m: int, viewmats0, Ks0, viewmats1, Ks1):
     return pts, tgt, w, np.stack(viewmats1), np.stack(Ks1)
 
 
-def track_objects(means, quats, scales, opacities, labels, num_objects: int, viewmats, Ks, flows, width: int,
-                  height: int, *, moving=None, joints: str = "auto", joint_pixels: int = 256, joint_tolerance: float = 3.0,
+def track_objects(means: Float[ArrayLike, "*T N 3"], quats: Float[ArrayLike, "*T N 4"],
+                  scales: Float[ArrayLike, "*T N 3"], opacities: Float[ArrayLike, " N"], labels: Int[ArrayLike, " N"],
+                  num_objects: int, viewmats: Float[ArrayLike, "T 4 4"], Ks: Float[ArrayLike, "T 3 3"],
+                  flows: Float[ArrayLike, "T-1 H W 2"], width: int, height: int, *,
+                  moving: Bool[ArrayLike, "K T-1"] | None = None, joints: str = "auto", joint_pixels: int = 256, joint_tolerance: float = 3.0,
                   min_pixels: int = 30, dominance: float = 0.6, erode: int = 1, tile_size: int = 8,
                   log=print) -> np.ndarray:
     """Poses [K, T, 4, 4] of each object at each frame (T = len(viewmats), frames in time order; pose 0 = I).

@@ -239,3 +239,37 @@ def test_version_and_public_api(capsys):
                  "load_stage2", "render_controlled", "snap_vector", "flow", "geometry"):
         assert name in names
     assert callable(fgjax.run_articulated) and np.isfinite(float(fgjax.geometry.so3_exp(np.zeros(3))[0, 0]))
+
+
+def _edit_transforms(scene: Path, edit) -> Path:
+    p = scene / "transforms_train.json"
+    d = json.loads(p.read_text())
+    edit(d)
+    p.write_text(json.dumps(d))
+    return p
+
+
+@pytest.mark.parametrize("case,needle", [
+    ("missing transform_matrix", "transform_matrix"),
+    ("NaN pose", "transform_matrix"),
+    ("missing image", ".png"),
+    ("wrong image size", ".png"),
+])
+def test_bad_data_sets_name_the_file_and_field(made, tmp_path, capsys, case, needle):
+    scene = tmp_path / "scene"
+    shutil.copytree(made[0], scene)
+    if case == "missing transform_matrix":
+        _edit_transforms(scene, lambda d: d["frames"][2].pop("transform_matrix"))
+    elif case == "NaN pose":
+        _edit_transforms(scene, lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(3, float("nan")))
+    elif case == "missing image":
+        sorted((scene / "images").glob("*.png"))[3].unlink()
+    else:
+        import imageio.v3 as iio
+
+        img = sorted((scene / "images").glob("*.png"))[3]
+        iio.imwrite(img, np.zeros((10, 12, 3), np.uint8))
+    code, _, err = run_cli(capsys, "train", "--data", scene, "--out", tmp_path / "r", *QUICK)
+    assert code == 2, err
+    one_line_error(err, needle)
+    assert not (tmp_path / "r" / "checkpoint.npz").exists()

@@ -408,6 +408,9 @@ class Stage2Config:
     """Clusters smaller than this fraction of the dynamic set are dropped."""
     auto_eps: bool = False
     """Choose eps from the k-distance curve (`fgjax.cluster.auto_eps`)."""
+    control_encoding: str = "frequency"
+    """The control network's encoding E of the canonical centre X: "frequency" (γ, NeRF's) or "hashgrid" (a
+    multiresolution hash grid, `fgjax.models.control_net.HASH_LEVELS`...)."""
     hidden: int = 64
     """Control network width."""
     depth: int = 3
@@ -633,6 +636,8 @@ def validate_stage2(cfg: Stage2Config) -> None:
         raise bad("camera_correction", "'auto', 'on' or 'off'")
     if cfg.cluster_method not in ("dbscan", "hdbscan"):
         raise bad("cluster_method", "'dbscan' or 'hdbscan'")
+    if cfg.control_encoding not in ("frequency", "hashgrid"):
+        raise bad("control_encoding", "'frequency' or 'hashgrid'")
     for name in ("threshold_px", "score_threshold"):
         v = getattr(cfg, name)
         if v != "otsu" and not (isinstance(v, int | float) and not isinstance(v, str) and v >= 0):

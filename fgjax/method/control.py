@@ -36,7 +36,7 @@ __all__ = ["train_control"]
 
 def _control_hparams(cfg: Stage2Config, x_scale: float, v_scale: float) -> dict[str, Any]:
     """The control network's hyper-parameters (`fgjax.models.control_net.control_init`'s keywords)."""
-    return {"encoding": "frequency", "hidden": cfg.hidden, "depth": cfg.depth, "n_freqs_x": cfg.n_freqs_x,
+    return {"encoding": cfg.control_encoding, "hidden": cfg.hidden, "depth": cfg.depth, "n_freqs_x": cfg.n_freqs_x,
             "n_freqs_v": cfg.n_freqs_v, "x_scale": float(x_scale), "v_scale": float(v_scale)}
 
 

@@ -16,13 +16,20 @@ the trainable leaves and whose static fields fix the architecture); jit, vmap an
 
 from __future__ import annotations
 
-import importlib
 from typing import Literal
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from fgjax.models.encoding import (
+    frequency_encoding,
+    hash_grid_dim,
+    hash_grid_encode,
+    hash_grid_init,
+    hash_grid_resolutions,
+)
 
 __all__ = [
     "ControlNet",
@@ -33,17 +40,6 @@ __all__ = [
 ]
 
 OUT_DIM = 10  # dX (3), dq (4, added to wxyz), ds (3, added to the log-scales)
-
-
-def frequency_encoding(x: Float[ArrayLike, "*batch D"], n_freqs: int) -> Float[Array, "*batch E"]:
-    """γ(x) = [x, sin(2^l π x), cos(2^l π x) for l < n_freqs]; E = D (1 + 2 n_freqs)."""
-    x = jnp.asarray(x)
-    if n_freqs == 0:
-        return x
-    freqs = (2.0 ** jnp.arange(n_freqs, dtype=x.dtype)) * jnp.pi  # [L]
-    xb = x[..., None, :] * freqs[:, None]  # [..., L, D]
-    enc = jnp.concatenate([jnp.sin(xb), jnp.cos(xb)], axis=-1)  # [..., L, 2D]
-    return jnp.concatenate([x, enc.reshape(*x.shape[:-1], -1)], axis=-1)
 
 
 class ControlNet(eqx.Module):
@@ -76,27 +72,15 @@ class ControlNet(eqx.Module):
             raise ValueError(f"ControlNet.encoding must be 'frequency' or 'hashgrid', got {self.encoding!r}")
 
 
-def _hashgrid_module():
-    """fgjax.models.encoding with `hashgrid_init(key, *, dim) -> params` and
-    `hashgrid_apply(params, x [N, 3] in [0, 1]) -> [N, F]`; a clear error when it is not there."""
-    try:
-        mod = importlib.import_module("fgjax.models.encoding")
-    except ImportError as e:
-        raise NotImplementedError(
-            "control_init(encoding='hashgrid'): fgjax.models.encoding is not available yet "
-            f"({e}); use encoding='frequency'") from e
-    missing = [n for n in ("hashgrid_init", "hashgrid_apply") if not hasattr(mod, n)]
-    if missing:
-        raise NotImplementedError(
-            f"control_init(encoding='hashgrid'): fgjax.models.encoding has no {', '.join(missing)}; "
-            "use encoding='frequency'")
-    return mod
+# The control network's hash grid over the canonical centre (Instant-NGP's multiresolution encoding,
+# `fgjax.models.encoding`): levels, table size, features per level, coarsest and finest resolution.
+HASH_LEVELS, HASH_LOG2_TABLE, HASH_FEATURES, HASH_BASE_RES, HASH_MAX_RES = 8, 14, 2, 8, 256
+HASH_RESOLUTIONS = tuple(hash_grid_resolutions(HASH_LEVELS, HASH_BASE_RES, HASH_MAX_RES))
 
 
 def _encode_x(params: ControlNet, x: Array) -> Array:
-    if params.encoding == "hashgrid":
-        mod = _hashgrid_module()
-        return mod.hashgrid_apply(params.grid, jnp.clip(x / params.x_scale * 0.5 + 0.5, 0.0, 1.0))
+    if params.encoding == "hashgrid":  # X / x_scale in [-1, 1] mapped to the grid's [0, 1]
+        return hash_grid_encode(params.grid, jnp.clip(x / params.x_scale * 0.5 + 0.5, 0.0, 1.0), HASH_RESOLUTIONS)
     return frequency_encoding(x / params.x_scale, params.n_freqs_x)
 
 
@@ -119,8 +103,8 @@ def control_init(
 
     Args:
         key: PRNG key.
-        encoding: ``"frequency"`` (in this file) or ``"hashgrid"`` (fgjax.models.encoding; raises
-            NotImplementedError while that module lacks ``hashgrid_init``/``hashgrid_apply``).
+        encoding: ``"frequency"`` (γ of X, in this file) or ``"hashgrid"`` (the multiresolution hash grid of
+            `fgjax.models.encoding` over X, ``HASH_*`` above).
         hidden: width of the hidden layers.
         depth: number of hidden layers (>= 1).
         n_freqs_x, n_freqs_v: frequency bands of γ for X and v_c.
@@ -140,9 +124,8 @@ def control_init(
     k_grid, key = jax.random.split(key)
     grid = None
     if encoding == "hashgrid":
-        mod = _hashgrid_module()
-        grid = mod.hashgrid_init(k_grid, dim=3)
-        dx = int(mod.hashgrid_apply(grid, jnp.zeros((1, 3), dtype)).shape[-1])
+        grid = hash_grid_init(k_grid, HASH_LEVELS, HASH_LOG2_TABLE, HASH_FEATURES, dtype)
+        dx = hash_grid_dim(HASH_LEVELS, HASH_FEATURES)
     elif encoding == "frequency":
         dx = 3 * (1 + 2 * n_freqs_x)
     else:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 
+import jax
 import numpy as np
 import pytest
 
@@ -1409,18 +1410,24 @@ def test_label_passes_apply_the_enabled_passes_in_order_and_refit_only_after_a_c
     assert not np.array_equal(np.asarray(g.sh), np.asarray(ref.sh))  # re-fitted under the filled labels
 
 
-def test_paper_chain_writes_a_stage2_result_that_loads_back(tiny, tmp_path):
+@pytest.mark.parametrize("encoding", ["frequency", "hashgrid"])
+def test_paper_chain_writes_a_stage2_result_that_loads_back(tiny, tmp_path, encoding):
     """`fgjax.method.run_stage2` (the paper's chain: discovery, DBSCAN, trajectories from the deformation field, the
-    control network) on the tiny run writes stage2.npz and stage2.json; `load_stage2` reads them back with
-    ``variant`` "paper", the labels and trajectories of the returned result, and no re-fitted scene."""
+    control network with either encoding of X) on the tiny run writes stage2.npz and stage2.json; `load_stage2` reads
+    them back with ``variant`` "paper", the labels and trajectories of the returned result, the same control network,
+    and no re-fitted scene."""
     import shutil
 
     from fgjax.method import run_stage2
 
     dst = tmp_path / "run"
     shutil.copytree(tiny[0], dst, ignore=shutil.ignore_patterns(result.STAGE2_NAME, "stage2.json"))
-    res = run_stage2(dst, tiny[1], Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2), log=lambda m: None)
+    res = run_stage2(dst, tiny[1], Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2, control_encoding=encoding),
+                     log=lambda m: None)
     back = result.load_stage2(dst)
+    assert back.s2.control.encoding == encoding
+    for a, b in zip(jax.tree_util.tree_leaves(back.s2.control), jax.tree_util.tree_leaves(res.control), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert back.s2.meta["variant"] == "paper" and json.loads((dst / "stage2.json").read_text())["variant"] == "paper"
     np.testing.assert_array_equal(back.s2.labels, res.labels)
     np.testing.assert_allclose(back.s2.traj, res.traj)

@@ -47,6 +47,7 @@ def test_a_bool_is_not_a_number(section, cls, validate):
     ("stage2", "variant", "other"), ("stage2", "eps", 0.0), ("stage2", "eps", -1.0), ("stage2", "min_samples", 0),
     ("stage2", "threshold_px", "sometimes"), ("stage2", "threshold_px", -0.5), ("stage2", "lr", 0.0),
     ("stage2", "distill_steps", -1), ("stage2", "camera_correction", "maybe"), ("stage2", "cluster_method", "kmeans"),
+    ("stage2", "control_encoding", "fourier"),
     ("articulate", "track_rounds", 0), ("articulate", "hinge_up_deg", 90.0), ("articulate", "ghost_opacity", 1.0),
     ("articulate", "isolated_factor", 0.5), ("articulate", "hinge_trial_edges", 5), ("articulate", "local_floor", 1.0),
     ("articulate", "track_joints", "sometimes"), ("articulate", "refit_lr_scale", 0.0),

@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="fgjax bench step", description=__doc__.splitlines()[0])
     p.add_argument("--run", default=None, help="a trained stage-1 run (default: a fresh initial state)")
     p.add_argument("--data", default=None, help="the run's dataset folder (needed with --run)")
-    p.add_argument("--config", default="experiments/default.toml", help="config without --run")
+    p.add_argument("--config", default="experiments/articulated.toml", help="config without --run")
     p.add_argument("--gaussians", type=int, default=20000, help="random initial Gaussians without --run")
     p.add_argument("--frames", default="45", help="comma list of training frames of one step's batch")
     p.add_argument("--window", type=float, default=0.25, help="image-area fraction of the active window")

@@ -31,7 +31,7 @@ FIELDS = {
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="fgjax bench train", description=__doc__.splitlines()[0])
     p.add_argument("--data", default=None, help="dataset folder (default: generate the synthetic scene)")
-    p.add_argument("--config", default="experiments/default.toml")
+    p.add_argument("--config", default="experiments/articulated.toml")
     p.add_argument("--steps", type=int, default=3000)
     p.add_argument("--eval-every", type=int, default=500)
     p.add_argument("--fields", default="hash,frequency", help="comma list of: " + ", ".join(FIELDS))

@@ -716,8 +716,8 @@ def test_bench_cli_parses():
 def test_flow_loss_on_an_articulated_scene_knows_the_true_motion_from_none():
     """L_uGS verified before it is trusted (issue 53): on the quick synthetic scene's pair with the most part motion,
     with the exact ground-truth optical flow, the Gaussians moved by the true part motion explain the moving pixels'
-    flow (residual |u - u_cam - u~_GS| under a quarter of the parts' own flow; the rest is the isotropic model's
-    neglect of each Gaussian's turn and the occlusion edges), while unmoved Gaussians leave all of it; the loss
+    flow (mean residual |u - u_cam - u~_GS| 0.93 px against 6.5 px of part flow, median 0.38 px: what is left sits at
+    the parts' edges, and the anisotropic term changes it by 1%), while unmoved Gaussians leave all of it; the loss
     `gaussian_flow_loss` ranks the two the same way, over all pixels and over the moving ones (``threshold``)."""
     from conftest import synth
 

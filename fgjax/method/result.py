@@ -33,12 +33,13 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from fgjax import cluster
 from fgjax.gaussians import Gaussians, activate
+from fgjax.geometry import fit_group_poses
 from fgjax.io import atomic_write
 from fgjax.method.stage1 import load_run
 from fgjax.models.control_net import ControlNet, control_apply, control_init, per_gaussian_vectors
 from fgjax.models.deform import deform_apply
 from fgjax.models.model import render_params
-from fgjax.models.posed import fit_group_poses, label_onehot, transform_gaussians
+from fgjax.models.posed import label_onehot, transform_gaussians
 from fgjax.provenance import file_sha256
 from fgjax.render.api import rasterization
 from fgjax.train.checkpoint import CHECKPOINT_NAME
@@ -160,7 +161,7 @@ def controlled_gaussians(control: ControlNet, base: tuple, canonical: Float[Arra
         labels: [N] int cluster ids (-1: not controlled).
         vectors: [K, 3] one control vector per cluster (K >= 1 when any label >= 0).
         rigid: each cluster moved by the rigid motion closest to the network's (`Stage2Config.control_rigid`):
-            `fgjax.models.posed.fit_group_poses` from the base centres to the network's, applied to the base
+            `fgjax.geometry.fit_group_poses` from the base centres to the network's, applied to the base
             centres and orientations; the base scales. Not differentiable (the fit is held constant).
 
     Returns:

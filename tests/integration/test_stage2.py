@@ -124,13 +124,14 @@ def test_rigid_control_moves_each_cluster_by_the_rigid_motion_nearest_the_networ
 
 
 def test_fit_group_poses_recovers_each_groups_motion_and_degrades_safely():
-    """`fgjax.models.posed.fit_group_poses`: exact poses of moved groups; a group of one or two points gets its shift only; an
+    """`fgjax.geometry.fit_group_poses`: exact poses of moved groups; a group of one or two points gets its shift only; an
     empty group the identity; coincident points a finite pose; gradients 0, never NaN."""
     import jax
     import jax.numpy as jnp
 
     from fgjax import geometry
-    from fgjax.models.posed import fit_group_poses, transform_gaussians
+    from fgjax.geometry import fit_group_poses
+    from fgjax.models.posed import transform_gaussians
 
     rng = np.random.default_rng(0)
     src = rng.normal(size=(300, 3))

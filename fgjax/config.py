@@ -548,6 +548,11 @@ class ArticulateConfig:
     """Re-fit steps after the label passes; 0: none."""
 
 
+def _finite(x: float) -> bool:
+    """Neither NaN nor infinite."""
+    return x == x and abs(x) != float("inf")
+
+
 def validate_stage1(cfg: Config) -> None:
     """Raise `ConfigError` naming ``section.key`` when a stage-1 value is out of its range (counts that must be
     positive, rates and weights that must be finite and positive or non-negative, choices among names)."""
@@ -555,7 +560,6 @@ def validate_stage1(cfg: Config) -> None:
         if not ok:
             raise ConfigError(f"config key '{key}' must be {want}; got {value!r}")
 
-    finite = lambda x: x == x and abs(x) != float("inf")
     d, m, f, t, dn, fl = cfg.data, cfg.model, cfg.deform, cfg.train, cfg.densify, cfg.flow
     need(d.downscale >= 1, "data.downscale", ">= 1", d.downscale)
     need(d.test_every_train >= 0, "data.test_every_train", ">= 0", d.test_every_train)
@@ -566,7 +570,7 @@ def validate_stage1(cfg: Config) -> None:
     need(0.0 <= m.init_random_fraction <= 1.0, "model.init_random_fraction", "in [0, 1]", m.init_random_fraction)
     need(m.init_flow_gap >= 1, "model.init_flow_gap", ">= 1", m.init_flow_gap)
     need(0.0 < m.init_opacity < 1.0, "model.init_opacity", "in (0, 1)", m.init_opacity)
-    need(finite(m.init_scale) and m.init_scale > 0, "model.init_scale", "> 0", m.init_scale)
+    need(_finite(m.init_scale) and m.init_scale > 0, "model.init_scale", "> 0", m.init_scale)
     need(len(m.background) == 3 and all(0.0 <= c <= 1.0 for c in m.background), "model.background",
          "three numbers in [0, 1]", m.background)
     need(f.kind in ("hash", "frequency"), "deform.kind", "'hash' or 'frequency'", f.kind)
@@ -582,26 +586,37 @@ def validate_stage1(cfg: Config) -> None:
     for k in ("lr_means", "lr_means_final", "lr_deform", "lr_deform_final", "lr_opacity", "lr_scales", "lr_quats",
               "lr_sh", "lr_hash_factor", "scale_reg_max"):
         v = getattr(t, k)
-        need(finite(v) and v > 0, f"train.{k}", "a finite number > 0", v)
+        need(_finite(v) and v > 0, f"train.{k}", "a finite number > 0", v)
     need(0.0 <= t.lambda_dssim <= 1.0, "train.lambda_dssim", "in [0, 1]", t.lambda_dssim)
-    need(finite(t.scale_reg) and t.scale_reg >= 0, "train.scale_reg", ">= 0", t.scale_reg)
+    need(_finite(t.scale_reg) and t.scale_reg >= 0, "train.scale_reg", ">= 0", t.scale_reg)
     need(t.rigid_neighbours >= 1, "train.rigid_neighbours", ">= 1", t.rigid_neighbours)
-    need(finite(t.capacity_margin) and t.capacity_margin >= 1.0, "train.capacity_margin", ">= 1", t.capacity_margin)
+    need(_finite(t.capacity_margin) and t.capacity_margin >= 1.0, "train.capacity_margin", ">= 1", t.capacity_margin)
     need(t.tile_size in (4, 8, 16, 32), "train.tile_size", "4, 8, 16 or 32", t.tile_size)
     for k in ("start", "stop", "every", "reset_every"):
         need(getattr(dn, k) >= 0, f"densify.{k}", ">= 0", getattr(dn, k))
     for k in ("grad_threshold", "percent_dense", "prune_opacity", "max_world_scale"):
         v = getattr(dn, k)
-        need(finite(v) and v >= 0, f"densify.{k}", "a finite number >= 0", v)
-    need(finite(fl.weight) and fl.weight >= 0, "flow.weight", ">= 0", fl.weight)
-    need(finite(fl.threshold) and fl.threshold >= 0, "flow.threshold", ">= 0", fl.threshold)
+        need(_finite(v) and v >= 0, f"densify.{k}", "a finite number >= 0", v)
+    need(_finite(fl.weight) and fl.weight >= 0, "flow.weight", ">= 0", fl.weight)
+    need(_finite(fl.threshold) and fl.threshold >= 0, "flow.threshold", ">= 0", fl.threshold)
     need(fl.start >= 0, "flow.start", ">= 0", fl.start)
     for k in ("lr", "lr_final"):
         v = getattr(cfg.pose, k)
-        need(finite(v) and v > 0, f"pose.{k}", "a finite number > 0", v)
+        need(_finite(v) and v > 0, f"pose.{k}", "a finite number > 0", v)
+    need(0.0 < t.time_window_start <= 1.0, "train.time_window_start", "in (0, 1]", t.time_window_start)
+    need(0.0 <= t.error_sampling <= 1.0, "train.error_sampling", "in [0, 1]", t.error_sampling)
+    for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "coarse_to_fine",
+              "field_only_steps"):
+        need(getattr(t, k) >= 0, f"train.{k}", ">= 0", getattr(t, k))
+    if cfg.pose.bundle and not cfg.pose.enabled:
+        raise ConfigError("config key 'pose.bundle' needs 'pose.enabled = true' (the bundle adjustment's corrections "
+                          "are stored as the pose deltas)")
+    for k in ("bundle_prior_deg", "bundle_prior_trans", "bundle_cauchy_px"):
+        need(getattr(cfg.pose, k) > 0, f"pose.{k}", "> 0", getattr(cfg.pose, k))
+    need(cfg.pose.bundle_fb_px >= 0, "pose.bundle_fb_px", ">= 0 (0: off)", cfg.pose.bundle_fb_px)
     need(cfg.static.force in ("auto", "static", "dynamic"), "static.force", "'auto', 'static' or 'dynamic'",
          cfg.static.force)
-    need(finite(cfg.static.threshold) and cfg.static.threshold >= 0, "static.threshold", ">= 0",
+    need(_finite(cfg.static.threshold) and cfg.static.threshold >= 0, "static.threshold", ">= 0",
          cfg.static.threshold)
 
 
@@ -664,7 +679,6 @@ def validate_articulate(cfg: ArticulateConfig) -> None:
 
     _check_types("articulate", cfg)
 
-    finite = lambda x: x == x and abs(x) != float("inf")
     if cfg.track_joints not in ("auto", "off"):
         raise bad("track_joints", "'auto' or 'off'")
     for name in ("local_floor", "local_min_fraction"):
@@ -678,7 +692,7 @@ def validate_articulate(cfg: ArticulateConfig) -> None:
                  "relabel_radius", "track_converged_deg", "ghost_radius", "hull_max_growth", "hinge_radius",
                  "hinge_reach", "colour_radius"):
         v = getattr(cfg, name)
-        if not (finite(v) and v >= 0):
+        if not (_finite(v) and v >= 0):
             raise bad(name, "a finite number >= 0")
     if cfg.track_rounds < 1:
         raise bad("track_rounds", "an integer >= 1")
@@ -692,13 +706,13 @@ def validate_articulate(cfg: ArticulateConfig) -> None:
         raise bad("hinge_trial_edges", "an integer in 0..4")
     if not 0.0 <= cfg.hull_opacity <= 1.0:
         raise bad("hull_opacity", "in [0, 1]")
-    if not (finite(cfg.ghost_opacity) and 0 < cfg.ghost_opacity < 1):
+    if not (_finite(cfg.ghost_opacity) and 0 < cfg.ghost_opacity < 1):
         raise bad("ghost_opacity", "in (0, 1)")
-    if not (finite(cfg.hinge_min_deg) and 0 < cfg.hinge_min_deg <= 180):
+    if not (_finite(cfg.hinge_min_deg) and 0 < cfg.hinge_min_deg <= 180):
         raise bad("hinge_min_deg", "in (0, 180]")
-    if not (finite(cfg.refit_lr_scale) and cfg.refit_lr_scale > 0):
+    if not (_finite(cfg.refit_lr_scale) and cfg.refit_lr_scale > 0):
         raise bad("refit_lr_scale", "finite and > 0")
-    if not (cfg.isolated_factor == 0 or (finite(cfg.isolated_factor) and cfg.isolated_factor >= 1)):
+    if not (cfg.isolated_factor == 0 or (_finite(cfg.isolated_factor) and cfg.isolated_factor >= 1)):
         raise bad("isolated_factor", "0 (off) or >= 1")
     if cfg.colour_components < 1:
         raise bad("colour_components", "an integer >= 1")

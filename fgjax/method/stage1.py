@@ -28,7 +28,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from fgjax import metrics
-from fgjax.config import Config, ConfigError, load_config, to_toml
+from fgjax.config import Config, ConfigError, load_config, to_toml, validate_stage1
 from fgjax.data.loaders import load_scene
 from fgjax.data.opticalflow import estimate_flow
 from fgjax.flow import gaussian_flow_loss
@@ -402,27 +402,6 @@ def load_run(run_dir: str | Path) -> tuple[Config, TrainState, DeformSpec, dict[
     return cfg, state, spec, meta
 
 
-def _check_train_config(cfg: Config) -> None:
-    """Range checks of the stage-1 keys that would otherwise fail late or silently (ConfigError)."""
-    t = cfg.train
-    if not 0.0 < t.time_window_start <= 1.0:
-        raise ConfigError(f"config key 'train.time_window_start' must be in (0, 1]; got {t.time_window_start}")
-    if not 0.0 <= t.error_sampling <= 1.0:
-        raise ConfigError(f"config key 'train.error_sampling' must be in [0, 1]; got {t.error_sampling}")
-    for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "coarse_to_fine",
-              "field_only_steps"):
-        if getattr(t, k) < 0:
-            raise ConfigError(f"config key 'train.{k}' must be >= 0; got {getattr(t, k)}")
-    if cfg.pose.bundle and not cfg.pose.enabled:
-        raise ConfigError("config key 'pose.bundle' needs 'pose.enabled = true' (the bundle adjustment's corrections "
-                          "are stored as the pose deltas)")
-    for k in ("bundle_prior_deg", "bundle_prior_trans", "bundle_cauchy_px"):
-        if not getattr(cfg.pose, k) > 0:
-            raise ConfigError(f"config key 'pose.{k}' must be > 0; got {getattr(cfg.pose, k)}")
-    if not cfg.pose.bundle_fb_px >= 0:
-        raise ConfigError(f"config key 'pose.bundle_fb_px' must be >= 0 (0: off); got {cfg.pose.bundle_fb_px}")
-
-
 def train_stage1(
     cfg: Config,
     scene,
@@ -451,7 +430,7 @@ def train_stage1(
             predecessor's grid (NaN = unknown), for the flow loss (flow.enabled and flow.weight > 0);
             None: estimated with ``flow.method`` (cached under out_dir/flow_cache).
     """
-    _check_train_config(cfg)
+    validate_stage1(cfg)  # a Config built in code has not been through load_config's checks
     out = None if out_dir is None else Path(out_dir)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)

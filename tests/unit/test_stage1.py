@@ -486,7 +486,7 @@ def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
 
     scene = _tiny_scene(False, frames=4)
     with pytest.raises(C.ConfigError, match="pose.bundle"):
-        stage1._check_train_config(_cfg("pose.bundle=true"))
+        C.validate_stage1(_cfg("pose.bundle=true"))
     deltas = np.arange(24, dtype=np.float64).reshape(4, 6) * 1e-3
     seen = {}
 
@@ -518,7 +518,7 @@ def test_pose_bundle_needs_refinement_and_seeds_the_pose_deltas(monkeypatch):
     stage1.initial_state(_cfg("pose.enabled=true", "pose.bundle=true", "model.init=random"), scene)  # off by default
     assert seen["backward"] is None
     with pytest.raises(C.ConfigError, match="pose.bundle_fb_px"):
-        stage1._check_train_config(_cfg("pose.enabled=true", "pose.bundle=true", "pose.bundle_fb_px=-1"))
+        C.validate_stage1(_cfg("pose.enabled=true", "pose.bundle=true", "pose.bundle_fb_px=-1"))
 
 
 def test_a_scene_whose_flow_shows_moving_parts_is_not_called_static(tmp_path):

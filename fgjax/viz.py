@@ -5,12 +5,23 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["to_u8", "ids_to_color", "depth_to_color"]
+__all__ = ["to_u8", "upscale", "pad16", "ids_to_color", "depth_to_color"]
 
 
 def to_u8(img: np.ndarray) -> np.ndarray:
     """Image in [0, 1] (float, any shape) -> uint8, rounded to nearest, clipped."""
     return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def upscale(img: np.ndarray, s: int) -> np.ndarray:
+    """[H, W, ...] -> [s H, s W, ...] by pixel repetition (s <= 1: unchanged)."""
+    return np.repeat(np.repeat(img, s, axis=0), s, axis=1) if s > 1 else img
+
+
+def pad16(img: np.ndarray) -> np.ndarray:
+    """Pad [H, W, C] to multiples of 16 pixels (ffmpeg's macro-block size) with black."""
+    h, w = img.shape[:2]
+    return np.pad(img, ((0, -h % 16), (0, -w % 16), (0, 0)))
 
 
 _ID_COLORS = np.array(

@@ -26,6 +26,7 @@ from fgjax.data.scene import Normalization
 from fgjax.io import write_video
 from fgjax.method import result as stage2
 from fgjax.train.checkpoint import CheckpointError
+from fgjax.viz import pad16, to_u8, upscale
 
 __all__ = ["main", "parse_vector", "default_cameras"]
 
@@ -100,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, vm, K, _, w, h in cams:
             img = stage2.render_controlled(run, vectors, vm, K, w, h)
             path = out / f"object{args.object}_{name}.png"
-            iio.imwrite(path, (img * 255 + 0.5).astype(np.uint8))
+            iio.imwrite(path, to_u8(img))
             print(f"wrote {path}")
         off = float(np.linalg.norm(np.asarray(v) - vec))
         print(f"object {args.object}: vector {vec.tolist()} snapped to {np.round(v, 5).tolist()} on its trajectory "
@@ -116,20 +117,10 @@ def main(argv: list[str] | None = None) -> int:
         vectors[:] = 0
         vectors[k] = stage2.cluster_vectors_at(s2, tt)[k]
         img = stage2.render_controlled(run, vectors, vm, K, w, h)
-        frames.append(_pad16(_upscale((img * 255 + 0.5).astype(np.uint8))))
+        frames.append(pad16(upscale(to_u8(img), max(1, 320 // w))))
     path = write_video(frames, out / f"object{args.object}_sweep.mp4")
     print(f"wrote {path}")
     return 0
-
-
-def _upscale(img: np.ndarray) -> np.ndarray:
-    s = max(1, 320 // img.shape[1])
-    return np.repeat(np.repeat(img, s, 0), s, 1) if s > 1 else img
-
-
-def _pad16(img: np.ndarray) -> np.ndarray:
-    h, w = img.shape[:2]
-    return np.pad(img, ((0, -h % 16), (0, -w % 16), (0, 0)))
 
 
 if __name__ == "__main__":

@@ -43,15 +43,11 @@ from fgjax.method import stage1
 from fgjax.method.evaluate import write_control_metrics
 from fgjax.method.result import cluster_vectors_at, load_stage2, render_clusters, render_controlled
 from fgjax.method.stage2 import run_stage2
-from fgjax.viz import depth_to_color, ids_to_color, to_u8
+from fgjax.viz import depth_to_color, ids_to_color, pad16, to_u8, upscale
 
 __all__ = ["main", "contact_sheet", "pipeline_configs", "sweep_times", "changed_share"]
 
 EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
-
-
-def _up(img: np.ndarray, s: int) -> np.ndarray:
-    return np.repeat(np.repeat(img, s, axis=0), s, axis=1) if s > 1 else img
 
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:
@@ -60,12 +56,6 @@ def _label(img: np.ndarray, text: str) -> np.ndarray:
     strip = np.full((h, img.shape[1], 3), 255, np.uint8)
     cv2.putText(strip, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     return np.concatenate([strip, img], axis=0)
-
-
-def _pad16(img: np.ndarray) -> np.ndarray:
-    """Pad to multiples of 16 pixels (ffmpeg's macro-block size) with black."""
-    h, w = img.shape[:2]
-    return np.pad(img, ((0, -h % 16), (0, -w % 16), (0, 0)))
 
 
 def _pick_frames(object_flow: np.ndarray, n: int) -> list[int]:
@@ -103,10 +93,10 @@ def contact_sheet(scene_dir: Path, n_rows: int = 4) -> np.ndarray:
         f = flow[min(i, t - 2)] if t > 1 else np.zeros((h, w, 2), np.float32)
         fv = fvalid[min(i, t - 2)] if t > 1 else np.zeros((h, w), bool)
         tiles = [
-            _label(_up(rgb, s), f"frame {i} RGB"),
-            _label(_up(depth_to_color(depth[i], valid[i], near=near, far=far), s), "depth"),
-            _label(_up(synth.flow_to_color(f, max_flow, valid=fv), s), f"flow {i}->{i + 1} (max {max_flow:.1f}px)"),
-            _label(_up(ids_to_color(ids[i]), s), "object id"),
+            _label(upscale(rgb, s), f"frame {i} RGB"),
+            _label(upscale(depth_to_color(depth[i], valid[i], near=near, far=far), s), "depth"),
+            _label(upscale(synth.flow_to_color(f, max_flow, valid=fv), s), f"flow {i}->{i + 1} (max {max_flow:.1f}px)"),
+            _label(upscale(ids_to_color(ids[i]), s), "object id"),
         ]
         rows.append(np.concatenate([np.pad(x, ((2, 2), (2, 2), (0, 0)), constant_values=255) for x in tiles], 1))
     return np.concatenate(rows, axis=0)
@@ -125,7 +115,7 @@ def _video_frames(scene_dir: Path) -> list[np.ndarray]:
         else:
             fc = np.zeros_like(rgb)
         s = max(1, 320 // rgb.shape[1])
-        frames.append(_pad16(_up(np.concatenate([rgb, fc], axis=1), s)))
+        frames.append(pad16(upscale(np.concatenate([rgb, fc], axis=1), s)))
     return frames
 
 
@@ -231,14 +221,13 @@ def write_control_pictures(out: Path, run, train) -> list[float]:
     seen from the first training camera; prints where they went and how visibly each object moves
     (`changed_share` over its pixels at both ends). Returns those shares, one per object."""
     s2 = run.s2
-    u8 = to_u8
     vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height
     v0 = np.zeros((max(s2.num_objects, 1), 3))  # v = 0 for every object
     ids = render_clusters(run, vm, K, w, h, vectors=v0 if s2.num_objects else None)  # the scene beside it
     rgb0 = render_controlled(run, v0, vm, K, w, h)
-    tiles = [_label(_up(u8(train.images[0]), max(1, 240 // w)), "training frame 0"),
-             _label(_up(u8(rgb0), max(1, 240 // w)), "stage 2, v = 0"),
-             _label(_up(ids_to_color(ids), max(1, 240 // w)), f"{s2.num_objects} object(s) found")]
+    tiles = [_label(upscale(to_u8(train.images[0]), max(1, 240 // w)), "training frame 0"),
+             _label(upscale(to_u8(rgb0), max(1, 240 // w)), "stage 2, v = 0"),
+             _label(upscale(ids_to_color(ids), max(1, 240 // w)), f"{s2.num_objects} object(s) found")]
     frames, moved = [], []
     for k in range(s2.num_objects):
         times = sweep_times(s2, k)
@@ -246,13 +235,13 @@ def write_control_pictures(out: Path, run, train) -> list[float]:
         for t in np.concatenate([times, times[::-1][1:]]):
             vec = np.zeros((s2.num_objects, 3))
             vec[k] = cluster_vectors_at(s2, t)[k]
-            raw.append(u8(render_controlled(run, vec, vm, K, w, h)))
-            frames.append(_pad16(_label(_up(raw[-1], max(1, 320 // w)), f"object {k + 1}")))
+            raw.append(to_u8(render_controlled(run, vec, vm, K, w, h)))
+            frames.append(pad16(_label(upscale(raw[-1], max(1, 320 // w)), f"object {k + 1}")))
         far = len(times) - 1  # the object at its largest displacement
         ids_far = render_clusters(run, vm, K, w, h, vectors=np.where(np.arange(s2.num_objects)[:, None] == k,
                                                                       cluster_vectors_at(s2, times[-1]), 0.0))
         moved.append(changed_share(raw[0], raw[far], (ids == k + 1) | (ids_far == k + 1)))
-        tiles.append(_label(_up(raw[far], max(1, 240 // w)), f"object {k + 1} moved"))
+        tiles.append(_label(upscale(raw[far], max(1, 240 // w)), f"object {k + 1} moved"))
     sheet = out / "control_sheet.png"
     iio.imwrite(sheet, np.concatenate([np.pad(x, ((2, 2), (2, 2), (0, 0)), constant_values=255) for x in tiles], 1))
     print(f"control sheet: {sheet}")
@@ -266,10 +255,9 @@ def _pipeline(out: Path, scene_dir: Path, cfg: Config, *, say) -> None:
     t0 = time.perf_counter()
     cache = Path(cfg.stage2.flow_cache)
     train = load_scene(scene_dir, "train")
-    u8 = lambda x: (np.clip(x, 0, 1) * 255 + 0.5).astype(np.uint8)
     order = np.argsort(train.times, kind="stable")
     for a, b in zip(order[:-1], order[1:], strict=True):
-        estimate_flow(u8(train.images[a]), u8(train.images[b]), "dis_deepflow", cache_dir=cache)
+        estimate_flow(to_u8(train.images[a]), to_u8(train.images[b]), "dis_deepflow", cache_dir=cache)
     say(f"demo: optical flow of {len(order) - 1} pairs ({time.perf_counter() - t0:.1f} s)")
     run_dir = out / "run"
     stage1.run(cfg, scene_dir, run_dir, log=say)

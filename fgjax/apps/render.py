@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     for name, vm, K, t, w, h in cams:
         img = render_frame(state, spec, cfg, vm, K, t, w, h)
-        iio.imwrite(out / f"{name}.png", (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8))
+        iio.imwrite(out / f"{name}.png", to_u8(img))
     print(f"rendered {len(cams)} cameras to {out}")
     return 0
 

@@ -238,7 +238,7 @@ def run_articulated(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config
             "one round")
     t_start = time.perf_counter()
     run_dir, data_dir = Path(run_dir), Path(data_dir)
-    run, scene = prepare_run(run_dir, data_dir, log)
+    run, scene, fingerprint = prepare_run(run_dir, data_dir, log)
     cache = Path(cfg.flow_cache) if cfg.flow_cache else run_dir / "flow_cache"
     disc, centres, times, (order, flows, _) = discover_run(run, scene, cfg, cache, per_frame=True, log=log)
     n_dyn = int(disc.dynamic.sum())
@@ -247,7 +247,8 @@ def run_articulated(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config
                                         t_start=t_start)
     alive = run.state.densify.alive
     refit, joints, fills, history = None, {}, {}, []
-    meta: dict = {"variant": "articulated", "articulate": dataclasses.asdict(acfg), "num_dynamic": n_dyn}
+    meta: dict = {"variant": "articulated", "articulate": dataclasses.asdict(acfg), "num_dynamic": n_dyn,
+                  "data_fingerprint": fingerprint}
     if not report.n_clusters:
         qs, ls = deformed_geometry(run, times)
         return finish(run_dir, data_dir, run, scene, order, labels, disc.dynamic, disc, (centres, qs, ls), flows,

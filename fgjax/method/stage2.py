@@ -48,16 +48,18 @@ from fgjax.train.checkpoint import CHECKPOINT_NAME
 __all__ = ["run_stage2", "prepare_run", "select_objects", "deformed_geometry", "finish"]
 
 
-def prepare_run(run_dir: Path, data_dir: Path, log=print) -> tuple[LoadedRun, Scene]:
-    """The stage-1 run (without stage-2 results) and its training scene, normalised as the run was; the cameras
-    replaced by stage 1's refined ones where it refined them.
+def prepare_run(run_dir: Path, data_dir: Path, log=print) -> tuple[LoadedRun, Scene, str]:
+    """The stage-1 run (without stage-2 results), its training scene, normalised as the run was (the cameras
+    replaced by stage 1's refined ones where it refined them), and the data's `fgjax.provenance.scene_fingerprint`.
 
     Raises:
-        Stage2Error: the images' size differs from the run's, or fewer than 2 training frames.
+        Stage2Error: the data are not those the run's provenance records, the images' size differs from the run's,
+            or fewer than 2 training frames.
     """
     run = load_stage2(run_dir, require_stage2=False)
     rec = read_provenance(run_dir)
-    if rec is not None and rec.get("data_fingerprint") not in (None, scene_fingerprint(data_dir)):
+    fingerprint = scene_fingerprint(data_dir)
+    if rec is not None and rec.get("data_fingerprint") not in (None, fingerprint):
         raise Stage2Error(f"{data_dir} is not the data {run_dir} was trained on ({rec.get('data_dir')}): their files "
                           "differ; run stage 2 on the run's own data")
     scene = load_scene(data_dir, "train", normalize=Normalization.from_dict(run.meta["normalization"]),
@@ -74,7 +76,7 @@ def prepare_run(run_dir: Path, data_dir: Path, log=print) -> tuple[LoadedRun, Sc
             raise Stage2Error(f"{data_dir}: {e}") from None
         scene = dataclasses.replace(scene, viewmats=vms.astype(scene.viewmats.dtype))
         log("stage 2: using stage 1's refined camera poses")
-    return run, scene
+    return run, scene, fingerprint
 
 
 def select_objects(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stage2Config, *,
@@ -106,7 +108,8 @@ def finish(run_dir: Path, data_dir: Path, run: LoadedRun, scene: Scene, order: I
            labels: Int[np.ndarray, " N"], dynamic: Bool[np.ndarray, " N"], disc: Discovery, geometry, flows,
            cfg: Stage2Config, meta: dict[str, Any], t_start: float, *, refit=None, log=print) -> Stage2Result:
     """Steps 3-4 and the result: trajectories ς(t, k) from ``geometry`` (means [T, N, 3], raw quats [T, N, 4],
-    log-scales [T, N, 3] in time order), the control network trained on them, RUN/stage2.npz written."""
+    log-scales [T, N, 3] in time order), the control network trained on them, RUN/stage2.npz written. ``meta`` (the
+    caller's entries: its variant, the data fingerprint of `prepare_run`, ...) joins the result's metadata."""
     report = cluster.cluster_report(labels[dynamic | (labels >= 0)])
     times = scene.times[order]
     centres = geometry[0]
@@ -124,7 +127,6 @@ def finish(run_dir: Path, data_dir: Path, run: LoadedRun, scene: Scene, order: I
         "moving_pixel_fraction": float(disc.masks.mean()),
         "flow_loss": bool(stats.get("photometric", {}).get("flow_weight", 0.0) > 0),
         "stage1_checkpoint": {"step": int(run.state.step), "sha256": file_sha256(run_dir / CHECKPOINT_NAME)},
-        "data_fingerprint": scene_fingerprint(data_dir),
         **meta,
         "time_s": time.perf_counter() - t_start,
         **stats,
@@ -150,10 +152,10 @@ def run_stage2(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config = St
     validate_stage2(cfg)  # before any work is done
     t_start = time.perf_counter()
     run_dir, data_dir = Path(run_dir), Path(data_dir)
-    run, scene = prepare_run(run_dir, data_dir, log)
+    run, scene, fingerprint = prepare_run(run_dir, data_dir, log)
     cache = Path(cfg.flow_cache) if cfg.flow_cache else run_dir / "flow_cache"
     disc, centres, times, (order, flows, _) = discover_run(run, scene, cfg, cache, log=log)
     labels, _ = select_objects(np.asarray(run.state.params["gaussians"].means), disc, cfg, log=log)
     qs, ls = deformed_geometry(run, times)
     return finish(run_dir, data_dir, run, scene, order, labels, disc.dynamic, disc, (centres, qs, ls), flows, cfg,
-                  {"variant": "paper"}, t_start, log=log)
+                  {"variant": "paper", "data_fingerprint": fingerprint}, t_start, log=log)

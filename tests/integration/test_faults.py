@@ -9,16 +9,13 @@ import errno
 import json
 import os
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import synth
 
 from fgjax import cli
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from conftest import synth  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 QUICK = ["--config", str(REPO / "experiments" / "quick.toml"), "--set", "train.steps=8", "--set",

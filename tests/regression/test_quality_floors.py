@@ -11,6 +11,7 @@ paper 4 objects, ari_controlled 0.743, held-out states 21.86 dB. Both runs are d
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -53,18 +54,10 @@ def quick_run(tmp_path_factory):
     return cfg, scene_dir, base / "run"
 
 
-def _copy_run(src: Path, dst: Path) -> Path:
-    dst.mkdir()
-    for f in src.iterdir():
-        if f.is_file():
-            (dst / f.name).write_bytes(f.read_bytes())
-    return dst
-
-
 @pytest.mark.parametrize("name", ["articulated", "paper"])
 def test_named_configuration_meets_its_floor(quick_run, tmp_path, name):
     cfg, scene_dir, run_dir = quick_run
-    run_dir = _copy_run(run_dir, tmp_path / "run")
+    run_dir = Path(shutil.copytree(run_dir, tmp_path / "run"))
     if name == "articulated":
         run_articulated(run_dir, scene_dir, cfg.stage2, cfg.articulate, log=lambda *_: None)
     else:

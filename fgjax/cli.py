@@ -18,6 +18,7 @@ from fgjax.version import __version__
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("fgjax.apps.demo", "run the whole pipeline on the built-in synthetic scene"),
     "synth": ("fgjax.apps.synth", "generate a synthetic articulated scene with ground truth"),
+    "prepare": ("fgjax.apps.prepare", "a phone clip (poses by SfM) or a Record3D export to a scene folder"),
     "flow": ("fgjax.apps.flow", "estimate optical flow over a sequence (cached)"),
     "train": ("fgjax.apps.train", "stage 1: deformable Gaussian training"),
     "stage2": ("fgjax.apps.stage2", "discovery, clustering and control network on a trained run"),

@@ -54,6 +54,7 @@ __all__ = [
     "opencv_to_opengl_c2w",
     "c2w_to_viewmat",
     "viewmat_to_c2w",
+    "look_at_point",
     "project_points",
     "as_float",
 ]
@@ -479,6 +480,28 @@ def viewmat_to_c2w(viewmat: Float[ArrayLike, "*batch 4 4"]) -> Float[np.ndarray,
 
     Numpy float64 (LU inverse, see `_rigid_inverse_f64`); `se3_inverse` is the JAX version."""
     return _rigid_inverse_f64(viewmat)
+
+
+def look_at_point(viewmats: Float[ArrayLike, "T 4 4"]) -> tuple[np.ndarray, float]:
+    """The point OpenCV cameras `viewmats` [T, 4, 4] (world-to-camera) look at, and their distance to it.
+
+    The point is the least-squares closest point to the optical axes (sum_i (I - d_i d_i^T)(p - c_i) = 0, centres
+    c_i, axes d_i); the distance is the median camera distance to it. Where that is undefined or zero, the point is
+    one unit in front of the cameras (mean centre + mean axis) and the distance 1: parallel axes (a still camera)
+    and axes that meet at the cameras' common centre (a camera that only turns). Numpy float64.
+    """
+    v = np.asarray(viewmats, dtype=np.float64)
+    r = v[:, :3, :3]
+    c = -np.einsum("tji,tj->ti", r, v[:, :3, 3])  # [T, 3] camera centres
+    d = r[:, 2, :]  # [T, 3] optical axes (world)
+    proj = np.eye(3) - np.einsum("ti,tj->tij", d, d)  # [T, 3, 3]
+    a, b = proj.sum(0), np.einsum("tij,tj->i", proj, c)
+    ahead = c.mean(0) + d.mean(0)
+    centre = np.linalg.solve(a, b) if np.linalg.cond(a) < 1e8 else ahead
+    rad = float(np.median(np.linalg.norm(c - centre, axis=-1)))
+    if rad <= 1e-6 * (1.0 + float(np.linalg.norm(centre))):
+        return ahead, 1.0
+    return centre, rad
 
 
 @jax.jit

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import shutil
 import sys
 import warnings
 from collections.abc import Callable
@@ -35,6 +36,26 @@ def atomic_write(path: str | Path, write: Callable[[Any], None]) -> Path:
             os.unlink(tmp)
         raise
     return path
+
+
+def replace_folder(tmp: str | Path, out: str | Path) -> Path:
+    """Move the finished folder ``tmp`` to ``out`` (a sibling), replacing whatever folder is there: the old one is
+    renamed aside first and removed only after the swap, so ``out`` is either the old folder or the new one, never
+    half of each; if the swap fails the old folder is put back."""
+    tmp, out = Path(tmp), Path(out)
+    old = None
+    if out.exists():
+        old = out.with_name(f".{out.name}.old-{secrets.token_hex(4)}")
+        os.replace(out, old)
+    try:
+        os.replace(tmp, out)
+    except BaseException:
+        if old is not None:
+            os.replace(old, out)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    return out
 
 
 def _temp_name(path: Path) -> Path:

@@ -32,9 +32,11 @@ Conventions of the files read and written here:
 - fgjax cameras are pinhole: non-zero distortion or skew is ignored with a warning (undistort
   the images beforehand for exact results); fisheye/equirectangular models are an error.
 
-Normalisation (``normalize=True``): `compute_normalization` on the camera centres of the
-*training* split (poses only; falls back to the requested split when there is no training
-split), so train/val/test loaded separately share one frame. Pass ``normalize=False`` for world
+Normalisation (``normalize=True``): the one the training json records in a top-level
+``normalization`` object ({"centre": [x, y, z], "scale": s}: x_normalised = (x - centre) * s; `fgjax prepare`
+writes it for real captures, where the content, not the camera path, sets the scale), else
+`compute_normalization` on the camera centres of the *training* split (poses only; falls back to the requested
+split when there is no training split), so train/val/test loaded separately share one frame. Pass ``normalize=False`` for world
 units, or a `Normalization` (e.g. ``train_scene.normalization``) to reuse one.
 
 Errors name the file, the frame and the field: missing images -> `FileNotFoundError`
@@ -68,6 +70,7 @@ __all__ = [
     "imread",
     "load_scene",
     "parse_transforms",
+    "recorded_normalization",
 ]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -678,6 +681,27 @@ def _training_centres(kind: str, start: Path, split: str) -> np.ndarray:
     return np.stack([f.c2w[:3, 3] for f in frames])
 
 
+def recorded_normalization(kind: str, start: Path, split: str) -> Normalization | None:
+    """The ``normalization`` {centre, scale} that the training json of a Blender/nerfstudio layout records at its
+    top level, or None (no such field, or a Nerfies layout); ValueError naming the file when it is malformed."""
+    if kind == "blender":
+        train = start.parent / "transforms_train.json"
+        src = train if (start.name == f"transforms_{split}.json" and train.is_file()) else start
+    elif kind == "nerfstudio":
+        src = start
+    else:
+        return None
+    rec = _read_json(src).get("normalization")
+    if rec is None:
+        return None
+    try:
+        if not isinstance(rec, dict) or set(rec) != {"centre", "scale"}:
+            raise ValueError("expected {\"centre\": [x, y, z], \"scale\": s}")
+        return Normalization.from_dict(rec)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{src}: field `normalization` is malformed ({e}): {rec!r}") from None
+
+
 def load_scene(
     path: str | os.PathLike,
     split: str = "train",
@@ -698,7 +722,8 @@ def load_scene(
     Args:
         path: dataset folder (or its transforms/dataset json).
         split: "train", "val", "test" or "all" (where the layout defines it).
-        normalize: True: normalise with `compute_normalization` of the training cameras;
+        normalize: True: the normalisation the training json records, else `compute_normalization` of the
+            training cameras;
             False: world units (identity); a `Normalization`: use it.
         skip_missing: skip (with a warning) frames whose image/depth/mask file is absent,
             instead of raising `FileNotFoundError`.
@@ -732,7 +757,7 @@ def load_scene(
     if isinstance(normalize, Normalization):
         norm = normalize
     elif normalize is True:
-        norm = compute_normalization(_training_centres(kind, start, split))
+        norm = recorded_normalization(kind, start, split) or compute_normalization(_training_centres(kind, start, split))
     elif normalize is False:
         norm = Normalization.identity()
     else:

@@ -63,12 +63,14 @@ def write_transforms(
     masks: np.ndarray | None = None,
     extra: dict[str, Any] | None = None,
     frame_names: Sequence[str] | None = None,
+    depth_png_scale: float | None = None,
 ) -> Path:
     """Write a nerfstudio/Blender-style ``out_dir/transforms_{split}.json`` with its images.
 
     Files: ``images/<name>.png`` (float images quantised to 8 bit, uint8/uint16 kept; paths
     are copied byte for byte, keeping their extension), ``depth/<name>.npy`` (float32 z-depth,
-    world units), ``mask/<name>.png`` (8-bit, or 16-bit when labels exceed 255; bool -> 0/1),
+    world units; or, with `depth_png_scale` s, ``depth/<name>.png``: 16-bit integers round(depth / s), 0 unknown,
+    and the json's top-level ``depth_scale`` = s), ``mask/<name>.png`` (8-bit, or 16-bit when labels exceed 255; bool -> 0/1),
     and the json: per frame ``file_path``, ``transform_matrix`` (OpenGL camera-to-world,
     from ``opencv_to_opengl_c2w(inverse(viewmat))``), ``time``, ``fl_x, fl_y, cx, cy, w, h``,
     ``depth_file_path``, ``mask_path``; top level ``camera_model`` "OPENCV" (zero distortion),
@@ -90,6 +92,8 @@ def write_transforms(
         masks: optional [T, H, W] bool or non-negative integer labels (< 65536).
         extra: optional JSON-serialisable top-level fields (e.g. ``depth_scale``, a scene name).
         frame_names: optional T distinct file stems.
+        depth_png_scale: write depths as 16-bit PNG in units of this many world units (e.g. 1e-3 for millimetres
+            when the world unit is the metre); depths beyond 65535 units are written as 0 (unknown).
 
     Returns:
         The path of the written json.
@@ -157,6 +161,11 @@ def write_transforms(
             raise ValueError(f"write_transforms: depths must be float [T, H, W] = [{t}, {h}, {w}], got {dp.shape}")
         if np.any(np.isnan(dp)) or np.any(dp < 0):
             raise ValueError("write_transforms: depths contain NaN or negative values")
+        if depth_png_scale is not None:
+            if not (isinstance(depth_png_scale, int | float) and math.isfinite(depth_png_scale) and depth_png_scale > 0):
+                raise ValueError(f"write_transforms: depth_png_scale must be > 0, got {depth_png_scale!r}")
+            q = np.round(np.where(np.isfinite(dp), dp, 0.0) / depth_png_scale)
+            dp = np.where(q <= 65535, q, 0).astype(np.uint16)
     if masks is not None:
         mk = np.asarray(masks)
         if mk.shape != (t, h, w) or not (mk.dtype == bool or np.issubdtype(mk.dtype, np.integer)):
@@ -171,6 +180,8 @@ def write_transforms(
     if len(set(names)) != t:
         raise ValueError("write_transforms: frame_names must be distinct")
     extra = dict(extra or {})
+    if depths is not None and depth_png_scale is not None:
+        extra["depth_scale"] = float(depth_png_scale)
     for key in extra:
         if not isinstance(key, str) or key in _RESERVED_TOP:
             raise ValueError(f"write_transforms: extra field {key!r} is reserved or not a string")
@@ -191,7 +202,7 @@ def write_transforms(
             "h": int(h),
         }
         if depths is not None:
-            fr["depth_file_path"] = f"depth/{names[i]}.npy"
+            fr["depth_file_path"] = f"depth/{names[i]}.{'npy' if depth_png_scale is None else 'png'}"
         if masks is not None:
             fr["mask_path"] = f"mask/{names[i]}.png"
         frames.append(fr)
@@ -217,7 +228,8 @@ def write_transforms(
         else:
             plan.append((final, lambda tmp, s=src_paths[i]: shutil.copyfile(s, tmp)))
         if depths is not None:
-            plan.append((out / frames[i]["depth_file_path"], lambda tmp, a=dp[i]: _save_npy(tmp, a)))
+            save = _save_npy if depth_png_scale is None else (lambda tmp, a: iio.imwrite(tmp, a, extension=".png"))
+            plan.append((out / frames[i]["depth_file_path"], lambda tmp, a=dp[i], save=save: save(tmp, a)))
         if masks is not None:
             plan.append((out / frames[i]["mask_path"], lambda tmp, a=mk[i]: iio.imwrite(tmp, a, extension=".png")))
     json_path = out / f"transforms_{split}.json"

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from fgjax.data.opticalflow import estimate_flow, forward_backward_mask
+from fgjax.geometry import look_at_point
 
 __all__ = ["triangulate_midpoint", "pixel_rays", "free_space_violations", "flow_point_cloud", "scene_box", "visible_any",
            "random_points", "first_view_colors"]
@@ -181,21 +182,9 @@ def flow_point_cloud(scene, *, gap: int = 4, stride: int = 2, method: str = "dis
 
 def scene_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """A box the cameras look into: centred on the least-squares closest point to all optical axes,
-    half-size the median camera distance to it (no depth, no SfM points needed)."""
-    r = viewmats[:, :3, :3]
-    c = -np.einsum("tji,tj->ti", r, viewmats[:, :3, 3])  # camera centres
-    d = r[:, 2, :]  # optical axes (world)
-    a = np.zeros((3, 3))
-    b = np.zeros(3)
-    for ci, di in zip(c, d):
-        p = np.eye(3) - np.outer(di, di)
-        a += p
-        b += p @ ci
-    if np.linalg.cond(a) < 1e8:
-        centre = np.linalg.solve(a, b)
-    else:  # all axes parallel: a point in front of the cameras
-        centre = c.mean(0) + d.mean(0)
-    rad = float(np.median(np.linalg.norm(c - centre, axis=-1)))
+    half-size the median camera distance to it (`fgjax.geometry.look_at_point`: one unit in front of cameras
+    that share one centre; no depth, no SfM points needed)."""
+    centre, rad = look_at_point(viewmats)
     rad = max(rad, 1e-3)
     return centre - rad, centre + rad
 

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fgjax.gaussians import Gaussians, activate
-from fgjax.geometry import matmul, se3_exp
+from fgjax.geometry import look_at_point, matmul, se3_exp
 from fgjax.models.deform import DeformSpec, deform_apply
 from fgjax.render.api import rasterization, spherical_harmonics
 
@@ -21,9 +21,13 @@ __all__ = ["scene_extent", "deformed_gaussians", "render_params", "refined_viewm
 
 
 def scene_extent(viewmats: np.ndarray) -> float:
-    """3DGS's camera extent: 1.1 x the largest distance of a camera centre from their mean."""
+    """3DGS's camera extent: 1.1 x the largest distance of a camera centre from their mean, but at least 1.1 x a
+    quarter of the cameras' distance to the point they look at (`fgjax.geometry.look_at_point`). The floor only acts
+    for cameras that barely move against the distance to what they see (a still camera, a camera that only turns,
+    a short hand-held baseline), whose spread says nothing of the scene's size; an orbit is unaffected."""
     c = -np.einsum("tji,tj->ti", viewmats[:, :3, :3], viewmats[:, :3, 3])
-    return 1.1 * float(max(np.max(np.linalg.norm(c - c.mean(0), axis=-1)), 1e-3))
+    spread = float(np.max(np.linalg.norm(c - c.mean(0), axis=-1)))
+    return 1.1 * max(spread, 0.25 * look_at_point(viewmats)[1], 1e-3)
 
 
 def deformed_gaussians(params, alive, t, spec: DeformSpec | None):

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from fgjax.data.write import write_transforms
+from fgjax.io import replace_folder
 from fgjax.synth.parts import ROOM_SIZE, axis_angle_matrix, normalize, rigid_inv, smoothstep
 from fgjax.synth.render import Renders, render_sequence, sequence_flow
 from fgjax.synth.scene import SynthConfig, SynthScene, camera_c2w, make_scene, object_centres, scene_states
@@ -80,22 +81,6 @@ def _prepare_out(out: Path, overwrite: bool) -> None:
         raise FileExistsError(f"synth: {out} exists and is not a directory")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(f"synth: {out} is not empty (pass overwrite=True / --overwrite to replace it)")
-
-
-def _install(tmp: Path, out: Path) -> None:
-    """Move the finished tmp folder to `out` (replacing it), keeping `out` intact until the swap."""
-    old = None
-    if out.exists():
-        old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
-        os.replace(out, old)
-    try:
-        os.replace(tmp, out)
-    except BaseException:
-        if old is not None:
-            os.replace(old, out)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 _FILES_DOC = {
@@ -271,7 +256,7 @@ def generate(
                                  progress=frame_progress("test"))
         _write_all(tmp, scene, train, tests, te)
         _prepare_out(out, overwrite)  # re-check: someone may have filled it meanwhile
-        _install(tmp, out)
+        replace_folder(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         for d in reversed(made):  # parent folders this call created

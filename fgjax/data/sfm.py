@@ -1,0 +1,310 @@
+"""Camera poses of a monocular clip: incremental structure from motion (pycolmap), and the fallbacks when it
+cannot register the clip (a camera held still, or turned about its centre).
+
+- `run_sfm`: COLMAP's incremental pipeline through pycolmap (an optional dependency: ``pip install 'fgjax[video]'``):
+  SIFT features, sequential matching (each frame against the next ``overlap`` frames), one shared camera
+  (SIMPLE_RADIAL: f, cx, cy, k1; or SIMPLE_PINHOLE), incremental mapping. The largest model is kept. Its parallax is
+  the median triangulation angle of its points: for each point, the largest angle between the rays from the camera
+  centres that see it.
+- `rotation_poses`: camera rotations about a fixed centre, fitted between consecutive frames
+  (the rays of a static feature in consecutive frames differ by the relative rotation), SIFT matches (OpenCV) and
+  a 3-degree-of-freedom RANSAC; no pycolmap.
+- `feature_motion`: how far the image content moves over the clip, as an angle: the median displacement of matched
+  features between frames ``gap`` apart, divided by the focal length (degrees).
+
+Conventions: OpenCV cameras, camera-to-world 4x4 matrices; COLMAP's principal point uses the pixel-centre-at-+0.5
+convention, as fgjax does, so no half-pixel shift is applied.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+try:  # optional: fgjax[video]
+    import pycolmap
+except ImportError:  # pragma: no cover - depends on the environment
+    pycolmap = None
+
+__all__ = ["SfmResult", "PYCOLMAP_MISSING", "have_pycolmap", "run_sfm", "rotation_poses", "feature_motion",
+           "focal_from_fov", "nearest_rotation", "relative_rotation"]
+
+PYCOLMAP_MISSING = ("pycolmap is not installed; structure from motion needs it: pip install 'fgjax[video]' "
+                    "(or pass --still for a still camera)")
+CAMERA_MODELS = ("SIMPLE_RADIAL", "SIMPLE_PINHOLE")
+
+
+def have_pycolmap() -> bool:
+    """True when pycolmap can be imported."""
+    return pycolmap is not None
+
+
+@dataclasses.dataclass(frozen=True)
+class SfmResult:
+    """What incremental SfM recovered from T frames.
+
+    Attributes:
+        K: [3, 3] shared pinhole intrinsics (pixels, centre-at-+0.5 principal point).
+        k1: radial distortion of SIMPLE_RADIAL (0 for SIMPLE_PINHOLE), on normalised coordinates:
+            x_d = x (1 + k1 r^2), the same model as OpenCV's first coefficient.
+        c2w: [T, 4, 4] OpenCV camera-to-world (SfM units); NaN for frames not registered.
+        registered: [T] bool.
+        points: [P, 3] sparse points (SfM units); colors [P, 3] uint8.
+        parallax_deg: median triangulation angle of the points (degrees; 0 without points).
+        reprojection_error: mean reprojection error in pixels.
+        models: number of models COLMAP built (the largest is kept).
+    """
+
+    K: np.ndarray
+    k1: float
+    c2w: np.ndarray
+    registered: np.ndarray
+    points: np.ndarray
+    colors: np.ndarray
+    parallax_deg: float
+    reprojection_error: float
+    models: int
+
+    @property
+    def num_registered(self) -> int:
+        return int(self.registered.sum())
+
+
+def focal_from_fov(width: int, fov_deg: float) -> float:
+    """Focal length in pixels of a pinhole whose horizontal field of view is ``fov_deg``: W / (2 tan(fov / 2))."""
+    if not 1.0 <= fov_deg <= 170.0:
+        raise ValueError(f"--fov must be in [1, 170] degrees, got {fov_deg}")
+    return width / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+
+
+def nearest_rotation(m: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) to the 3x3 matrix ``m``: U diag(1, 1, det(U V^T)) V^T."""
+    u, _, vt = np.linalg.svd(m)
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
+def _triangulation_angles(rec, centres: dict[int, np.ndarray]) -> np.ndarray:
+    """[P] for each point of `rec`: the largest angle (degrees) between rays from the centres that see it."""
+    out = []
+    for p in rec.points3D.values():
+        ids = {el.image_id for el in p.track.elements}
+        rays = np.array([p.xyz - centres[i] for i in ids if i in centres])
+        if len(rays) < 2:
+            continue
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        cos = np.clip(rays @ rays.T, -1.0, 1.0)
+        out.append(math.degrees(math.acos(float(cos.min()))))
+    return np.asarray(out, np.float64)
+
+
+@contextlib.contextmanager
+def _quiet_colmap(verbose: bool):
+    """COLMAP logs every step at INFO to stderr; keep only errors unless ``verbose``."""
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = old if verbose else 2
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+def run_sfm(images: np.ndarray, *, camera_model: str = "SIMPLE_RADIAL", overlap: int = 10,
+            threads: int | None = None, seed: int = 0, work_dir: str | os.PathLike | None = None,
+            verbose: bool = False, log: Callable[[str], None] = print) -> SfmResult:
+    """Incremental SfM on frames ``images`` [T, H, W, 3] uint8 RGB (one camera).
+
+    Args:
+        images: the frames, in order (sequential matching pairs frame i with i + 1 .. i + overlap, and with
+            frames at quadratic offsets).
+        camera_model: "SIMPLE_RADIAL" or "SIMPLE_PINHOLE" (one camera shared by all frames).
+        overlap: the sequential matcher's window.
+        threads: CPU threads for COLMAP (default: all, at most 4).
+        seed: COLMAP's random seed (results are repeatable for a given seed and thread count).
+        work_dir: folder for COLMAP's database and images (default: a temporary folder, removed after).
+        verbose: let COLMAP log at INFO level.
+        log: progress lines.
+
+    Returns:
+        The `SfmResult` of the largest model; every frame unregistered when COLMAP builds none.
+
+    Raises:
+        ImportError: pycolmap is missing (`PYCOLMAP_MISSING`).
+    """
+    if pycolmap is None:
+        raise ImportError(PYCOLMAP_MISSING)
+    if camera_model not in CAMERA_MODELS:
+        raise ValueError(f"camera model must be one of {', '.join(CAMERA_MODELS)}, got {camera_model!r}")
+    t, h, w = images.shape[:3]
+    threads = threads or min(os.cpu_count() or 1, 4)
+    own = work_dir is None
+    work = Path(tempfile.mkdtemp(prefix="fgjax-sfm-")) if own else Path(work_dir)
+    try:
+        img_dir = work / "images"
+        img_dir.mkdir(parents=True, exist_ok=True)
+        names = [f"{i:05d}.png" for i in range(t)]
+        for name, img in zip(names, images, strict=True):
+            cv2.imwrite(str(img_dir / name), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        db = work / "database.db"
+        if db.exists():
+            db.unlink()
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        extract = pycolmap.FeatureExtractionOptions()
+        extract.num_threads = threads
+        match = pycolmap.FeatureMatchingOptions()
+        match.num_threads = threads
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = overlap
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.num_threads = threads
+        opts.random_seed = seed
+        opts.min_model_size = 3
+        (work / "sparse").mkdir(exist_ok=True)
+        with _quiet_colmap(verbose):
+            pycolmap.extract_features(db, img_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                      reader_options=reader, extraction_options=extract)
+            log(f"sfm: SIFT features of {t} frames")
+            pycolmap.match_sequential(db, matching_options=match, pairing_options=pairing)
+            log(f"sfm: sequential matching (overlap {overlap})")
+            models = pycolmap.incremental_mapping(db, img_dir, work / "sparse", options=opts)
+    finally:
+        if own:
+            shutil.rmtree(work, ignore_errors=True)
+    c2w = np.full((t, 4, 4), np.nan)
+    registered = np.zeros(t, bool)
+    fx = focal_from_fov(w, 60.0)
+    K, k1 = np.array([[fx, 0, w / 2], [0, fx, h / 2], [0, 0, 1.0]]), 0.0
+    if not models:
+        return SfmResult(K, k1, c2w, registered, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), 0.0, float("nan"), 0)
+    rec = max(models.values(), key=lambda r: r.num_reg_images())
+    index = {name: i for i, name in enumerate(names)}
+    centres = {}
+    for image_id, im in rec.images.items():
+        if not im.has_pose:
+            continue
+        m = np.eye(4)
+        m[:3] = im.cam_from_world().matrix()
+        i = index[im.name]
+        c2w[i] = np.linalg.inv(m)
+        registered[i] = True
+        centres[image_id] = c2w[i, :3, 3]
+    cam = next(iter(rec.cameras.values()))
+    K = np.asarray(cam.calibration_matrix(), np.float64)
+    k1 = float(cam.params[3]) if camera_model == "SIMPLE_RADIAL" else 0.0
+    pts = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    cols = np.array([p.color for p in rec.points3D.values()], np.uint8).reshape(-1, 3)
+    angles = _triangulation_angles(rec, centres)
+    return SfmResult(K, k1, c2w, registered, pts, cols, float(np.median(angles)) if len(angles) else 0.0,
+                     float(rec.compute_mean_reprojection_error()), len(models))
+
+
+def _sift_matches(sift, matcher, a: np.ndarray, b: np.ndarray, feats: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Matched pixel positions ([M, 2], [M, 2]) between frames a and b (grey uint8), Lowe's ratio test 0.75."""
+    for img in (a, b):
+        if id(img) not in feats:
+            kp, des = sift.detectAndCompute(img, None)
+            feats[id(img)] = (np.array([k.pt for k in kp], np.float64).reshape(-1, 2), des)
+    (pa, da), (pb, db) = feats[id(a)], feats[id(b)]
+    if da is None or db is None or len(da) < 2 or len(db) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    pairs = matcher.knnMatch(da, db, k=2)
+    good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < 0.75 * m[1].distance]
+    ia = np.array([m.queryIdx for m in good], int)
+    ib = np.array([m.trainIdx for m in good], int)
+    return pa[ia], pb[ib]
+
+
+def _grey(images: np.ndarray) -> list[np.ndarray]:
+    return [cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2GRAY) for im in images]
+
+
+def feature_motion(images: np.ndarray, focal: float, *, pairs: int = 8) -> float:
+    """Median angle (degrees) by which matched SIFT features move between frames T // pairs apart: the median over
+    up to ``pairs`` frame pairs of each pair's median displacement / ``focal``. 0 for fewer than 2 frames or no
+    matches. Measures the camera's motion (turning and moving) and the objects', not parallax alone."""
+    t = len(images)
+    if t < 2:
+        return 0.0
+    gap = max(1, (t - 1) // pairs)
+    grey = _grey(images)
+    sift, matcher, feats = cv2.SIFT_create(nfeatures=1000), cv2.BFMatcher(cv2.NORM_L2), {}
+    meds = []
+    for i in range(0, t - gap, gap):
+        a, b = _sift_matches(sift, matcher, grey[i], grey[i + gap], feats)
+        if len(a):
+            meds.append(float(np.median(np.linalg.norm(b - a, axis=1))))
+    return math.degrees(math.atan(float(np.median(meds)) / focal)) if meds else 0.0
+
+
+def _kabsch_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rotation R minimising sum |b_k - R a_k|^2 over unit rays a, b [M, 3]."""
+    return nearest_rotation(b.T @ a)
+
+
+def relative_rotation(rays_a: np.ndarray, rays_b: np.ndarray, *, threshold: float, iters: int = 200,
+                      seed: int = 0) -> tuple[np.ndarray, int]:
+    """(R, inliers): the rotation with rays_b ~ R rays_a ([M, 3] unit rays of matched features) by RANSAC over
+    3-ray Kabsch fits, inliers within ``threshold`` radians, refitted on the inliers (identity and 0 for M < 3)."""
+    m = len(rays_a)
+    if m < 3:
+        return np.eye(3), 0
+    rng = np.random.default_rng(seed)
+    best, best_n = np.eye(3), -1
+    cos_t = math.cos(threshold)
+    for _ in range(iters):
+        s = rng.choice(m, 3, replace=False)
+        r = _kabsch_rotation(rays_a[s], rays_b[s])
+        n = int(np.sum(np.einsum("mi,mi->m", rays_a @ r.T, rays_b) >= cos_t))
+        if n > best_n:
+            best, best_n = r, n
+    inl = np.einsum("mi,mi->m", rays_a @ best.T, rays_b) >= cos_t
+    if inl.sum() >= 3:
+        best = _kabsch_rotation(rays_a[inl], rays_b[inl])
+        inl = np.einsum("mi,mi->m", rays_a @ best.T, rays_b) >= cos_t
+    return best, int(inl.sum())
+
+
+def rotation_poses(images: np.ndarray, K: np.ndarray, *, min_inliers: int = 15,
+                   log: Callable[[str], None] | None = None) -> tuple[np.ndarray, int]:
+    """Rotation-only camera-to-world poses [T, 4, 4] (OpenCV; centres at the origin, frame 0 the identity) of a
+    camera that turns about a fixed centre, and how many of the T - 1 consecutive pairs gave a rotation.
+
+    For a camera that only turns, the rays r = K^-1 x~ (normalised) of a static feature in frames i - 1 and i satisfy
+    r_i = R_i R_{i-1}^T r_{i-1} (R: world-to-camera rotations). Each consecutive pair's rotation is fitted to its SIFT
+    matches (`relative_rotation`: 3-degree-of-freedom RANSAC, inliers within 1.5 pixels; moving objects are
+    outliers); a pair with fewer than ``min_inliers`` inliers keeps the previous rotation. Rotations are chained from
+    frame 0, so they drift with the clip's length."""
+    t = len(images)
+    grey = _grey(images)
+    sift, matcher, feats = cv2.SIFT_create(nfeatures=2000, contrastThreshold=0.02), cv2.BFMatcher(cv2.NORM_L2), {}
+    kinv = np.linalg.inv(K)
+
+    def rays(px):
+        r = np.concatenate([px, np.ones((len(px), 1))], axis=1) @ kinv.T
+        return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+    rots = [np.eye(3)]  # world-to-camera rotations
+    ok = 0
+    for i in range(1, t):
+        a, b = _sift_matches(sift, matcher, grey[i - 1], grey[i], feats)
+        feats.pop(id(grey[i - 1]), None)
+        rel, n = relative_rotation(rays(a), rays(b), threshold=1.5 / K[0, 0], seed=i)
+        if n >= min_inliers:
+            ok += 1
+        else:
+            rel = np.eye(3)
+        rots.append(rel @ rots[-1])
+    c2w = np.tile(np.eye(4), (t, 1, 1))
+    c2w[:, :3, :3] = np.transpose(np.stack(rots), (0, 2, 1))
+    if log is not None:
+        log(f"rotation: rotations of {ok} of {t - 1} frame pairs")
+    return c2w, ok

@@ -45,7 +45,7 @@ import numpy as np
 
 from fgjax.data.record3d import read_record3d
 from fgjax.data.scene import Normalization
-from fgjax.data.sfm import feature_motion, focal_from_fov, have_pycolmap, rotation_poses, run_sfm
+from fgjax.data.sfm import focal_from_fov, have_pycolmap, image_motion, rotation_poses, run_sfm
 from fgjax.data.video import read_video
 from fgjax.data.write import write_transforms
 from fgjax.geometry import c2w_to_viewmat, look_at_point
@@ -134,9 +134,9 @@ def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 6
     f0 = focal_from_fov(w, fov_deg)
     k_default = np.array([[f0, 0.0, w / 2], [0.0, f0, h / 2], [0.0, 0.0, 1.0]])
     t0 = time.perf_counter()
-    motion = feature_motion(images, f0)
-    info: dict[str, Any] = {"motion_deg": motion}
-    log(f"prepare: image content moves by a median {motion:.2f} deg between frames {max(1, (t - 1) // 8)} apart")
+    motion = image_motion(images, f0)
+    info: dict[str, Any] = {"motion_deg_per_frame": motion}
+    log(f"prepare: the image moves by a median {motion:.3f} deg a frame (optical flow / the --fov focal length)")
     reason = f"--poses {poses}"
     if poses == "auto":
         if not have_pycolmap():

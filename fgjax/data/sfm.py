@@ -7,10 +7,10 @@ cannot register the clip (a camera held still, or turned about its centre).
   the median triangulation angle of its points: for each point, the largest angle between the rays from the camera
   centres that see it.
 - `rotation_poses`: camera rotations about a fixed centre, fitted between consecutive frames
-  (the rays of a static feature in consecutive frames differ by the relative rotation), SIFT matches (OpenCV) and
-  a 3-degree-of-freedom RANSAC; no pycolmap.
-- `feature_motion`: how far the image content moves over the clip, as an angle: the median displacement of matched
-  features between frames ``gap`` apart, divided by the focal length (degrees).
+  (the rays of a static point in consecutive frames differ by the relative rotation), dense optical flow (OpenCV's
+  DIS) and a 3-degree-of-freedom MSAC; no pycolmap.
+- `image_motion`: how far the image content moves from frame to frame, as an angle: the median optical-flow
+  magnitude divided by the focal length (degrees per frame).
 
 Conventions: OpenCV cameras, camera-to-world 4x4 matrices; COLMAP's principal point uses the pixel-centre-at-+0.5
 convention, as fgjax does, so no half-pixel shift is applied.
@@ -30,12 +30,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fgjax.data.opticalflow import estimate_flow, forward_backward_mask
+
 try:  # optional: fgjax[video]
     import pycolmap
 except ImportError:  # pragma: no cover - depends on the environment
     pycolmap = None
 
-__all__ = ["SfmResult", "PYCOLMAP_MISSING", "have_pycolmap", "run_sfm", "rotation_poses", "feature_motion",
+__all__ = ["SfmResult", "PYCOLMAP_MISSING", "have_pycolmap", "run_sfm", "rotation_poses", "image_motion",
            "focal_from_fov", "nearest_rotation", "relative_rotation"]
 
 PYCOLMAP_MISSING = ("pycolmap is not installed; structure from motion needs it: pip install 'fgjax[video]' "
@@ -207,41 +209,30 @@ def run_sfm(images: np.ndarray, *, camera_model: str = "SIMPLE_RADIAL", overlap:
                      float(rec.compute_mean_reprojection_error()), len(models))
 
 
-def _sift_matches(sift, matcher, a: np.ndarray, b: np.ndarray, feats: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Matched pixel positions ([M, 2], [M, 2]) between frames a and b (grey uint8), Lowe's ratio test 0.75."""
-    for img in (a, b):
-        if id(img) not in feats:
-            kp, des = sift.detectAndCompute(img, None)
-            feats[id(img)] = (np.array([k.pt for k in kp], np.float64).reshape(-1, 2), des)
-    (pa, da), (pb, db) = feats[id(a)], feats[id(b)]
-    if da is None or db is None or len(da) < 2 or len(db) < 2:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    pairs = matcher.knnMatch(da, db, k=2)
-    good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < 0.75 * m[1].distance]
-    ia = np.array([m.queryIdx for m in good], int)
-    ib = np.array([m.trainIdx for m in good], int)
-    return pa[ia], pb[ib]
+def _flow_pairs(images: np.ndarray, pairs: list[tuple[int, int]], grid: int = 6):
+    """For each frame pair (i, j): pixel positions in i and where the forward DIS flow takes them in j ([M, 2] each),
+    on a grid every ``grid`` pixels, kept where the backward flow confirms the forward one."""
+    for i, j in pairs:
+        fw = estimate_flow(images[i], images[j], "dis")
+        bw = estimate_flow(images[j], images[i], "dis")
+        ok = forward_backward_mask(fw, bw)
+        ys, xs = np.mgrid[grid // 2:fw.shape[0]:grid, grid // 2:fw.shape[1]:grid]
+        keep = ok[ys, xs]
+        a = np.stack([xs[keep] + 0.5, ys[keep] + 0.5], axis=-1).astype(np.float64)  # pixel centres
+        yield a, a + fw[ys[keep], xs[keep]].astype(np.float64)
 
 
-def _grey(images: np.ndarray) -> list[np.ndarray]:
-    return [cv2.cvtColor(np.ascontiguousarray(im), cv2.COLOR_RGB2GRAY) for im in images]
-
-
-def feature_motion(images: np.ndarray, focal: float, *, pairs: int = 8) -> float:
-    """Median angle (degrees) by which matched SIFT features move between frames T // pairs apart: the median over
-    up to ``pairs`` frame pairs of each pair's median displacement / ``focal``. 0 for fewer than 2 frames or no
-    matches. Measures the camera's motion (turning and moving) and the objects', not parallax alone."""
+def image_motion(images: np.ndarray, focal: float, *, pairs: int = 16) -> float:
+    """How far the image content moves from one frame to the next, as an angle: the median over up to ``pairs``
+    evenly spaced consecutive pairs of the median optical-flow magnitude (DIS, forward-backward consistent pixels)
+    divided by ``focal``, in degrees per frame (0 for fewer than 2 frames). Camera and objects both move it; the
+    median follows the larger share of the image."""
     t = len(images)
     if t < 2:
         return 0.0
-    gap = max(1, (t - 1) // pairs)
-    grey = _grey(images)
-    sift, matcher, feats = cv2.SIFT_create(nfeatures=1000), cv2.BFMatcher(cv2.NORM_L2), {}
-    meds = []
-    for i in range(0, t - gap, gap):
-        a, b = _sift_matches(sift, matcher, grey[i], grey[i + gap], feats)
-        if len(a):
-            meds.append(float(np.median(np.linalg.norm(b - a, axis=1))))
+    starts = np.unique(np.linspace(0, t - 2, min(pairs, t - 1)).round().astype(int))
+    meds = [float(np.median(np.linalg.norm(b - a, axis=1))) for a, b in _flow_pairs(images, [(i, i + 1) for i in starts])
+            if len(a)]
     return math.degrees(math.atan(float(np.median(meds)) / focal)) if meds else 0.0
 
 
@@ -252,40 +243,47 @@ def _kabsch_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def relative_rotation(rays_a: np.ndarray, rays_b: np.ndarray, *, threshold: float, iters: int = 200,
                       seed: int = 0) -> tuple[np.ndarray, int]:
-    """(R, inliers): the rotation with rays_b ~ R rays_a ([M, 3] unit rays of matched features) by RANSAC over
-    3-ray Kabsch fits, inliers within ``threshold`` radians, refitted on the inliers (identity and 0 for M < 3)."""
+    """(R, inliers): the rotation with rays_b ~ R rays_a ([M, 3] unit rays of matched features) by MSAC over 3-ray
+    Kabsch fits (each fit scored by sum_k min(e_k^2, threshold^2), e_k the angle between R a_k and b_k in radians, so
+    that a fit is not pulled towards a second, moving group by a loose threshold), refitted twice on its inliers
+    (e_k < threshold); the identity and 0 for M < 3."""
     m = len(rays_a)
     if m < 3:
         return np.eye(3), 0
     rng = np.random.default_rng(seed)
-    best, best_n = np.eye(3), -1
-    cos_t = math.cos(threshold)
+
+    def err2(r):  # [M] squared angles (small-angle: |R a - b|^2)
+        return np.sum((rays_a @ r.T - rays_b) ** 2, axis=1)
+
+    t2 = threshold**2
+    best, best_cost = np.eye(3), np.inf
     for _ in range(iters):
         s = rng.choice(m, 3, replace=False)
         r = _kabsch_rotation(rays_a[s], rays_b[s])
-        n = int(np.sum(np.einsum("mi,mi->m", rays_a @ r.T, rays_b) >= cos_t))
-        if n > best_n:
-            best, best_n = r, n
-    inl = np.einsum("mi,mi->m", rays_a @ best.T, rays_b) >= cos_t
-    if inl.sum() >= 3:
+        cost = float(np.minimum(err2(r), t2).sum())
+        if cost < best_cost:
+            best, best_cost = r, cost
+    for _ in range(2):
+        inl = err2(best) < t2
+        if inl.sum() < 3:
+            break
         best = _kabsch_rotation(rays_a[inl], rays_b[inl])
-        inl = np.einsum("mi,mi->m", rays_a @ best.T, rays_b) >= cos_t
-    return best, int(inl.sum())
+    return best, int(np.sum(err2(best) < t2))
 
 
-def rotation_poses(images: np.ndarray, K: np.ndarray, *, min_inliers: int = 15,
+def rotation_poses(images: np.ndarray, K: np.ndarray, *, min_inliers: int = 50,
                    log: Callable[[str], None] | None = None) -> tuple[np.ndarray, int]:
     """Rotation-only camera-to-world poses [T, 4, 4] (OpenCV; centres at the origin, frame 0 the identity) of a
     camera that turns about a fixed centre, and how many of the T - 1 consecutive pairs gave a rotation.
 
-    For a camera that only turns, the rays r = K^-1 x~ (normalised) of a static feature in frames i - 1 and i satisfy
-    r_i = R_i R_{i-1}^T r_{i-1} (R: world-to-camera rotations). Each consecutive pair's rotation is fitted to its SIFT
-    matches (`relative_rotation`: 3-degree-of-freedom RANSAC, inliers within 1.5 pixels; moving objects are
-    outliers); a pair with fewer than ``min_inliers`` inliers keeps the previous rotation. Rotations are chained from
+    For a camera that only turns, the rays r = K^-1 x~ (normalised) of a static point in frames i - 1 and i satisfy
+    r_i = R_i R_{i-1}^T r_{i-1} (R: world-to-camera rotations). Each consecutive pair's rotation is fitted to its
+    optical flow on a 6-pixel grid (DIS, forward-backward consistent pixels; `relative_rotation`: 3-degree-of-freedom
+    MSAC, inliers within 0.5 pixel), so the static majority of the pixels decides even where the background has little
+    texture and moving hands and objects carry most of the corners; a pair with fewer than ``min_inliers`` inliers
+    keeps the previous rotation. Rotations are chained from
     frame 0, so they drift with the clip's length."""
     t = len(images)
-    grey = _grey(images)
-    sift, matcher, feats = cv2.SIFT_create(nfeatures=2000, contrastThreshold=0.02), cv2.BFMatcher(cv2.NORM_L2), {}
     kinv = np.linalg.inv(K)
 
     def rays(px):
@@ -294,10 +292,8 @@ def rotation_poses(images: np.ndarray, K: np.ndarray, *, min_inliers: int = 15,
 
     rots = [np.eye(3)]  # world-to-camera rotations
     ok = 0
-    for i in range(1, t):
-        a, b = _sift_matches(sift, matcher, grey[i - 1], grey[i], feats)
-        feats.pop(id(grey[i - 1]), None)
-        rel, n = relative_rotation(rays(a), rays(b), threshold=1.5 / K[0, 0], seed=i)
+    for i, (a, b) in enumerate(_flow_pairs(images, [(i - 1, i) for i in range(1, t)]), start=1):
+        rel, n = relative_rotation(rays(a), rays(b), threshold=0.5 / K[0, 0], seed=i)
         if n >= min_inliers:
             ok += 1
         else:

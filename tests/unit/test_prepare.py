@@ -7,22 +7,25 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _textured_room import TexturedRoom, look_at_c2w, orbit_c2w, pinhole, umeyama
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from _textured_room import TexturedRoom, look_at_c2w, orbit_c2w, pinhole, umeyama  # noqa: E402
-
-from fgjax.data.loaders import load_scene  # noqa: E402
-from fgjax.data.prepare import content_normalization, interleaved_split, prepare_record3d, prepare_video, write_scene  # noqa: E402
-from fgjax.data.record3d import read_record3d  # noqa: E402
-from fgjax.data.sfm import rotation_poses  # noqa: E402
-from fgjax.geometry import look_at_point, opencv_to_opengl_c2w, opengl_to_opencv_c2w  # noqa: E402
-from fgjax.io import write_video  # noqa: E402
-from fgjax.models.model import scene_extent  # noqa: E402
+from fgjax.data.loaders import load_scene
+from fgjax.data.prepare import (
+    content_normalization,
+    interleaved_split,
+    prepare_record3d,
+    prepare_video,
+    write_scene,
+)
+from fgjax.data.record3d import read_record3d
+from fgjax.data.sfm import rotation_poses
+from fgjax.geometry import look_at_point, opencv_to_opengl_c2w, opengl_to_opencv_c2w
+from fgjax.io import write_video
+from fgjax.models.model import scene_extent
 
 W, H = 320, 240
 
@@ -160,9 +163,8 @@ def write_record3d(folder: Path, c2w_cv: np.ndarray, K: np.ndarray, images: list
                    drop: str | None = None) -> Path:
     """A Record3D export as the app writes it: metadata with column-major K and [qx, qy, qz, qw, tx, ty, tz] poses in
     ARKit (OpenGL) axes, rgbd/<i>.jpg, lzfse-compressed float32 depth and uint8 confidence."""
-    from scipy.spatial.transform import Rotation
-
     import imageio.v3 as iio
+    from scipy.spatial.transform import Rotation
 
     folder.mkdir(parents=True)
     (folder / "rgbd").mkdir()

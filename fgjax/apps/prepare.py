@@ -17,7 +17,7 @@ import sys
 import time
 
 from fgjax.data.prepare import POSE_MODES, prepare_record3d, prepare_video, write_scene
-from fgjax.data.sfm import CAMERA_MODELS
+from fgjax.data.sfm import CAMERA_MODELS, focal_from_fov
 from fgjax.data.video import parse_frame_range
 
 
@@ -47,6 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     first, last = parse_frame_range(args.frames)
     if not 0.0 < args.min_registered <= 1.0:
         raise ValueError(f"--min-registered must be in (0, 1], got {args.min_registered}")
+    if args.test_every < 0 or args.test_every == 1:
+        raise ValueError(f"--test-every must be 0 (no test split) or >= 2, got {args.test_every}")
+    focal_from_fov(100, args.fov)  # checks --fov before any work
     say = lambda msg: print(msg, file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     if args.video:

@@ -1,4 +1,4 @@
-"""`fgjax prepare`'s pieces on clips with known cameras (a ray-cast textured room, tests/_textured_room.py):
+"""`fgjax prepare`'s pieces on clips with known cameras (a ray-cast textured room, tests/_captures.py):
 structure from motion recovers the poses up to a similarity, a still clip falls back to identity poses and a panning
 one to rotations, a Record3D export is read with its column-major K and ARKit axes, and the written scene loads with
 the normalisation it records."""
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _textured_room import TexturedRoom, look_at_c2w, orbit_c2w, pinhole, umeyama
+from _captures import TexturedRoom, look_at_c2w, orbit_c2w, pinhole, umeyama, write_record3d
 
 from fgjax.data.loaders import load_scene
 from fgjax.data.prepare import (
@@ -23,7 +23,7 @@ from fgjax.data.prepare import (
 )
 from fgjax.data.record3d import read_record3d
 from fgjax.data.sfm import rotation_poses
-from fgjax.geometry import look_at_point, opencv_to_opengl_c2w, opengl_to_opencv_c2w
+from fgjax.geometry import look_at_point, opengl_to_opencv_c2w
 from fgjax.io import write_video
 from fgjax.models.model import scene_extent
 
@@ -156,37 +156,6 @@ def test_interleaved_split_and_normalisation():
 
 
 # ----------------------------------------------------------------------------- Record3D
-
-
-def write_record3d(folder: Path, c2w_cv: np.ndarray, K: np.ndarray, images: list[np.ndarray],
-                   depths: list[np.ndarray] | None = None, conf: list[np.ndarray] | None = None,
-                   drop: str | None = None) -> Path:
-    """A Record3D export as the app writes it: metadata with column-major K and [qx, qy, qz, qw, tx, ty, tz] poses in
-    ARKit (OpenGL) axes, rgbd/<i>.jpg, lzfse-compressed float32 depth and uint8 confidence."""
-    import imageio.v3 as iio
-    from scipy.spatial.transform import Rotation
-
-    folder.mkdir(parents=True)
-    (folder / "rgbd").mkdir()
-    poses = []
-    for m in c2w_cv:
-        gl = opencv_to_opengl_c2w(m)
-        poses.append([*Rotation.from_matrix(gl[:3, :3]).as_quat().tolist(), *gl[:3, 3].tolist()])
-    h, w = images[0].shape[:2]
-    meta = {"fps": 30, "w": w, "h": h, "K": K.T.reshape(-1).tolist(), "poses": poses, "initPose": poses[0]}
-    if drop:
-        meta.pop(drop)
-    (folder / "metadata").write_text(json.dumps(meta))
-    for i, img in enumerate(images):
-        iio.imwrite(folder / "rgbd" / f"{i}.jpg", img, quality=95)
-    if depths is not None:
-        import liblzfse
-
-        for i, d in enumerate(depths):
-            (folder / "rgbd" / f"{i}.depth").write_bytes(liblzfse.compress(d.astype(np.float32).tobytes()))
-            if conf is not None:
-                (folder / "rgbd" / f"{i}.conf").write_bytes(liblzfse.compress(conf[i].astype(np.uint8).tobytes()))
-    return folder
 
 
 def test_record3d_reader_reprojects_a_known_point(tmp_path):

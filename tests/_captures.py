@@ -1,5 +1,6 @@
-"""A textured box room with a textured cube in it, ray-cast in numpy: short clips with exactly known cameras for the
-`fgjax prepare` tests (structure from motion needs texture and parallax; no JAX, so no compile time).
+"""Synthetic captures for the `fgjax prepare` tests: a textured box room with a textured cube in it, ray-cast in numpy
+(short clips with exactly known cameras: structure from motion needs texture and parallax; no JAX, so no compile
+time), and a Record3D export writer (`write_record3d`).
 
 World: z up, metres-like units. Room [-2, 2] x [-2, 2] x [0, 2.4] seen from inside; cube [-0.3, 0.3]^2 x [0, 0.6]
 (shifted by ``cube_offset``). Every face carries its own random multi-scale texture (bilinear look-up), so SIFT
@@ -8,11 +9,17 @@ finds plenty of features. Cameras are OpenCV c2w [4, 4]; images are rendered at 
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import cv2
+import imageio.v3 as iio
 import numpy as np
 from scipy.ndimage import map_coordinates
+from scipy.spatial.transform import Rotation
+
+from fgjax.geometry import opencv_to_opengl_c2w
 
 ROOM = (np.array([-2.0, -2.0, 0.0]), np.array([2.0, 2.0, 2.4]))
 CUBE = (np.array([-0.3, -0.3, 0.0]), np.array([0.3, 0.3, 0.6]))
@@ -119,3 +126,31 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     r = u @ d @ vt
     s = float(np.trace(np.diag(sig) @ d) / (a**2).sum(1).mean())
     return s, r, md - s * r @ ms
+
+
+def write_record3d(folder: Path, c2w_cv: np.ndarray, K: np.ndarray, images: list[np.ndarray],
+                   depths: list[np.ndarray] | None = None, conf: list[np.ndarray] | None = None,
+                   drop: str | None = None) -> Path:
+    """A Record3D export as the app writes it: metadata with column-major K and [qx, qy, qz, qw, tx, ty, tz] poses in
+    ARKit (OpenGL) axes, rgbd/<i>.jpg, lzfse-compressed float32 depth and uint8 confidence."""
+    folder.mkdir(parents=True)
+    (folder / "rgbd").mkdir()
+    poses = []
+    for m in c2w_cv:
+        gl = opencv_to_opengl_c2w(m)
+        poses.append([*Rotation.from_matrix(gl[:3, :3]).as_quat().tolist(), *gl[:3, 3].tolist()])
+    h, w = images[0].shape[:2]
+    meta = {"fps": 30, "w": w, "h": h, "K": K.T.reshape(-1).tolist(), "poses": poses, "initPose": poses[0]}
+    if drop:
+        meta.pop(drop)
+    (folder / "metadata").write_text(json.dumps(meta))
+    for i, img in enumerate(images):
+        iio.imwrite(folder / "rgbd" / f"{i}.jpg", img, quality=95)
+    if depths is not None:
+        import liblzfse
+
+        for i, d in enumerate(depths):
+            (folder / "rgbd" / f"{i}.depth").write_bytes(liblzfse.compress(d.astype(np.float32).tobytes()))
+            if conf is not None:
+                (folder / "rgbd" / f"{i}.conf").write_bytes(liblzfse.compress(conf[i].astype(np.uint8).tobytes()))
+    return folder

@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "prepare": ("fgjax.apps.prepare", "a phone clip (poses by SfM) or a Record3D export to a scene folder"),
     "flow": ("fgjax.apps.flow", "estimate optical flow over a sequence (cached)"),
     "train": ("fgjax.apps.train", "stage 1: deformable Gaussian training"),
+    "run": ("fgjax.apps.run", "flow, stage 1, stage 2, pictures and metrics on a scene folder in one command"),
     "stage2": ("fgjax.apps.stage2", "discovery, clustering and control network on a trained run"),
     "render": ("fgjax.apps.render", "render cameras (or --clusters object ids) from a trained run"),
     "control": ("fgjax.apps.control", "move a discovered object and render"),

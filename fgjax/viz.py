@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["to_u8", "upscale", "pad16", "ids_to_color", "depth_to_color"]
+__all__ = ["to_u8", "upscale", "pad16", "ids_to_color", "depth_to_color", "caption", "overlay_ids", "grid"]
 
 
 def to_u8(img: np.ndarray) -> np.ndarray:
@@ -52,3 +52,34 @@ def ids_to_color(ids: np.ndarray) -> np.ndarray:
     ids = np.asarray(ids)
     out = _ID_COLORS[np.clip(ids, 0, None) % len(_ID_COLORS)]
     return np.where((ids < 0)[..., None], 0, out).astype(np.uint8)
+
+
+def caption(img: np.ndarray, text: str) -> np.ndarray:
+    """[16 + H, W, 3] uint8: a white strip with ``text`` above ``img`` [H, W, 3] uint8 (same width)."""
+    strip = np.full((16, img.shape[1], 3), 255, np.uint8)
+    cv2.putText(strip, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([strip, img], axis=0)
+
+
+def overlay_ids(img: np.ndarray, ids: np.ndarray, weight: float = 0.55) -> np.ndarray:
+    """[H, W, 3] uint8: ``img`` (uint8) with the pixels of objects (``ids`` [H, W] >= 1) tinted by their colour
+    (`ids_to_color`, blended with ``weight``) and outlined; static pixels unchanged."""
+    img = np.asarray(img, np.uint8)
+    on = np.asarray(ids) >= 1
+    col = ids_to_color(ids).astype(np.float64)
+    out = np.where(on[..., None], (1 - weight) * img + weight * col, img).astype(np.uint8)
+    edge = on & (cv2.dilate(on.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+                 & ~cv2.erode(on.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool))
+    return np.where(edge[..., None], ids_to_color(ids), out).astype(np.uint8)
+
+
+def grid(rows: list[list[np.ndarray]], pad: int = 2) -> np.ndarray:
+    """Tiles (uint8 [h, w, 3], any sizes) laid out in rows, each padded white by ``pad`` and the rows' ends
+    padded to one width."""
+    made = []
+    for row in rows:
+        h = max(t.shape[0] for t in row)
+        tiles = [np.pad(t, ((pad, pad + h - t.shape[0]), (pad, pad), (0, 0)), constant_values=255) for t in row]
+        made.append(np.concatenate(tiles, axis=1))
+    w = max(r.shape[1] for r in made)
+    return np.concatenate([np.pad(r, ((0, 0), (0, w - r.shape[1]), (0, 0)), constant_values=255) for r in made])

@@ -58,8 +58,9 @@ class TexturedRoom:
                          for side in range(2)}
 
     def render(self, c2w: np.ndarray, K: np.ndarray, width: int, height: int, cube_offset=(0.0, 0.0, 0.0),
-               supersample: int = 2) -> np.ndarray:
-        """[H, W, 3] uint8 RGB of the room from camera ``c2w`` (OpenCV) with intrinsics ``K`` at (width, height)."""
+               supersample: int = 2, depth: bool = False):
+        """[H, W, 3] uint8 RGB of the room from camera ``c2w`` (OpenCV) with intrinsics ``K`` at (width, height);
+        with ``depth``, also the [H, W] float32 z-depth (the ray parameter: rays are K^-1 (u, v, 1), z = 1)."""
         s = supersample
         u, v = np.meshgrid((np.arange(width * s) + 0.5) / s, (np.arange(height * s) + 0.5) / s)
         d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ c2w[:3, :3].T
@@ -99,7 +100,10 @@ class TexturedRoom:
                     for ch in range(3):
                         img[m, ch] = map_coordinates(tex[..., ch], [cb, ca], order=1, mode="nearest")
         img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
-        return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+        rgb = (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+        if not depth:
+            return rgb
+        return rgb, cv2.resize(t.astype(np.float32), (width, height), interpolation=cv2.INTER_NEAREST)
 
 
 def orbit_c2w(n: int, *, sweep_deg: float = 40.0, radius: float = 1.6, height: float = 1.0,

@@ -29,33 +29,21 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import imageio.v3 as iio
 import numpy as np
 
 from fgjax import synth
-from fgjax.articulate.pipeline import run_articulated
 from fgjax.config import Config, load_config
 from fgjax.data.loaders import load_scene
 from fgjax.data.opticalflow import estimate_flow
 from fgjax.io import write_video
-from fgjax.method import stage1
 from fgjax.method.evaluate import write_control_metrics
-from fgjax.method.result import cluster_vectors_at, load_stage2, render_clusters, render_controlled
-from fgjax.method.stage2 import run_stage2
-from fgjax.viz import depth_to_color, ids_to_color, pad16, to_u8, upscale
+from fgjax.pipeline import train_and_discover, write_control_pictures
+from fgjax.viz import caption, depth_to_color, ids_to_color, pad16, to_u8, upscale
 
-__all__ = ["main", "contact_sheet", "pipeline_configs", "sweep_times", "changed_share"]
+__all__ = ["main", "contact_sheet", "pipeline_configs"]
 
 EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
-
-
-def _label(img: np.ndarray, text: str) -> np.ndarray:
-    """A strip with `text` above `img` (same width)."""
-    h = 16
-    strip = np.full((h, img.shape[1], 3), 255, np.uint8)
-    cv2.putText(strip, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    return np.concatenate([strip, img], axis=0)
 
 
 def _pick_frames(object_flow: np.ndarray, n: int) -> list[int]:
@@ -93,10 +81,10 @@ def contact_sheet(scene_dir: Path, n_rows: int = 4) -> np.ndarray:
         f = flow[min(i, t - 2)] if t > 1 else np.zeros((h, w, 2), np.float32)
         fv = fvalid[min(i, t - 2)] if t > 1 else np.zeros((h, w), bool)
         tiles = [
-            _label(upscale(rgb, s), f"frame {i} RGB"),
-            _label(upscale(depth_to_color(depth[i], valid[i], near=near, far=far), s), "depth"),
-            _label(upscale(synth.flow_to_color(f, max_flow, valid=fv), s), f"flow {i}->{i + 1} (max {max_flow:.1f}px)"),
-            _label(upscale(ids_to_color(ids[i]), s), "object id"),
+            caption(upscale(rgb, s), f"frame {i} RGB"),
+            caption(upscale(depth_to_color(depth[i], valid[i], near=near, far=far), s), "depth"),
+            caption(upscale(synth.flow_to_color(f, max_flow, valid=fv), s), f"flow {i}->{i + 1} (max {max_flow:.1f}px)"),
+            caption(upscale(ids_to_color(ids[i]), s), "object id"),
         ]
         rows.append(np.concatenate([np.pad(x, ((2, 2), (2, 2), (0, 0)), constant_values=255) for x in tiles], 1))
     return np.concatenate(rows, axis=0)
@@ -201,57 +189,9 @@ def pipeline_configs(flow_cache: Path, *, quick: bool, overrides: list[str], con
     return dataclasses.replace(cfg, stage2=dataclasses.replace(cfg.stage2, flow_cache=str(flow_cache)))
 
 
-def sweep_times(s2, k: int, n: int = 9) -> np.ndarray:
-    """[n] times from the reference time t0 to the time where object ``k``'s trajectory is farthest from its
-    reference position (`fgjax.method.result.cluster_vectors_at`): the sweep moves it through its whole range."""
-    disp = np.linalg.norm(s2.traj[k] - s2.traj[k, :1], axis=-1)  # [T]
-    return np.linspace(s2.traj_times[0], s2.traj_times[int(np.argmax(disp))], n)
-
-
-def changed_share(a: np.ndarray, b: np.ndarray, mask: np.ndarray, threshold: int = 20) -> float:
-    """Share of the pixels in ``mask`` [H, W] where the uint8 images ``a`` and ``b`` [H, W, 3] differ by more than
-    ``threshold`` in some channel (0 where the mask is empty)."""
-    diff = np.abs(a.astype(np.int16) - b.astype(np.int16)).max(-1) > threshold  # [H, W]
-    return float(diff[mask].mean()) if mask.any() else 0.0
-
-
-def write_control_pictures(out: Path, run, train) -> list[float]:
-    """OUT/control_sheet.png (a training frame, the controlled scene at v = 0, its object ids, each object at its
-    largest displacement) and OUT/control.mp4 (each object swept from rest to that displacement and back, captioned),
-    seen from the first training camera; prints where they went and how visibly each object moves
-    (`changed_share` over its pixels at both ends). Returns those shares, one per object."""
-    s2 = run.s2
-    vm, K, w, h = train.viewmats[0], train.Ks[0], train.width, train.height
-    v0 = np.zeros((max(s2.num_objects, 1), 3))  # v = 0 for every object
-    ids = render_clusters(run, vm, K, w, h, vectors=v0 if s2.num_objects else None)  # the scene beside it
-    rgb0 = render_controlled(run, v0, vm, K, w, h)
-    tiles = [_label(upscale(to_u8(train.images[0]), max(1, 240 // w)), "training frame 0"),
-             _label(upscale(to_u8(rgb0), max(1, 240 // w)), "stage 2, v = 0"),
-             _label(upscale(ids_to_color(ids), max(1, 240 // w)), f"{s2.num_objects} object(s) found")]
-    frames, moved = [], []
-    for k in range(s2.num_objects):
-        times = sweep_times(s2, k)
-        raw = []
-        for t in np.concatenate([times, times[::-1][1:]]):
-            vec = np.zeros((s2.num_objects, 3))
-            vec[k] = cluster_vectors_at(s2, t)[k]
-            raw.append(to_u8(render_controlled(run, vec, vm, K, w, h)))
-            frames.append(pad16(_label(upscale(raw[-1], max(1, 320 // w)), f"object {k + 1}")))
-        far = len(times) - 1  # the object at its largest displacement
-        ids_far = render_clusters(run, vm, K, w, h, vectors=np.where(np.arange(s2.num_objects)[:, None] == k,
-                                                                      cluster_vectors_at(s2, times[-1]), 0.0))
-        moved.append(changed_share(raw[0], raw[far], (ids == k + 1) | (ids_far == k + 1)))
-        tiles.append(_label(upscale(raw[far], max(1, 240 // w)), f"object {k + 1} moved"))
-    sheet = out / "control_sheet.png"
-    iio.imwrite(sheet, np.concatenate([np.pad(x, ((2, 2), (2, 2), (0, 0)), constant_values=255) for x in tiles], 1))
-    print(f"control sheet: {sheet}")
-    if frames:
-        print(f"control video: {write_video(frames, out / 'control.mp4')}")
-    return moved
-
-
 def _pipeline(out: Path, scene_dir: Path, cfg: Config, *, say) -> None:
-    """Optical flow -> stage 1 -> discovery/stage 2 -> control (sweep videos, cluster map) -> eval."""
+    """Optical flow -> stage 1 -> discovery/stage 2 (`fgjax.pipeline.train_and_discover`) -> control (sweep videos,
+    cluster map: `fgjax.pipeline.write_control_pictures`) -> eval."""
     t0 = time.perf_counter()
     cache = Path(cfg.stage2.flow_cache)
     train = load_scene(scene_dir, "train")
@@ -260,13 +200,7 @@ def _pipeline(out: Path, scene_dir: Path, cfg: Config, *, say) -> None:
         estimate_flow(to_u8(train.images[a]), to_u8(train.images[b]), "dis_deepflow", cache_dir=cache)
     say(f"demo: optical flow of {len(order) - 1} pairs ({time.perf_counter() - t0:.1f} s)")
     run_dir = out / "run"
-    stage1.run(cfg, scene_dir, run_dir, log=say)
-    say(f"demo: stage 1 done ({time.perf_counter() - t0:.1f} s)")
-    if cfg.stage2.variant == "articulated":
-        run_articulated(run_dir, scene_dir, cfg.stage2, cfg.articulate, log=say)
-    else:
-        run_stage2(run_dir, scene_dir, cfg.stage2, log=say)
-    run = load_stage2(run_dir)
+    run = train_and_discover(cfg, scene_dir, run_dir, log=say)
     moved = write_control_pictures(out, run, train)
     print(f"run:           {run_dir} (stage 1 + stage2.npz)")
     res = write_control_metrics(run, scene_dir)
@@ -274,7 +208,7 @@ def _pipeline(out: Path, scene_dir: Path, cfg: Config, *, say) -> None:
     if moved:
         print("visible motion: " + ", ".join(f"object {k + 1} {100 * m:.0f}%" for k, m in enumerate(moved))
               + " of its pixels change by more than 20/255 between the ends of its sweep")
-    if res:
+    if res and "ari" in res:
         print(f"objects found: {res['num_objects_found']} of {res['num_objects_gt']}; ARI {res['ari']:.3f}, "
               f"ARI of the controlled scene {res['ari_controlled']:.3f}; held-out states "
               f"{res.get('state_psnr', float('nan')):.2f} dB; stage-1 test views {res['view_psnr_stage1']:.2f} dB")

@@ -1,8 +1,21 @@
-"""``fgjax eval --run RUN [--data DATA]``: control metrics against ground truth (synthetic gt/ only).
+"""``fgjax eval --run RUN [--data DATA]``: control metrics against ground truth (synthetic gt/), or what can be
+measured without it (a real capture).
 
-Only this module reads ground truth; the pipeline never does. When DATA/gt/meta.json exists
-(`fgjax.synth`), RUN/metrics.json gets a ``"control"`` entry (written atomically, other entries
-kept):
+Only this module reads ground truth; the pipeline never does. RUN/metrics.json gets a ``"control"`` entry (written
+atomically, other entries kept). A scene without gt/meta.json (a real capture, `fgjax prepare`) gets
+`evaluate_measurable`'s entries:
+
+- ``ground_truth``: false.
+- ``num_objects_found``; ``object_pixel_share`` {object (1-based): the share of the pixels it covers in the
+  held-out test views, the stage-1 model's object ids at each view's time (`fgjax.method.result.render_clusters`),
+  averaged over the views}; ``views``: how many.
+- ``view_psnr_stage1``, ``view_ssim_stage1``: stage 1 on the held-out test views at their times.
+- ``depth_error_static`` (where the test views have depth, e.g. LiDAR): over the pixels with depth that the
+  stage-1 model covers (alpha >= 0.5) and labels static (id 0), the median and mean of |rendered depth - measured
+  depth| in world units (metres for a Record3D capture), the median relative error |d - d*| / d*, and the number of
+  pixels. The rendered depth is the expected depth (sum T alpha z / alpha).
+
+With ground truth (DATA/gt/meta.json, `fgjax.synth`):
 
 - ``ari``: adjusted Rand index of per-pixel object ids (`fgjax.method.result.render_clusters` with the stage-1
   model at the frame's time, 0 = static included) against gt object ids, over the test frames of
@@ -82,6 +95,7 @@ from pathlib import Path
 
 import cv2
 import imageio.v3 as iio
+import jax.numpy as jnp
 import numpy as np
 from sklearn.neighbors import NearestNeighbors
 
@@ -90,11 +104,13 @@ from fgjax.data.loaders import load_scene
 from fgjax.data.scene import Normalization
 from fgjax.io import atomic_write
 from fgjax.method import result
-from fgjax.method.stage1 import refined_viewmats, render_frame
+from fgjax.method.stage1 import evaluate as evaluate_stage1
+from fgjax.method.stage1 import load_test_views, refined_viewmats, render_frame
 from fgjax.metrics import rotation_angle_deg
+from fgjax.models.model import render_params
 from fgjax.synth import SynthObject, object_transform
 
-__all__ = ["write_control_metrics", "align_cameras", "run_camera", "apply_alignment", "camera_errors", "error_by_object", "evaluate_control", "gt_labels_of_gaussians",
+__all__ = ["write_control_metrics", "evaluate_measurable", "align_cameras", "run_camera", "apply_alignment", "camera_errors", "error_by_object", "evaluate_control", "gt_labels_of_gaussians",
            "gt_motion_scene", "gt_objects", "gt_point_motion"]
 
 
@@ -513,14 +529,60 @@ def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], 
     return {key: float(np.mean(v)) for key, v in out.items() if v}
 
 
-def write_control_metrics(run, data_dir: Path | None = None, maps_dir: Path | None = None, log=print) -> dict | None:
-    """`evaluate_control` of a loaded run (`fgjax.method.result.load_stage2`) written into RUN/metrics.json under
-    "control" (atomically; the other entries kept). ``data_dir`` defaults to the dataset stage 2 recorded. Returns
-    the metrics, or None when the dataset has no ground truth (gt/meta.json)."""
+def _render_depth(run, viewmat, K, t: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """(expected depth [H, W] in scene units, alpha [H, W]) of the stage-1 model at time t."""
+    _, alpha, info, _ = render_params(run.state.params, run.state.densify.alive, jnp.asarray(viewmat, jnp.float32),
+                                      jnp.asarray(K, jnp.float32), jnp.asarray(t, jnp.float32),
+                                      spec=None if run.static else run.spec, sh_degree=run.cfg.model.sh_degree,
+                                      width=int(width), height=int(height),
+                                      background=jnp.asarray(run.cfg.model.background, jnp.float32), capacity=None,
+                                      tile_size=run.cfg.train.tile_size, render_depth=True)
+    return np.asarray(info["depth"], np.float64), np.asarray(alpha, np.float64)
+
+
+def evaluate_measurable(run, data_dir: Path, log=print, min_alpha: float = 0.5) -> dict:
+    """The metrics of a scene without ground truth (module docstring: ``ground_truth`` false, objects and their
+    share of the frame, stage-1 test PSNR/SSIM, depth error on static pixels where the test views have depth; a
+    pixel's depth counts where the model covers it, alpha >= ``min_alpha``)."""
+    norm = Normalization.from_dict(run.meta["normalization"])
+    test, _, _ = load_test_views(Path(data_dir), run.cfg, norm)
+    k = run.s2.num_objects
+    res: dict = {"ground_truth": False, "num_objects_found": k}
+    if test is None or not test.num_frames:
+        log("eval: the scene has no test views; only the number of objects is measured")
+        return res
+    m = evaluate_stage1(run.state, run.spec, run.cfg, test)
+    res.update(view_psnr_stage1=m["psnr"], view_ssim_stage1=m["ssim"], views=test.num_frames)
+    shares = np.zeros(k)
+    errs, rel = [], []
+    for i in range(test.num_frames):
+        args = (test.viewmats[i], test.Ks[i])
+        ids = result.render_clusters(run, *args, test.width, test.height, t=float(test.times[i]))
+        shares += np.array([np.mean(ids == c + 1) for c in range(k)]) / test.num_frames
+        if test.depths is not None:
+            d, alpha = _render_depth(run, *args, float(test.times[i]), test.width, test.height)
+            ref = np.asarray(test.depths[i], np.float64)
+            ok = (ref > 0) & (alpha >= min_alpha) & (ids == 0) & (d > 0)
+            errs.append(norm.lengths_to_world(np.abs(d[ok] - ref[ok])))
+            rel.append(np.abs(d[ok] - ref[ok]) / ref[ok])
+    res["object_pixel_share"] = {str(c + 1): float(shares[c]) for c in range(k)}
+    if errs and sum(len(e) for e in errs):
+        e, r = np.concatenate(errs), np.concatenate(rel)
+        res["depth_error_static"] = {"median": float(np.median(e)), "mean": float(np.mean(e)),
+                                     "median_relative": float(np.median(r)), "pixels": int(len(e)),
+                                     "unit": "world units of the scene (metres for a Record3D capture)"}
+    return res
+
+
+def write_control_metrics(run, data_dir: Path | None = None, maps_dir: Path | None = None, log=print) -> dict:
+    """`evaluate_control` of a loaded run (`fgjax.method.result.load_stage2`), or `evaluate_measurable` where the
+    dataset has no ground truth (gt/meta.json), written into RUN/metrics.json under "control" (atomically; the other
+    entries kept). ``data_dir`` defaults to the dataset stage 2 recorded. Returns the metrics."""
     data = Path(data_dir) if data_dir is not None else Path(run.s2.meta.get("data_dir", ""))
-    if not (data / "gt" / "meta.json").is_file():
-        return None
-    res = evaluate_control(run, data, log=log, maps_dir=maps_dir)
+    if (data / "gt" / "meta.json").is_file():
+        res = evaluate_control(run, data, log=log, maps_dir=maps_dir)
+    else:
+        res = evaluate_measurable(run, data, log=log)
     path = Path(run.run_dir) / "metrics.json"
     old = json.loads(path.read_text()) if path.is_file() else {}
     old["control"] = res

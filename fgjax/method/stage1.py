@@ -709,7 +709,8 @@ def prepare_run_folder(out: Path, data_dir: Path, *, resume: bool = False, overw
     """Check that stage 1 may write the run folder ``out`` for the data in ``data_dir``, and clear it with
     ``overwrite``. A new run needs a missing or empty folder; an existing run is continued with ``resume`` (only on
     the data it was trained on, by `fgjax.provenance.scene_fingerprint`) or replaced whole with ``overwrite`` (its
-    stage-2 results too). Raises ValueError naming the folder and what to pass otherwise."""
+    stage-2 results too). A folder that holds only a flow cache (``flow_cache/``, filled before training) counts as
+    empty. Raises ValueError naming the folder and what to pass otherwise."""
     out, data_dir = Path(out), Path(data_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file, not a folder")
@@ -725,7 +726,7 @@ def prepare_run_folder(out: Path, data_dir: Path, *, resume: bool = False, overw
                          "(its stage-2 results too)")
     if is_run:
         shutil.rmtree(out)
-    elif out.is_dir() and any(out.iterdir()):
+    elif out.is_dir() and any(p.name != "flow_cache" for p in out.iterdir()):
         raise ValueError(f"--out {out} is a folder that is not empty and holds no run; choose another --out")
 
 

@@ -5,9 +5,11 @@ The steps, each a function:
 
 1. Frames: `fgjax.data.video.read_video` or `fgjax.data.record3d.read_record3d` (resized to at most ``max_side``
    pixels on the longer side).
-2. Cameras (`video_cameras`): pycolmap's incremental SfM (`fgjax.data.sfm.run_sfm`) with one shared camera. It is
-   accepted when it registers at least ``min_registered`` of the frames (and 3) with a horizontal field of view in
-   [20, 120] degrees; the frames it leaves out are dropped. SIMPLE_RADIAL's k1 is removed by undistorting the images
+2. Cameras (`video_cameras`): pycolmap's incremental SfM (`fgjax.data.sfm.run_sfm`) with one shared camera, unless
+   the image hardly moves over the clip (the median optical flow of a frame, `fgjax.data.sfm.image_motion`, times
+   the number of frames, under ``min_motion_deg`` at the ``fov_deg`` focal length): no parallax to triangulate. It is
+   accepted when it registers at least ``min_registered`` of the frames (and 3) with enough points, a plausible
+   field of view and distortion (`sfm_problem`); the frames it leaves out are dropped. SIMPLE_RADIAL's k1 is removed by undistorting the images
    (same K and size, border pixels replicated). Otherwise the clip falls back, with one line saying why, to a camera
    that turns about a fixed centre (`fgjax.data.sfm.rotation_poses`, fitted between consecutive frames) when
    it turns by more than ``still_deg`` somewhere, else to a still camera (identity poses); both with the focal length
@@ -52,7 +54,7 @@ from fgjax.geometry import c2w_to_viewmat, look_at_point
 from fgjax.io import replace_folder
 
 __all__ = ["Capture", "MIN_FRAMES", "PREPARE_NAME", "content_normalization", "interleaved_split",
-           "prepare_video", "prepare_record3d", "video_cameras", "write_scene"]
+           "prepare_video", "prepare_record3d", "sfm_problem", "video_cameras", "write_scene"]
 
 MIN_FRAMES = 4
 PREPARE_NAME = "prepare.json"
@@ -122,9 +124,25 @@ def _undistort(images: np.ndarray, K: np.ndarray, k1: float) -> np.ndarray:
     return np.stack([cv2.remap(im, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for im in images])
 
 
+def sfm_problem(sfm, width: int, need: int) -> str | None:
+    """Why an `fgjax.data.sfm.SfmResult` of frames ``width`` pixels wide is not used, or None: fewer than ``need``
+    frames registered, fewer than max(100, 5 per registered frame) points, a horizontal field of view outside
+    [20, 120] degrees, or |k1| > 0.5 (degenerate reconstructions of a clip with little parallax show all four)."""
+    fov = _fov(sfm.K, width)
+    if sfm.num_registered < need:
+        return f"SfM registered {sfm.num_registered} of {len(sfm.registered)} frames (needs {need})"
+    if len(sfm.points) < max(100, 5 * sfm.num_registered):
+        return f"SfM's {len(sfm.points)} points for {sfm.num_registered} frames are too few (a degenerate model)"
+    if not 20.0 <= fov <= 120.0:
+        return f"SfM's field of view {fov:.1f} deg is implausible (outside 20-120)"
+    if abs(sfm.k1) > 0.5:
+        return f"SfM's radial distortion k1 = {sfm.k1:.3g} is implausible (|k1| > 0.5)"
+    return None
+
+
 def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 60.0,
                   camera_model: str = "SIMPLE_RADIAL", min_registered: float = 0.5, still_deg: float = 0.5,
-                  log: Callable[[str], None] = print) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                  min_motion_deg: float = 1.0, log: Callable[[str], None] = print) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                                                   Normalization, dict[str, Any]]:
     """Cameras of frames ``images`` [T, H, W, 3] (module docstring, step 2): (kept frame numbers [T'] into images,
     images [T', H, W, 3] (undistorted where SfM found distortion), K [3, 3], c2w [T', 4, 4], normalisation, info)."""
@@ -136,9 +154,16 @@ def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 6
     t0 = time.perf_counter()
     motion = image_motion(images, f0)
     info: dict[str, Any] = {"motion_deg_per_frame": motion}
-    log(f"prepare: the image moves by a median {motion:.3f} deg a frame (optical flow / the --fov focal length)")
+    log(f"prepare: the image moves by a median {motion:.3f} deg a frame (optical flow / the --fov focal length; "
+        f"{time.perf_counter() - t0:.1f} s)")
+    t0 = time.perf_counter()
     reason = f"--poses {poses}"
-    if poses == "auto":
+    total = motion * (t - 1)
+    if poses == "auto" and total < min_motion_deg:
+        reason = (f"SfM skipped: the image moves by {total:.2f} deg over the clip (< {min_motion_deg:g}), too little "
+                  "for structure from motion")
+        info["sfm"] = {"registered": 0, "frames": t, "skipped": reason}
+    elif poses == "auto":
         if not have_pycolmap():
             raise ValueError("pycolmap is not installed; --video needs it for structure from motion: pip install "
                              "'fgjax[video]' (or pass --poses rotation or --poses still)")
@@ -151,22 +176,25 @@ def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 6
                        "fov_deg": fov, "k1": sfm.k1, "time_s": time.perf_counter() - t0}
         log(f"prepare: SfM registered {sfm.num_registered} of {t} frames, {len(sfm.points)} points, median parallax "
             f"{sfm.parallax_deg:.2f} deg, field of view {fov:.1f} deg ({time.perf_counter() - t0:.1f} s)")
-        if sfm.num_registered >= need and 20.0 <= fov <= 120.0:
+        reason = sfm_problem(sfm, w, need)
+        if reason is None:
             keep = np.flatnonzero(sfm.registered)
             imgs = images[keep]
             if abs(sfm.k1) > 1e-4:
                 imgs = _undistort(imgs, sfm.K, sfm.k1)
             norm, how = content_normalization(sfm.c2w[keep], sfm.points)
+            info["sfm"]["unregistered_frames"] = [int(i) for i in np.flatnonzero(~sfm.registered)]
             info.update(poses="sfm", fallback=None,
                         distortion=(f"{camera_model} k1 = {sfm.k1:.4g}: images undistorted (same K and size)"
                                     if abs(sfm.k1) > 1e-4 else "none (k1 ~ 0 or SIMPLE_PINHOLE)"),
                         normalization_how=how)
             return keep, imgs, sfm.K, sfm.c2w[keep], norm, info
-        reason = (f"SfM registered {sfm.num_registered} of {t} frames (needs {need})" if sfm.num_registered < need
-                  else f"SfM's field of view {fov:.1f} deg is implausible (outside 20-120)")
     rot = None
     if poses in ("auto", "rotation"):
+        t1 = time.perf_counter()
         rot, pairs = rotation_poses(images, k_default)
+        log(f"prepare: camera rotations fitted to the optical flow of {pairs} of {t - 1} frame pairs "
+            f"({time.perf_counter() - t1:.1f} s)")
         turn = max(math.degrees(math.acos(np.clip((np.trace(r[:3, :3]) - 1) / 2, -1, 1))) for r in rot)
         info["rotation"] = {"pairs_fitted": pairs, "pairs": t - 1, "max_turn_deg": turn}
         if poses == "auto" and turn <= still_deg:
@@ -176,7 +204,7 @@ def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 6
     c2w = np.tile(np.eye(4), (t, 1, 1)) if rot is None else rot
     norm, how = content_normalization(c2w)
     what = ("a still camera (identity poses)" if rot is None else
-            f"a camera turning about a fixed centre (rotations fitted to feature matches, up to {info['rotation']['max_turn_deg']:.1f} deg)")
+            f"a camera turning about a fixed centre (rotations fitted to the optical flow, up to {info['rotation']['max_turn_deg']:.1f} deg)")
     log(f"prepare: {reason}; falling back to {what}, focal {f0:.1f} px from a {fov_deg:g} deg horizontal field of "
         "view (--fov)")
     info.update(poses=mode, fallback=reason, distortion="ignored (pinhole assumed)", fov_deg=fov_deg,
@@ -201,6 +229,8 @@ def prepare_video(path: str | os.PathLike, *, max_side: int = 320, stride: int =
     keep, images, K, c2w, norm, info = video_cameras(vid.images, poses=poses, fov_deg=fov_deg,
                                                      camera_model=camera_model, min_registered=min_registered,
                                                      log=log)
+    if "unregistered_frames" in info.get("sfm", {}):  # as source frame numbers
+        info["sfm"]["unregistered_frames"] = [int(vid.indices[i]) for i in info["sfm"]["unregistered_frames"]]
     info = {"source": str(Path(path).absolute()), "kind": "video", **info,
             "frames": {"decoded": vid.decoded, "announced": vid.announced, "kept": int(len(keep)), "stride": stride,
                        "range": [first, last], "fps": vid.fps, "source_size": list(vid.source_size)},

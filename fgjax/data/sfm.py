@@ -120,8 +120,9 @@ def _quiet_colmap(verbose: bool):
 
 
 def run_sfm(images: np.ndarray, *, camera_model: str = "SIMPLE_RADIAL", overlap: int = 10,
-            threads: int | None = None, seed: int = 0, work_dir: str | os.PathLike | None = None,
-            verbose: bool = False, log: Callable[[str], None] = print) -> SfmResult:
+            threads: int | None = None, seed: int = 0, max_mapping_s: float = 300.0,
+            work_dir: str | os.PathLike | None = None, verbose: bool = False,
+            log: Callable[[str], None] = print) -> SfmResult:
     """Incremental SfM on frames ``images`` [T, H, W, 3] uint8 RGB (one camera).
 
     Args:
@@ -131,6 +132,8 @@ def run_sfm(images: np.ndarray, *, camera_model: str = "SIMPLE_RADIAL", overlap:
         overlap: the sequential matcher's window.
         threads: CPU threads for COLMAP (default: all, at most 4).
         seed: COLMAP's random seed (results are repeatable for a given seed and thread count).
+        max_mapping_s: stop the incremental mapping after this many seconds (COLMAP's ``max_runtime_seconds``;
+            what is registered by then is kept).
         work_dir: folder for COLMAP's database and images (default: a temporary folder, removed after).
         verbose: let COLMAP log at INFO level.
         log: progress lines.
@@ -170,6 +173,7 @@ def run_sfm(images: np.ndarray, *, camera_model: str = "SIMPLE_RADIAL", overlap:
         opts.num_threads = threads
         opts.random_seed = seed
         opts.min_model_size = 3
+        opts.max_runtime_seconds = int(max_mapping_s)
         (work / "sparse").mkdir(exist_ok=True)
         with _quiet_colmap(verbose):
             pycolmap.extract_features(db, img_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,

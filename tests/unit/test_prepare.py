@@ -89,41 +89,48 @@ def test_sfm_recovers_an_orbit_up_to_a_similarity(tmp_path):
 
 
 def test_a_still_clip_falls_back_to_identity_poses(tmp_path):
-    """A camera held still while the cube slides: SfM registers too few frames, the camera turns by ~0 degrees, so
-    the poses are the identity and the focal length comes from --fov; prepare.json says so."""
-    pytest.importorskip("pycolmap")
+    """A camera held still while the cube slides: the image hardly moves (its static majority), so SfM is skipped,
+    the camera turns by ~0 degrees, the poses are the identity and the focal length comes from --fov; one line says
+    so, and prepare.json records it."""
     K = pinhole(W, H, 0.8 * W)
     cam = look_at_c2w((0.3, -1.6, 1.0), (0.0, 0.0, 0.4))
     offs = [(0.02 * i, 0.0, 0.0) for i in range(12)]
     clip = _clip(tmp_path / "still.mp4", np.stack([cam] * 12), K, offs, supersample=1)
     lines: list[str] = []
     cap = prepare_video(clip, max_side=W, fov_deg=70.0, log=lines.append)
-    assert cap.info["poses"] == "still" and "falling back to a still camera" in " ".join(lines)
-    assert sum("falling back" in ln for ln in lines) == 1
-    assert cap.info["sfm"]["registered"] < 6
+    assert cap.info["poses"] == "still" and sum("falling back to a still camera" in ln for ln in lines) == 1
+    assert cap.info["sfm"]["registered"] == 0 and "SfM skipped" in cap.info["fallback"]
     assert np.allclose(cap.c2w[:, :3, :3], np.eye(3)) and np.allclose(cap.c2w[:, :3, 3], 0.0)
     assert np.isclose(cap.K[0, 0], W / (2 * math.tan(math.radians(35.0))))
     scene = write_scene(tmp_path / "scene", cap, log=lambda m: None)
     info = json.loads((scene / "prepare.json").read_text())
-    assert info["poses"] == "still" and "SfM registered" in info["fallback"]
+    assert info["poses"] == "still" and info["fallback"] == cap.info["fallback"]
     train = load_scene(scene, "train")  # still cameras: one unit in front of the content's centre
     assert np.allclose(train.camtoworlds[:, :3, 3], [0.0, 0.0, -1.0])
 
 
-def test_rotation_poses_recover_a_panning_camera(tmp_path):
-    """A camera turning about its centre (pan 8 degrees, tilt 3) over 12 frames: the chained 3-degree-of-freedom
-    fits agree with the true rotations within 0.3 degrees (measured: 0.02)."""
+def test_a_panning_clip_falls_back_to_rotations(tmp_path):
+    """A camera turning about its centre (pan 8 degrees, tilt 3) over 12 frames: no parallax, so SfM registers too
+    few frames, or builds a degenerate model (measured: 9-10 frames on 0-2 points), and the clip falls back to rotations fitted to its optical flow; with the true focal length (--fov)
+    they agree with the true rotations within 0.3 degrees (measured: 0.02 on the frames, 0.03 through H.264)."""
+    pytest.importorskip("pycolmap")
     K = pinhole(W, H, 0.8 * W)
     c = np.array([0.3, -1.6, 1.0])
     truth = np.stack([look_at_c2w(c, c + [math.sin(math.radians(-4 + 8 * i / 11)), math.cos(math.radians(-4 + 8 * i / 11)),
                                           -0.3 + 0.05 * i / 11]) for i in range(12)])
-    room = TexturedRoom(seed=0)
-    images = np.stack([room.render(m, K, W, H, supersample=1) for m in truth])
-    est, fitted = rotation_poses(images, K)
-    assert fitted == 11
+    clip = _clip(tmp_path / "pan.mp4", truth, K, supersample=1)
+    lines: list[str] = []
+    cap = prepare_video(clip, max_side=W, fov_deg=math.degrees(2 * math.atan(0.5 / 0.8)), log=lines.append)
+    assert cap.info["poses"] == "rotation" and cap.info["fallback"].startswith("SfM")  # too few frames or points
+    assert cap.info["rotation"]["pairs_fitted"] == 11
+    assert sum("falling back to a camera turning about a fixed centre" in ln for ln in lines) == 1
     rel_true = [truth[0, :3, :3].T @ m[:3, :3] for m in truth]  # rotations relative to frame 0 (c2w)
-    assert max(_angle_deg(e[:3, :3].T @ r) for e, r in zip(est, rel_true)) < 0.3
-    assert np.allclose(est[:, :3, 3], 0.0)
+    assert max(_angle_deg(e[:3, :3].T @ r) for e, r in zip(cap.c2w, rel_true)) < 0.3
+    assert np.allclose(cap.c2w[:, :3, 3], 0.0)
+    # the same fit on the rendered frames, without the video codec
+    room = TexturedRoom(seed=0)
+    est, fitted = rotation_poses(np.stack([room.render(m, K, W, H, supersample=1) for m in truth[::3]]), K)
+    assert fitted == 3 and max(_angle_deg(e[:3, :3].T @ r) for e, r in zip(est, rel_true[::3])) < 0.3
 
 
 def test_look_at_point_and_extent_for_cameras_that_share_a_centre():

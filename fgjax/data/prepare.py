@@ -192,11 +192,11 @@ def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 6
     rot = None
     if poses in ("auto", "rotation"):
         t1 = time.perf_counter()
-        rot, pairs = rotation_poses(images, k_default)
-        log(f"prepare: camera rotations fitted to the optical flow of {pairs} of {t - 1} frame pairs "
-            f"({time.perf_counter() - t1:.1f} s)")
+        rot, on_key = rotation_poses(images, k_default)
+        log(f"prepare: camera rotations fitted to the optical flow ({on_key} of {t - 1} frames against their key "
+            f"frame; {time.perf_counter() - t1:.1f} s)")
         turn = max(math.degrees(math.acos(np.clip((np.trace(r[:3, :3]) - 1) / 2, -1, 1))) for r in rot)
-        info["rotation"] = {"pairs_fitted": pairs, "pairs": t - 1, "max_turn_deg": turn}
+        info["rotation"] = {"frames_on_key_frame": on_key, "frames": t, "max_turn_deg": turn}
         if poses == "auto" and turn <= still_deg:
             rot = None
             reason += f"; the camera turns by at most {turn:.2f} deg"

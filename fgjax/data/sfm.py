@@ -275,36 +275,48 @@ def relative_rotation(rays_a: np.ndarray, rays_b: np.ndarray, *, threshold: floa
     return best, int(np.sum(err2(best) < t2))
 
 
-def rotation_poses(images: np.ndarray, K: np.ndarray, *, min_inliers: int = 50,
+def rotation_poses(images: np.ndarray, K: np.ndarray, *, min_share: float = 0.5,
                    log: Callable[[str], None] | None = None) -> tuple[np.ndarray, int]:
     """Rotation-only camera-to-world poses [T, 4, 4] (OpenCV; centres at the origin, frame 0 the identity) of a
-    camera that turns about a fixed centre, and how many of the T - 1 consecutive pairs gave a rotation.
+    camera that turns about a fixed centre, and how many of the T - 1 frames were fitted against their key frame
+    (the others against the frame before).
 
-    For a camera that only turns, the rays r = K^-1 x~ (normalised) of a static point in frames i - 1 and i satisfy
-    r_i = R_i R_{i-1}^T r_{i-1} (R: world-to-camera rotations). Each consecutive pair's rotation is fitted to its
-    optical flow on a 6-pixel grid (DIS, forward-backward consistent pixels; `relative_rotation`: 3-degree-of-freedom
-    MSAC, inliers within 0.5 pixel), so the static majority of the pixels decides even where the background has little
-    texture and moving hands and objects carry most of the corners; a pair with fewer than ``min_inliers`` inliers
-    keeps the previous rotation. Rotations are chained from
-    frame 0, so they drift with the clip's length."""
+    For a camera that only turns, the rays r = K^-1 x~ (normalised) of a static point in frames k and i satisfy
+    r_i = R_i R_k^T r_k (R: world-to-camera rotations). Each frame's rotation relative to a key frame k (frame 0 at
+    first) is fitted to their optical flow on a 6-pixel grid (DIS, forward-backward consistent pixels;
+    `relative_rotation`: 3-degree-of-freedom MSAC, inliers within 0.5 pixel), so the static majority of the pixels
+    decides even where the background has little texture and moving hands and objects carry most of the corners.
+    Fitting against a key frame rather than chaining consecutive frames keeps a nearly still camera from drifting:
+    the key frame moves to the frame before only when fewer than ``min_share`` of the grid points are inliers
+    (the view has turned away, or the flow broke down), and that frame is then fitted against the frame before."""
     t = len(images)
     kinv = np.linalg.inv(K)
+    thr = 0.5 / K[0, 0]
 
     def rays(px):
         r = np.concatenate([px, np.ones((len(px), 1))], axis=1) @ kinv.T
         return r / np.linalg.norm(r, axis=1, keepdims=True)
 
+    def fit(k: int, i: int) -> tuple[np.ndarray, float]:
+        (a, b), = _flow_pairs(images, [(k, i)])
+        grid = (images.shape[1] // 6) * (images.shape[2] // 6)
+        rel, n = relative_rotation(rays(a), rays(b), threshold=thr, seed=i)
+        return rel, n / max(grid, 1)
+
     rots = [np.eye(3)]  # world-to-camera rotations
-    ok = 0
-    for i, (a, b) in enumerate(_flow_pairs(images, [(i - 1, i) for i in range(1, t)]), start=1):
-        rel, n = relative_rotation(rays(a), rays(b), threshold=0.5 / K[0, 0], seed=i)
-        if n >= min_inliers:
-            ok += 1
-        else:
+    key, on_key = 0, 0
+    for i in range(1, t):
+        rel, share = fit(key, i)
+        if share >= min_share:
+            on_key += 1
+        elif key != i - 1:
+            key = i - 1
+            rel, share = fit(key, i)
+        if share < 0.1:  # no usable flow: keep the previous rotation
             rel = np.eye(3)
-        rots.append(rel @ rots[-1])
+        rots.append(rel @ rots[key])
     c2w = np.tile(np.eye(4), (t, 1, 1))
     c2w[:, :3, :3] = np.transpose(np.stack(rots), (0, 2, 1))
     if log is not None:
-        log(f"rotation: rotations of {ok} of {t - 1} frame pairs")
-    return c2w, ok
+        log(f"rotation: {on_key} of {t - 1} frames fitted against their key frame")
+    return c2w, on_key

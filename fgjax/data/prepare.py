@@ -148,6 +148,9 @@ def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 6
     images [T', H, W, 3] (undistorted where SfM found distortion), K [3, 3], c2w [T', 4, 4], normalisation, info)."""
     if poses not in POSE_MODES:
         raise ValueError(f"--poses must be one of {', '.join(POSE_MODES)}, got {poses!r}")
+    if poses == "auto" and not have_pycolmap():
+        raise ValueError("pycolmap is not installed; --video needs it for structure from motion: pip install "
+                         "'fgjax[video]' (or pass --poses rotation or --poses still)")
     t, h, w = images.shape[:3]
     f0 = focal_from_fov(w, fov_deg)
     k_default = np.array([[f0, 0.0, w / 2], [0.0, f0, h / 2], [0.0, 0.0, 1.0]])
@@ -164,9 +167,6 @@ def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 6
                   "for structure from motion")
         info["sfm"] = {"registered": 0, "frames": t, "skipped": reason}
     elif poses == "auto":
-        if not have_pycolmap():
-            raise ValueError("pycolmap is not installed; --video needs it for structure from motion: pip install "
-                             "'fgjax[video]' (or pass --poses rotation or --poses still)")
         sfm = run_sfm(images, camera_model=camera_model, log=log)
         need = max(3, math.ceil(min_registered * t))
         fov = _fov(sfm.K, w)

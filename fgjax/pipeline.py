@@ -111,7 +111,7 @@ def test_view_sheet(run: LoadedRun, test, max_rows: int = 6) -> tuple[np.ndarray
         img = stage1.render_frame(run.state, run.spec, run.cfg, test.viewmats[i], test.Ks[i], test.times[i],
                                   test.width, test.height)
         ps.append(float(metrics.psnr(img, test.images[i])))
-        rows.append([caption(upscale(to_u8(test.images[i]), s), f"test {test.frame_names[i].split('/')[-1]} (GT)"),
+        rows.append([caption(upscale(to_u8(test.images[i]), s), f"{test.frame_names[i].split('/')[-1]} (GT)"),
                      caption(upscale(to_u8(img), s), f"stage 1, t = {test.times[i]:.2f}: {ps[-1]:.2f} dB")])
     return grid(rows), ps
 

@@ -142,8 +142,8 @@ def sfm_problem(sfm, width: int, need: int) -> str | None:
 
 def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 60.0,
                   camera_model: str = "SIMPLE_RADIAL", min_registered: float = 0.5, still_deg: float = 0.5,
-                  min_motion_deg: float = 1.0, log: Callable[[str], None] = print) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                                                  Normalization, dict[str, Any]]:
+                  min_motion_deg: float = 1.0, log: Callable[[str], None] = print
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, Normalization, dict[str, Any]]:
     """Cameras of frames ``images`` [T, H, W, 3] (module docstring, step 2): (kept frame numbers [T'] into images,
     images [T', H, W, 3] (undistorted where SfM found distortion), K [3, 3], c2w [T', 4, 4], normalisation, info)."""
     if poses not in POSE_MODES:
@@ -203,10 +203,10 @@ def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 6
     mode = "still" if rot is None else "rotation"
     c2w = np.tile(np.eye(4), (t, 1, 1)) if rot is None else rot
     norm, how = content_normalization(c2w)
-    what = ("a still camera (identity poses)" if rot is None else
-            f"a camera turning about a fixed centre (rotations fitted to the optical flow, up to {info['rotation']['max_turn_deg']:.1f} deg)")
-    log(f"prepare: {reason}; falling back to {what}, focal {f0:.1f} px from a {fov_deg:g} deg horizontal field of "
-        "view (--fov)")
+    what = ("a still camera (identity poses)" if rot is None else "a camera turning about a fixed centre (rotations "
+            f"fitted to the optical flow, up to {info['rotation']['max_turn_deg']:.1f} deg)")
+    how_k = f"focal {f0:.1f} px from a {fov_deg:g} deg horizontal field of view (--fov)"
+    log(f"prepare: {reason}; falling back to {what}, {how_k}" if poses == "auto" else f"prepare: {reason}: {what}, {how_k}")
     info.update(poses=mode, fallback=reason, distortion="ignored (pinhole assumed)", fov_deg=fov_deg,
                 normalization_how=how)
     return np.arange(t), images, k_default, c2w, norm, info

@@ -52,7 +52,7 @@ def test_still_clip_end_to_end(clip, tmp_path, capsys):
                                  "--test-every", "4")
     assert code == 0, err
     assert f"scene: {out}" in printed and "poses: still" in printed
-    for phase in ("prepare: decoded", "falling back to a still camera", "prepare: wrote"):
+    for phase in ("prepare: decoded", "--poses still: a still camera (identity poses)", "prepare: wrote"):
         assert phase in err
     info = json.loads((out / "prepare.json").read_text())
     assert info["poses"] == "still" and info["split"] == {"train": 8, "test": 2, "test_every": 4}

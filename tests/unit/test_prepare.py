@@ -23,6 +23,7 @@ from fgjax.data.prepare import (
 )
 from fgjax.data.record3d import read_record3d
 from fgjax.data.sfm import rotation_poses
+from fgjax.data.write import write_transforms
 from fgjax.geometry import look_at_point, opengl_to_opencv_c2w
 from fgjax.io import write_video
 from fgjax.models.model import scene_extent
@@ -160,6 +161,15 @@ def test_interleaved_split_and_normalisation():
     norm, how = content_normalization(c2w, pts)
     assert "median of 100 scene points" in how
     assert np.median(np.linalg.norm(norm.points_to_scene(c2w[:, :3, 3]), axis=1)) == pytest.approx(1.0)
+
+
+def test_a_malformed_recorded_normalisation_names_the_file(tmp_path):
+    vm = np.linalg.inv(orbit_c2w(3))
+    write_transforms(tmp_path, "train", np.zeros((3, 8, 8, 3)), np.tile(pinhole(8, 8, 8.0), (3, 1, 1)), vm,
+                     np.linspace(0, 1, 3), extra={"normalization": {"centre": [0, 0], "scale": 2.0}})
+    with pytest.raises(ValueError, match=r"transforms_train\.json: field `normalization` is malformed"):
+        load_scene(tmp_path, "train")
+    assert load_scene(tmp_path, "train", normalize=False).normalization.scale == 1.0
 
 
 # ----------------------------------------------------------------------------- Record3D

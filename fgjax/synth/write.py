@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from fgjax.data.write import write_transforms
+from fgjax.synth.family import make_family_scene
 from fgjax.synth.parts import ROOM_SIZE, axis_angle_matrix, normalize, rigid_inv, smoothstep
 from fgjax.synth.render import Renders, render_sequence, sequence_flow
 from fgjax.synth.scene import SynthConfig, SynthScene, camera_c2w, make_scene, object_centres, scene_states
@@ -183,6 +184,10 @@ def _write_all(tmp: Path, scene: SynthScene, train: dict[str, Any], tests: list[
         "min_separation": scene.min_separation,
         "close_pair": [1, 2] if cfg.close_pair else None,
         "close_gap": scene.close_gap,
+        **({"family": cfg.family, "camera_path": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                                                  for k, v in scene.camera.items()
+                                                  if k not in ("freqs", "phases", "weights")}}
+           if cfg.family is not None else {}),
         "test_frames": [
             {"name": nm, "kind": f["kind"], "time": f["time"], "source_index": f["source"],
              "states": f["states"].tolist(), "novelty": f["novelty"]}
@@ -246,7 +251,7 @@ def generate(
     tmp = out.with_name(f".{out.name}.synth-tmp-{uuid.uuid4().hex[:8]}")
     try:
         tmp.mkdir()
-        scene = make_scene(cfg)
+        scene = make_family_scene(cfg) if cfg.family is not None else make_scene(cfg)
         rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0xCA3E]))
         times = np.arange(cfg.frames) / (cfg.frames - 1)
         states = scene_states(scene, times)

@@ -176,7 +176,7 @@ def articulated_pose(revolute, axis, pivot, amount):
     return geometry.make_pose(rot, t)
 
 
-def camera_up(viewmats: Float[ArrayLike, "T 4 4"]) -> Float[np.ndarray, 3]:
+def camera_up(viewmats: Float[ArrayLike, "T 4 4"]) -> Float[np.ndarray, "3"]:
     """[3] unit world "up" from world-to-camera ``viewmats`` [T, 4, 4] (OpenCV: x right, y down) held level: the
     direction most nearly orthogonal to every camera's right axis (the last right singular vector of their stack),
     signed towards the cameras' mean up (-y). Unlike the mean of the cameras' up axes, it does not tilt when the
@@ -204,7 +204,7 @@ def camera_tilt(viewmats: Float[ArrayLike, "T 4 4"]) -> tuple[float, float]:
     return tilt, float(s[2] / s[1]) if s[1] > 0 else float("inf")
 
 
-def hinge_made_vertical(points: Float[ArrayLike, "M 3"], poses: Float[ArrayLike, "T 4 4"], up: Float[ArrayLike, 3],
+def hinge_made_vertical(points: Float[ArrayLike, "M 3"], poses: Float[ArrayLike, "T 4 4"], up: Float[ArrayLike, "3"],
                         max_deg: float):
     """A hinge within ``max_deg`` degrees of ``up`` [3] turned onto it: (poses [T, 4, 4], axis [3], degrees it was
     off), or None where ``poses`` [T, 4, 4] do not turn or their hinge (`joint_from_poses`) is farther off. The new

@@ -608,7 +608,7 @@ def is_far_hinge(ratio: float, turn_deg: float, *, radii: float = FAR_HINGE_RADI
     return bool(np.isfinite(ratio) and ratio > radii and turn_deg >= turn)
 
 
-def hinge_offset(points: Float[ArrayLike, "M 3"], axis: Float[ArrayLike, 3], pivot: Float[ArrayLike, 3]
+def hinge_offset(points: Float[ArrayLike, "M 3"], axis: Float[ArrayLike, "3"], pivot: Float[ArrayLike, "3"]
                  ) -> tuple[float, float]:
     """How far a hinge lies from its part: (the distance of the axis line (unit ``axis`` [3] through ``pivot``
     [3]) from the centroid of ``points`` [M, 3], that distance over the 95th percentile of the points' distances

@@ -324,7 +324,7 @@ def cluster_vectors_at(s2: Stage2Result, t: float) -> Float[np.ndarray, "K 3"]:
     return out
 
 
-def snap_vector(s2: Stage2Result, k: int, vector: Float[ArrayLike, 3]) -> tuple[Float[np.ndarray, 3], float]:
+def snap_vector(s2: Stage2Result, k: int, vector: Float[ArrayLike, "3"]) -> tuple[Float[np.ndarray, "3"], float]:
     """Snap a user displacement for object k (0-based) to its trajectory: (vector on ς(·, k), time)."""
     if not 0 <= k < s2.num_objects:
         raise ValueError(f"object {k + 1} out of range: the run has {s2.num_objects} object(s) (1..{s2.num_objects})")

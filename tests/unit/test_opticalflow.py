@@ -32,7 +32,7 @@ DEFAULT_MIDDLEBURY_EPE_BOUND = 0.123
 DEFAULT_SINTEL_NOC_EPE_BOUND = 0.1395
 
 
-def texture(h: int, w: int, seed: int = 0) -> np.ndarray:
+def _texture(h: int, w: int, seed: int = 0) -> np.ndarray:
     """Smooth random RGB texture, uint8 [h, w, 3]."""
     rng = np.random.default_rng(seed)
     x = cv2.GaussianBlur(rng.random((h, w, 3)).astype(np.float32), (0, 0), 2.0)
@@ -42,7 +42,7 @@ def texture(h: int, w: int, seed: int = 0) -> np.ndarray:
 
 def _shifted_pair(h=64, w=80, dx=2, dy=1, seed=0):
     """(frame0, frame1) with frame0(x) = frame1(x + (dx, dy)): true flow is (dx, dy) everywhere."""
-    big = texture(h + 20, w + 20, seed)
+    big = _texture(h + 20, w + 20, seed)
     frame1 = big[10:10 + h, 10:10 + w]
     frame0 = big[10 + dy:10 + dy + h, 10 + dx:10 + dx + w]
     return np.ascontiguousarray(frame0), np.ascontiguousarray(frame1)
@@ -383,7 +383,7 @@ def test_forward_backward_error_matches_pixel_loop():
 def _frames(folder: Path, n=4, h=48, w=64) -> list[Path]:
     """n frames frame_K.png of a texture whose content moves by (+1, +1) px per frame."""
     folder.mkdir(parents=True, exist_ok=True)
-    big = texture(h + 2 * n + 4, w + 2 * n + 4, seed=3)
+    big = _texture(h + 2 * n + 4, w + 2 * n + 4, seed=3)
     paths = []
     for k in range(n):
         p = folder / f"frame_{k}.png"
@@ -459,7 +459,7 @@ def test_failure_mid_sequence_writes_no_outputs_but_keeps_cache(tmp_path, monkey
 
 def test_cli_mismatched_sizes_and_bad_param_exit_2(tmp_path, capsys):
     _frames(tmp_path / "imgs")
-    _write_png(tmp_path / "imgs" / "frame_9.png", texture(40, 64))
+    _write_png(tmp_path / "imgs" / "frame_9.png", _texture(40, 64))
     assert flow_app.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o")]) == 2
     assert "frame_9.png: image is 64x40 but" in capsys.readouterr().err
     (tmp_path / "imgs" / "frame_9.png").unlink()

@@ -30,6 +30,8 @@ bit, and any non-negative seed is a scene):
   hand-held path (a 10-30 degree orbit, 0.02-0.04 units of jitter, roll jitter up to 5 degrees) or a still
   camera; every path has a fixed roll of up to 5 degrees and a height of 0.55-1.3 units, at a distance that
   frames every part's swept volume;
+- test views: at times half-way between two training frames, seen from 3 degrees off the path, 0.05 units
+  higher and closer (the hand-made scenes' 10 degrees would be far outside a still or short path);
 - images: 128x96 to 320x240 (4:3), 40 to 60 frames, focal 0.65-1.0 x width; a lighting change (a up to 0.2)
   in 25 % of the scenes.
 
@@ -377,7 +379,7 @@ def _camera(rng: np.random.Generator, points: np.ndarray, fx: float, w: int, h: 
     sweep = math.radians({"orbit": rng.uniform(20, 90), "dolly": rng.uniform(0, 10),
                           "handheld": rng.uniform(10, 30), "still": 0.0}[path])
     azimuth = math.radians(rng.uniform(-20, 20))
-    # the camera (and the test views, 10 degrees further round) stays inside the side walls (|x| <= 1.35): a
+    # the camera (and test views up to 10 degrees further round) stays inside the side walls (|x| <= 1.35): a
     # narrower sweep first, then a shorter distance
     test_off = math.radians(10.0)
     start = horiz * (1.2 if path == "dolly" else 1.0)
@@ -398,6 +400,8 @@ def _camera(rng: np.random.Generator, points: np.ndarray, fx: float, w: int, h: 
         "roll_deg": rng.uniform(-5, 5), "roll_jitter_deg": rng.uniform(1.5, 5) if path == "handheld" else 0.0,
         "freqs": rng.uniform(2.0, 6.0, size=(7, 3)), "phases": rng.uniform(0.0, 2 * math.pi, size=(7, 3)),
         "weights": rng.uniform(0.5, 1.0, size=(7, 3)) / 2.25,
+        # test views: half-way between two training frames, 3 degrees off the path, a little higher and closer
+        "test_offset": (math.radians(3.0), 0.05, -0.05), "test_time_shift": 0.5,
     }
     return cam
 

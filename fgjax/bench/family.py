@@ -13,7 +13,8 @@ seed and as the mean, and written to ``DIR/family.json``::
 - ``state_psnr`` / ``state_psnr_moving``: the controlled scene at the held-out object states, on all pixels / on the
   moving parts' pixels;
 - ``stage1_psnr``: stage 1 on the held-out views;
-- ``wall_s``: the seed's wall time (scene generation excluded);
+- ``wall_s``: the seed's wall time (scene generation excluded; with ``--stage1-from DIR``, which reuses an earlier
+  benchmark's scenes and stage-1 runs, stage 2 and the evaluation only);
 - ``discovery``: where step 5 loses a part (`fgjax.method.evaluate.discovery_trace`), with ``--trace``.
 
 A PNG sheet per seed, ``DIR/seed_NNN/sheet.png``: for each "view" test frame, the gt ids, the predicted ids, the
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -98,22 +100,48 @@ def _sheet(run, scene_dir: Path, path: Path) -> None:
         atomic_write(path, lambda f: iio.imwrite(f, sheet, extension=".png"))
 
 
-def run_seed(seed: int, out: Path, cfg: Config, *, size=None, frames=None, trace: bool = False, say=print) -> dict:
-    """The pipeline on family seed `seed` in ``out/seed_NNN`` (see the module docstring); its row of family.json."""
+def _copy_stage1(src: Path, dst: Path) -> None:
+    """The stage-1 run folder `src` copied to `dst` without its stage-2 results."""
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("stage2.*", "control*", "flow_cache"))
+    metrics = dst / "metrics.json"
+    if metrics.is_file():
+        m = json.loads(metrics.read_text())
+        m.pop("control", None)
+        metrics.write_text(json.dumps(m, indent=1))
+
+
+def run_seed(seed: int, out: Path, cfg: Config, *, size=None, frames=None, trace: bool = False, say=print,
+             stage1_from: Path | None = None) -> dict:
+    """The pipeline on family seed `seed` in ``out/seed_NNN`` (see the module docstring); its row of family.json.
+    With `stage1_from` (an earlier benchmark's folder), that benchmark's scene and stage-1 run of the seed are used
+    and only stage 2 and the evaluation run (``wall_s`` then counts stage 2 and the evaluation only)."""
     root = out / f"seed_{seed:03d}"
     root.mkdir(parents=True, exist_ok=True)
-    scene_dir = _scene(seed, root, size, frames, say)
     t0 = time.perf_counter()
-    cache = root / "flow_cache"
-    cfg = dataclasses.replace(cfg, stage2=dataclasses.replace(cfg.stage2, flow_cache=str(cache)))
-    train = load_scene(scene_dir, "train")
-    order = np.argsort(train.times, kind="stable")
-    for a, b in zip(order[:-1], order[1:], strict=True):
-        estimate_flow(to_u8(train.images[a]), to_u8(train.images[b]), cfg.stage2.flow_method, cache_dir=cache)
     run_dir = root / "run"
     quiet = lambda *_: None
-    stage1.run(cfg, scene_dir, run_dir, log=quiet, overwrite=True)
-    say(f"bench family: seed {seed}: stage 1 done ({time.perf_counter() - t0:.0f} s)")
+    if stage1_from is not None:
+        src = Path(stage1_from) / f"seed_{seed:03d}"
+        if not (src / "run" / "checkpoint.npz").is_file():
+            raise FileNotFoundError(f"--stage1-from: {src / 'run' / 'checkpoint.npz'} is missing (run the benchmark "
+                                    f"on seed {seed} into {stage1_from} first)")
+        scene_dir, cache = src / "scene", src / "flow_cache"
+        _copy_stage1(src / "run", run_dir)
+        cfg = dataclasses.replace(cfg, stage2=dataclasses.replace(cfg.stage2, flow_cache=str(cache)))
+        train = load_scene(scene_dir, "train")
+    else:
+        scene_dir = _scene(seed, root, size, frames, say)
+        t0 = time.perf_counter()
+        cache = root / "flow_cache"
+        cfg = dataclasses.replace(cfg, stage2=dataclasses.replace(cfg.stage2, flow_cache=str(cache)))
+        train = load_scene(scene_dir, "train")
+        order = np.argsort(train.times, kind="stable")
+        for a, b in zip(order[:-1], order[1:], strict=True):
+            estimate_flow(to_u8(train.images[a]), to_u8(train.images[b]), cfg.stage2.flow_method, cache_dir=cache)
+        stage1.run(cfg, scene_dir, run_dir, log=quiet, overwrite=True)
+        say(f"bench family: seed {seed}: stage 1 done ({time.perf_counter() - t0:.0f} s)")
     if cfg.stage2.variant == "articulated":
         run_articulated(run_dir, scene_dir, cfg.stage2, cfg.articulate, log=quiet)
     else:
@@ -156,6 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", default=None, metavar="WxH", help="render every scene at this size instead of its own")
     p.add_argument("--frames", type=int, default=None, help="training frames per scene instead of the seed's own")
     p.add_argument("--trace", action="store_true", help="also trace discovery per part (discovery_trace)")
+    p.add_argument("--stage1-from", default=None, metavar="DIR",
+                   help="reuse the scenes and stage-1 runs of an earlier benchmark in DIR; run stage 2 and the "
+                        "evaluation only (to compare stage-2 configurations on the same stage 1)")
     args = p.parse_args(argv)
     seeds = parse_seeds(args.seeds)
     size = None
@@ -173,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     print(f"{'seed':>6} {'ARI':>6} {'parts':>10} {'state':>7} {'moving':>7} {'stage1':>7} {'wall_s':>7}", flush=True)
     for seed in seeds:
-        row = run_seed(seed, out, cfg, size=size, frames=args.frames, trace=args.trace, say=say)
+        row = run_seed(seed, out, cfg, size=size, frames=args.frames, trace=args.trace, say=say,
+                       stage1_from=None if args.stage1_from is None else Path(args.stage1_from))
         rows.append(row)
         print(_fmt(row, seed), flush=True)
         summary = summarise(rows)

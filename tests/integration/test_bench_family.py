@@ -81,6 +81,15 @@ def test_bench_family_end_to_end(tmp_path, capsys):
     stamp = (out / "seed_001" / "scene" / "gt" / "meta.json").stat().st_mtime_ns
     assert cli(args[:3] + ["1"] + args[4:]) == 0  # the scene is reused, not regenerated
     assert (out / "seed_001" / "scene" / "gt" / "meta.json").stat().st_mtime_ns == stamp
+    # another stage-2 configuration on the same stage 1
+    paper = tmp_path / "paper"
+    assert cli(["bench", "family", "--seeds", "1", "--stage1-from", str(out), "--out", str(paper), "--config", str(QUICK),
+                "--set", "stage2.variant=paper", "--set", "stage2.photo_steps=0", "--set", "stage2.distill_steps=20"]) == 0
+    row = json.loads((paper / "family.json").read_text())["seeds"][0]
+    assert row["seed"] == 1 and (paper / "seed_001" / "run" / "stage2.npz").is_file()
+    assert not (paper / "seed_001" / "scene").exists()  # the earlier benchmark's scene was used in place
+    assert cli(["bench", "family", "--seeds", "2", "--stage1-from", str(paper), "--out", str(tmp_path / "x")]) == 2
+    assert "--stage1-from" in capsys.readouterr().err
 
 
 def test_bench_family_rejects_bad_arguments(tmp_path, capsys):

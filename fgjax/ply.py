@@ -99,13 +99,15 @@ def _parse_header(path: Path, data: bytes) -> tuple[int, np.dtype, int]:
             if parts[1:] != ["binary_little_endian", "1.0"]:
                 raise ValueError(f"{path}: format {' '.join(parts[1:])!r}; only binary_little_endian 1.0 is read")
         elif parts[0] == "element":
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise ValueError(f"{path}: malformed header line {line!r}")
             elements.append(parts[1])
             if parts[1] == "vertex":
                 count = int(parts[2])
         elif parts[0] == "property":
             if elements[-1:] != ["vertex"]:
                 continue
-            if parts[1] == "list" or len(parts) != 3 or parts[1] not in _PLY_TYPES:
+            if len(parts) != 3 or parts[1] not in _PLY_TYPES:  # a list property has 5 words
                 raise ValueError(f"{path}: vertex property {' '.join(parts[1:])!r} is not a scalar PLY type")
             fields.append((parts[2], _PLY_TYPES[parts[1]]))
         else:
@@ -138,7 +140,13 @@ def read_ply(path: str | Path) -> Gaussians:
     missing = [n for n in ply_property_names(k) if n not in names and n not in ("nx", "ny", "nz")]
     if missing:
         raise ValueError(f"{path}: vertex properties missing: {', '.join(missing)}")
-    col = lambda *ns: np.stack([np.asarray(rows[n], np.float32) for n in ns], axis=-1)
+
+    def col(*ns: str) -> np.ndarray:  # [N, len(ns)] float32
+        out = np.empty((count, len(ns)), np.float32)
+        for i, n in enumerate(ns):
+            out[:, i] = rows[n]
+        return out
+
     rest = col(*(f"f_rest_{i}" for i in range(n_rest))).reshape(count, 3, k - 1)  # [N, 3, K-1]
     sh = np.concatenate([col("f_dc_0", "f_dc_1", "f_dc_2")[:, None], np.transpose(rest, (0, 2, 1))], axis=1)
     return Gaussians(col("x", "y", "z"), col("scale_0", "scale_1", "scale_2"), col("rot_0", "rot_1", "rot_2", "rot_3"),

@@ -17,6 +17,7 @@ a splat viewer without SH shows that).
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -69,9 +70,16 @@ def object_labels(run: LoadedRun) -> Int[np.ndarray, " M"]:
     return np.full(len(idx), -1, np.int64) if run.s2 is None else np.asarray(run.s2.labels, np.int64)[idx]
 
 
-# One compiled function per shape (jax's own cache); the control network, the reference scene and the slots to keep
-# are arguments, so a control change re-runs it without compiling.
-_controlled = jax.jit(controlled_gaussians, static_argnames=("rigid",))
+@functools.partial(jax.jit, static_argnames=("rigid",))
+def _controlled_rows(control, base, canonical, labels, vectors, rows, *, rigid: bool):
+    """`controlled_gaussians` computed on the rows ``rows`` [R] only (the objects' Gaussians) and scattered into the
+    reference scene ``base``: every other row is its reference exactly (the network's offsets of a static Gaussian
+    are zero, and each row depends on its own inputs alone), at R/N of the network's cost. Compiled once per
+    shape; a control change re-runs it."""
+    m0, q0, s0 = base
+    m, q, s = controlled_gaussians(control, (m0[rows], q0[rows], s0[rows]), canonical[rows], labels[rows], vectors,
+                                   rigid=rigid)
+    return m0.at[rows].set(m), q0.at[rows].set(q), s0.at[rows].set(s)
 
 
 def scene_gaussians(run: LoadedRun, *, time: float | None = None,
@@ -109,11 +117,13 @@ def _geometry(run: LoadedRun, time, vectors):
     vec = np.asarray(vectors, np.float64).reshape(-1, 3)
     if vec.shape[0] != s2.num_objects:
         raise ValueError(f"vectors must have shape [{s2.num_objects}, 3] (one per object), got {list(vec.shape)}")
-    if s2.num_objects == 0:
+    rows = np.flatnonzero(s2.labels >= 0)
+    if len(rows) == 0:
         m, q, ls = run.base()
     else:
-        m, q, ls = _controlled(s2.control, run.base(), run.state.params["gaussians"].means, jnp.asarray(s2.labels),
-                               jnp.asarray(vec, jnp.float32), rigid=s2.rigid)
+        base = tuple(jnp.asarray(x, jnp.float32) for x in run.base())
+        m, q, ls = _controlled_rows(s2.control, base, run.state.params["gaussians"].means, jnp.asarray(s2.labels),
+                                    jnp.asarray(vec, jnp.float32), jnp.asarray(rows), rigid=s2.rigid)
     return m, q, ls, run.control_params()["gaussians"]
 
 

@@ -144,7 +144,7 @@ class _Viewer:
         self.frustums = []
         if not cameras:
             return
-        scale = 0.05 * float(self.run.meta.get("scene_extent") or 1.0)
+        scale = 0.02 * float(self.run.meta.get("scene_extent") or 1.0)
         for name, vm, K, _, w, h in cameras:
             wxyz, pos = frustum_pose(vm)
             self.frustums.append(self.server.scene.add_camera_frustum(

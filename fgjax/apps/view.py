@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import math
 import signal
 import socket
@@ -42,7 +43,7 @@ try:
 except ModuleNotFoundError:  # the optional extra; main() says how to install it
     viser = None
 
-__all__ = ["main", "training_cameras", "frustum_pose", "check_port"]
+__all__ = ["main", "load_viewed_run", "training_cameras", "frustum_pose", "check_port", "compute"]
 
 STAGE1, CONTROLLED = "stage 1 at a time", "controlled objects"
 
@@ -84,11 +85,13 @@ def check_port(host: str, port: int) -> None:
                 s.bind(addr)
                 s.listen(1)
             except OSError as e:
-                raise OSError(f"port {port} on {host} is busy ({e.strerror}): another server is listening there; "
-                              "choose a free one with --port") from None
+                if e.errno == errno.EADDRINUSE:
+                    raise OSError(f"port {port} on {host} is busy: another server is listening there; choose a free "
+                                  "one with --port") from None
+                raise OSError(f"cannot listen on {host} port {port}: {e.strerror}") from None
 
 
-def _load(run_dir: str) -> tuple[stage2.LoadedRun, str | None]:
+def load_viewed_run(run_dir: str) -> tuple[stage2.LoadedRun, str | None]:
     """(the run, a note when its stage 2 is missing or unusable: the viewer then shows stage 1 only)."""
     try:
         run = stage2.load_stage2(run_dir, require_stage2=False)
@@ -247,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     if not Path(args.run).is_dir():
         raise FileNotFoundError(f"run folder {args.run} does not exist")
     check_port(args.host, args.port)
-    run, note = _load(args.run)
+    run, note = load_viewed_run(args.run)
     if note:
         print(f"fgjax view: {note}")
     cameras = training_cameras(run)

@@ -245,7 +245,7 @@ def test_moving_one_control_moves_only_its_object(moving_run):
 def test_viewer_on_a_run_without_stage2_shows_stage1(tiny, tmp_path):
     bare = tmp_path / "bare"
     shutil.copytree(tiny[0], bare, ignore=shutil.ignore_patterns(stage2.STAGE2_NAME))
-    run, note = view._load(str(bare))
+    run, note = view.load_viewed_run(str(bare))
     assert run.s2 is None and "controls need `fgjax stage2 --run" in note
     s = view.compute(run, {"mode": view.CONTROLLED, "time": 0.5, "positions": np.zeros(0), "by_id": True})
     assert_same_gaussians(s.gaussians, scene_gaussians(run, time=0.5))

@@ -81,8 +81,9 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"--object {obj} out of range: the run has {n} object(s) (1..{n})")
             v, t = stage2.snap_vector(s2, obj - 1, vec)
             vectors[obj - 1] = v
-            notes.append(f"object {obj}: vector {vec.tolist()} snapped to {np.round(v, 5).tolist()} on its "
-                         f"trajectory (time {t:.4f})")
+            where = ("lies on its trajectory" if np.allclose(v, vec, rtol=0.0, atol=1e-9) else
+                     f"snapped to {np.round(v, 5).tolist()} on its trajectory")
+            notes.append(f"object {obj}: vector {vec.tolist()} {where} (time {t:.4f})")
         g = scene_gaussians(run, vectors=vectors)
         what = "the controlled scene"
     else:

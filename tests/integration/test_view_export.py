@@ -4,8 +4,8 @@ carries the splat and one slider per object, answers a slider, and stops cleanly
 
 The tiny run's one object never moved in its 8 training steps (a zero trajectory, an untrained control network),
 so the tests that move objects use a copy of it with a made-up stage 2 (`moving_run`): that object split in two,
-each given a straight trajectory, and a control network whose output layer is random, so that a vector moves its
-object's Gaussians."""
+each given a straight trajectory, and a control network whose output layer is random (scaled so that an object at
+the end of its trajectory moves by about a tenth of a scene unit), so that a vector moves its object's Gaussians."""
 
 from __future__ import annotations
 
@@ -72,8 +72,8 @@ def moving_run(tiny, tmp_path_factory) -> Path:
     traj = np.stack([start + ramp * [0.3, 0.0, 0.0], start + ramp * [0.0, 0.0, 0.3]])
     rng = np.random.default_rng(0)
     control = eqx.tree_at(lambda c: (c.weights[-1], c.biases[-1]), s2.control,
-                          (jnp.asarray(rng.normal(size=s2.control.weights[-1].shape) * 0.05, jnp.float32),
-                           jnp.asarray(rng.normal(size=s2.control.biases[-1].shape) * 0.05, jnp.float32)))
+                          (jnp.asarray(rng.normal(size=s2.control.weights[-1].shape) * 3e-4, jnp.float32),
+                           jnp.asarray(rng.normal(size=s2.control.biases[-1].shape) * 3e-4, jnp.float32)))
     stage2.save_stage2(run_dir, stage2.Stage2Result(labels, s2.dynamic, s2.scores, traj, s2.traj_times, control,
                                                     s2.meta, s2.refit))
     return run_dir
@@ -149,6 +149,9 @@ def test_export_with_controls_snaps_and_renders_as_fgjax_control(moving_run, tin
     said = capsys.readouterr().out
     assert "object 1: vector [5.0, 0.0, 0.0] snapped to [0.3, 0.0, 0.0]" in said
     assert "object 2: vector [0.0, -5.0, 0.1] snapped to [0.0, 0.0, 0.1]" in said and "controlled scene" in said
+    assert cli.main(["export", "--run", str(moving_run), "--out", str(tmp_path / "on.ply"), "--object", "2",
+                     "--vector", "0,0,0.15"]) == 0
+    assert "object 2: vector [0.0, 0.0, 0.15] lies on its trajectory (time 0.5000)" in capsys.readouterr().out
     run = stage2.load_stage2(moving_run)
     vectors = np.array([stage2.snap_vector(run.s2, 0, [5, 0, 0])[0], stage2.snap_vector(run.s2, 1, [0, -5, 0.1])[0]])
     got = read_ply(out)
@@ -348,6 +351,14 @@ def test_view_on_a_busy_port_is_one_line_and_exit_2(tiny, capsys):
         assert cli.main(["view", "--run", str(tiny[0]), "--port", str(port)]) == 2
     err = capsys.readouterr().err
     assert f"port {port} on 127.0.0.1 is busy" in err and "--port" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_view_without_viser_says_how_to_install_it(tiny, capsys, monkeypatch):
+    monkeypatch.setattr(view, "viser", None)
+    capsys.readouterr()
+    assert cli.main(["view", "--run", str(tiny[0])]) == 2
+    err = capsys.readouterr().err
+    assert "pip install 'fgjax[viewer]'" in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_view_page_draws_the_splat_in_a_browser(moving_run, tmp_path):

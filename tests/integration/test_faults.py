@@ -246,7 +246,8 @@ def test_version_and_public_api(capsys):
     assert code == 0 and out.strip() == f"fgjax {fgjax.__version__}"
     names = dir(fgjax)
     for name in ("rasterization", "estimate_flow", "load_config", "run_stage1", "run_stage2", "run_articulated",
-                 "load_stage2", "render_controlled", "snap_vector", "flow", "geometry"):
+                 "load_stage2", "render_controlled", "snap_vector", "flow", "geometry", "scene_gaussians",
+                 "viewer_gaussians", "write_ply", "read_ply"):
         assert name in names
     assert callable(fgjax.run_articulated) and np.isfinite(float(fgjax.geometry.so3_exp(np.zeros(3))[0, 0]))
 

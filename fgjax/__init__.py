@@ -11,7 +11,9 @@ Public API (docs/architecture.md describes the layout; everything else is privat
 - ``fgjax.load_scene``: a dataset (nerfstudio / Blender / D-NeRF / Nerfies layouts).
 - ``fgjax.run_stage1``: stage 1 on a dataset into a run folder; ``fgjax.run_stage2``: the paper's stage 2;
   ``fgjax.run_articulated``: the articulated variant; ``fgjax.load_stage2``, ``fgjax.render_controlled``,
-  ``fgjax.render_clusters``, ``fgjax.snap_vector``: use a finished run.
+  ``fgjax.render_clusters``, ``fgjax.snap_vector``: use a finished run; ``fgjax.scene_gaussians``,
+  ``fgjax.viewer_gaussians``: its scene at a time or with objects moved, as Gaussians.
+- ``fgjax.write_ply``, ``fgjax.read_ply``: Gaussians as a standard 3DGS .ply file.
 
 Attributes load on first use, so ``import fgjax`` stays cheap and the command line starts fast.
 """
@@ -39,6 +41,10 @@ _LAZY = {
     "render_controlled": "fgjax.method",
     "render_clusters": "fgjax.method",
     "snap_vector": "fgjax.method",
+    "scene_gaussians": "fgjax.method",
+    "viewer_gaussians": "fgjax.method",
+    "write_ply": "fgjax.ply",
+    "read_ply": "fgjax.ply",
     "run_articulated": "fgjax.articulate",
 }
 _MODULES = ("flow", "geometry", "method", "articulate", "cluster", "metrics")

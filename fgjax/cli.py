@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("fgjax.apps.render", "render cameras (or --clusters object ids) from a trained run"),
     "control": ("fgjax.apps.control", "move a discovered object and render"),
     "eval": ("fgjax.apps.evaluate", "evaluate a run against ground truth"),
+    "export": ("fgjax.apps.export", "write a run's scene (at a time, or with objects moved) as a standard 3DGS .ply"),
+    "view": ("fgjax.apps.view", "interactive web viewer: the splat, a time slider, a control per object"),
 }
 
 BENCHES: dict[str, tuple[str, str]] = {
@@ -35,7 +37,9 @@ BENCHES: dict[str, tuple[str, str]] = {
     "train": ("fgjax.bench.train", "stage-1 PSNR against wall time"),
     "motion": ("fgjax.bench.motion", "stage-1 run: object vs static PSNR, learned vs true object motion"),
     "track": ("fgjax.bench.track", "photometric tracker: time a frame drawing all Gaussians vs those near the parts"),
+    "family": ("fgjax.bench.family", "the whole pipeline on seeds of the scene family: ARI, parts found, PSNR, time"),
     "step": ("fgjax.bench.step", "stage-1 step (cameras looped vs vmapped), render with active tiles vs all"),
+    "viewer": ("fgjax.bench.viewer", "viewer: time from a control change to the Gaussians ready to send"),
 }
 
 

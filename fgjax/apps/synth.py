@@ -6,7 +6,7 @@ import argparse
 import contextlib
 import sys
 
-from fgjax.synth import MAX_OBJECTS, OBJECT_KINDS, SynthConfig, generate
+from fgjax.synth import MAX_OBJECTS, OBJECT_KINDS, SynthConfig, family_config, generate
 
 __all__ = ["config_from_args", "main"]
 
@@ -20,9 +20,13 @@ def _parser() -> argparse.ArgumentParser:
                    default=argparse.SUPPRESS)
     p.add_argument("--objects", default=",".join(d.objects),
                    help=f"comma-separated kinds from {{{','.join(OBJECT_KINDS)}}}, at most {MAX_OBJECTS}")
-    p.add_argument("--width", type=int, default=d.width, help="image width in pixels")
-    p.add_argument("--height", type=int, default=d.height, help="image height in pixels")
-    p.add_argument("--frames", type=int, default=d.frames, help="number of training frames")
+    p.add_argument("--family", type=int, default=None, metavar="SEED",
+                   help="a scene of the random family (fgjax.synth.family): the seed draws the parts, joints, "
+                        "colours, schedules, camera path, resolution and frame count; --width/--height/--frames "
+                        "override the last three, and the other scene options do not apply")
+    p.add_argument("--width", type=int, default=None, help=f"image width in pixels (default {d.width})")
+    p.add_argument("--height", type=int, default=None, help=f"image height in pixels (default {d.height})")
+    p.add_argument("--frames", type=int, default=None, help=f"number of training frames (default {d.frames})")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of every random choice")
     p.add_argument("--pose-noise-deg", type=float, default=d.pose_noise_deg,
                    help="std of rotation noise on the written training poses (degrees)")
@@ -43,9 +47,17 @@ def _parser() -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace) -> SynthConfig:
     """SynthConfig from parsed `fgjax synth` arguments (ValueError on bad values)."""
+    d = SynthConfig()
+    if args.family is not None:
+        if (args.width is None) != (args.height is None):
+            raise ValueError("--family: give both --width and --height, or neither (the seed's own size)")
+        size = None if args.width is None else (args.width, args.height)
+        return family_config(args.family, size=size, frames=args.frames)
     objs = tuple(o.strip() for o in str(args.objects).split(",") if o.strip())
     return SynthConfig(
-        objects=objs, width=args.width, height=args.height, frames=args.frames, seed=args.seed,
+        objects=objs, width=d.width if args.width is None else args.width,
+        height=d.height if args.height is None else args.height,
+        frames=d.frames if args.frames is None else args.frames, seed=args.seed,
         pose_noise_deg=args.pose_noise_deg, pose_noise_trans=args.pose_noise_trans,
         lighting_change=args.lighting_change, close_pair=args.close_pair, close_gap=args.close_gap,
         test_views=args.test_views, test_states=args.test_states,

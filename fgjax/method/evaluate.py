@@ -39,6 +39,10 @@ With ground truth (DATA/gt/meta.json, `fgjax.synth`):
   training frame to the held-out state (`fgjax.synth.object_transform`) applied to the
   cluster's reference centroid; the vector is snapped to the cluster's trajectory and fed to the
   control network.
+- ``state_psnr_moving``: ``state_psnr`` over the pixels of the moving parts only (gt id >= 1 in the held-out
+  frame; `masked_psnr`), mean over the state frames.
+- ``part_iou``, ``parts_found``, ``parts_true`` (`part_ious`): for each gt part, the best IoU of its pixels with
+  one discovered object's pixels over the "view" frames (the ids of ``ari``); found when >= 0.5.
 - ``state_psnr_centre``: the same with the displacement of the gt object's centre instead. For a rotating part this differs from the centroid's displacement whenever the
   cluster covers the part unevenly, so it mixes an error of the protocol into the control error.
 - ``state_mse_by_object`` and ``state_pixels_by_object``: where ``state_psnr`` loses, per gt object id (0 =
@@ -104,32 +108,42 @@ from fgjax.data.loaders import load_scene
 from fgjax.data.scene import Normalization
 from fgjax.io import atomic_write
 from fgjax.method import result
+from fgjax.method.discover import discover_run
 from fgjax.method.stage1 import evaluate as evaluate_stage1
 from fgjax.method.stage1 import load_test_views, refined_viewmats, render_frame
+from fgjax.method.stage2 import prepare_run
 from fgjax.metrics import rotation_angle_deg
 from fgjax.models.model import render_params
-from fgjax.synth import SynthObject, object_transform
+from fgjax.synth import SynthObject, compose_transforms
 
-__all__ = ["write_control_metrics", "evaluate_measurable", "align_cameras", "run_camera", "apply_alignment", "camera_errors", "error_by_object", "evaluate_control", "gt_labels_of_gaussians",
-           "gt_motion_scene", "gt_objects", "gt_point_motion"]
+__all__ = ["write_control_metrics", "evaluate_measurable", "align_cameras", "run_camera", "apply_alignment",
+           "camera_errors", "error_by_object", "evaluate_control", "gt_labels_of_gaussians", "gt_motion_scene",
+           "gt_objects", "gt_point_motion", "gt_transform", "masked_psnr", "part_ious"]
 
 
-def gt_motion_scene(obj, s_from: float, s_to: float, norm) -> np.ndarray:
-    """The gt rigid motion [4, 4] (x -> R x + t) of synthetic object `obj` (`fgjax.synth.SynthObject`)
-    from state `s_from` to state `s_to`, in the run's scene units (`norm`: the run's `Normalization`,
+def gt_transform(objs: dict, label: int, states) -> np.ndarray:
+    """World transform [4, 4] of gt object `label` of `objs` (`gt_objects`) at the state vector `states` [K_gt]
+    (`fgjax.synth.compose_transforms`: a part attached to another moves with it)."""
+    ordered = [objs[k] for k in sorted(objs)]
+    return compose_transforms(ordered, np.asarray(states, np.float64).reshape(-1))[label]
+
+
+def gt_motion_scene(objs: dict, label: int, s_from, s_to, norm) -> np.ndarray:
+    """The gt rigid motion [4, 4] (x -> R x + t) of synthetic object `label` of `objs` (`gt_objects`) from the
+    state vector `s_from` [K_gt] to `s_to` [K_gt], in the run's scene units (`norm`: the run's `Normalization`,
     x_scene = scale (x_world - centre)): R is unchanged and t = scale (R c + t_world - c)."""
-    mo = object_transform(obj, float(s_to)) @ np.linalg.inv(object_transform(obj, float(s_from)))
+    mo = gt_transform(objs, label, s_to) @ np.linalg.inv(gt_transform(objs, label, s_from))
     out = np.eye(4)
     out[:3, :3] = mo[:3, :3]
     out[:3, 3] = norm.scale * (mo[:3, :3] @ norm.centre + mo[:3, 3] - norm.centre)
     return out
 
 
-def gt_point_motion(obj, s_from: float, s_to: float, point, norm):
-    """Where the gt motion of synthetic object `obj` (`fgjax.synth.SynthObject`) from state `s_from` to
-    state `s_to` takes a point given in the run's scene units (`norm`: the run's `Normalization`); scene
-    units [3]."""
-    tr = gt_motion_scene(obj, s_from, s_to, norm)
+def gt_point_motion(objs: dict, label: int, s_from, s_to, point, norm):
+    """Where the gt motion of synthetic object `label` of `objs` (`gt_objects`) from the state vector `s_from`
+    [K_gt] to `s_to` [K_gt] takes a point given in the run's scene units (`norm`: the run's `Normalization`);
+    scene units [3]."""
+    tr = gt_motion_scene(objs, label, s_from, s_to, norm)
     return tr[:3, :3] @ np.asarray(point, np.float64) + tr[:3, 3]
 
 
@@ -193,6 +207,46 @@ def apply_alignment(viewmats, s: float, rot, t) -> np.ndarray:
     return out
 
 
+def masked_psnr(img, ref, mask) -> float:
+    """PSNR (peak 1) of `img` against `ref` [H, W, 3] over the pixels of `mask` [H, W] (nan where it is empty)."""
+    m = np.asarray(mask, bool)
+    if not m.any():
+        return float("nan")
+    err = np.mean((np.asarray(img, np.float64)[m] - np.asarray(ref, np.float64)[m]) ** 2)
+    return float(10.0 * np.log10(1.0 / max(err, 1e-12)))
+
+
+def part_ious(gt_ids, pred_ids, num_parts: int, found_iou: float = 0.5) -> dict:
+    """Which gt parts were discovered: for each gt part j in 1..`num_parts`, the largest IoU of its pixels
+    (``gt_ids == j``, pooled over the frames given) with the pixels of one discovered object
+    (``pred_ids == c``, c >= 1). A part counts as found when that IoU is >= `found_iou`.
+
+    Args:
+        gt_ids, pred_ids: [P] int per-pixel ids of the same pixels (0 = static).
+        num_parts: the number of gt parts.
+
+    Returns:
+        {"part_iou": {str(j): IoU}, "part_best_object": {str(j): c or 0}, "parts_true": num_parts,
+        "parts_found": count}.
+    """
+    g, p = np.asarray(gt_ids, np.int64).ravel(), np.asarray(pred_ids, np.int64).ravel()
+    ious, best = {}, {}
+    for j in range(1, num_parts + 1):
+        gj = g == j
+        top, arg = 0.0, 0
+        for c in np.unique(p[gj | (p > 0)]):
+            if c < 1:
+                continue
+            pc = p == c
+            union = int(np.sum(gj | pc))
+            iou = float(np.sum(gj & pc)) / union if union else 0.0
+            if iou > top:
+                top, arg = iou, int(c)
+        ious[str(j)], best[str(j)] = top, arg
+    return {"part_iou": ious, "part_best_object": best, "parts_true": int(num_parts),
+            "parts_found": int(sum(v >= found_iou for v in ious.values()))}
+
+
 def gt_objects(meta: dict) -> dict:
     """The synthetic objects of a scene's gt/meta.json, by label: {label: `fgjax.synth.SynthObject`}."""
     return {int(o["label"]): SynthObject(**{f: (np.asarray(v, np.float64) if isinstance(v, list) else v)
@@ -207,9 +261,9 @@ def gt_labels_of_gaussians(means, gt_dir: Path, objs: dict, states, norm, match:
     when that one lies within `radius` (scene units) and is on a moving part; [N] int."""
     z = np.load(gt_dir / "canonical.npz")
     pts, lab = np.asarray(z["means"], np.float64), np.asarray(z["labels"], np.int64)  # world, state 0
-    for label, obj in objs.items():
+    for label in objs:
         sel = lab == label
-        tr = object_transform(obj, float(states[label - 1]))
+        tr = gt_transform(objs, label, states)
         pts[sel] = pts[sel] @ tr[:3, :3].T + tr[:3, 3]
     nn = NearestNeighbors(n_neighbors=1).fit(norm.points_to_scene(pts))
     d, j = nn.kneighbors(np.asarray(means, np.float64))
@@ -250,8 +304,9 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
         test = dataclasses.replace(test, viewmats=apply_alignment(test.viewmats, s, rot, t).astype(
             np.asarray(test.viewmats).dtype))
     train = dataclasses.replace(train, viewmats=used.astype(np.asarray(train.viewmats).dtype))  # the run's own cameras
-    def view_aris(source: str, labels=None) -> list[float]:
-        """ARI of each "view" test frame's rendered ids (`fgjax.method.result.render_clusters`) against the gt ids."""
+    def view_aris(source: str, labels=None, keep: list | None = None) -> list[float]:
+        """ARI of each "view" test frame's rendered ids (`fgjax.method.result.render_clusters`) against the gt ids
+        (the (gt, predicted) id pairs of the valid pixels appended to ``keep``)."""
         out = []
         for i, kd in enumerate(kinds):
             if kd != "view":
@@ -260,13 +315,19 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
                                           t=test.times[i], source=source, labels=labels)
             ok = ids_test[i] >= 0
             out.append(float(metrics.ari(ids_test[i][ok], pred[ok])))
+            if keep is not None:
+                keep.append((ids_test[i][ok], pred[ok]))
         return out
 
     for key, source in (("ari", "stage1"), ("ari_controlled", "control")):
-        aris = view_aris(source)
+        pairs: list = []
+        aris = view_aris(source, keep=pairs)
         if aris:
             res[key] = float(np.mean(aris))
             res[f"{key}_per_view"] = aris
+            if source == "stage1":
+                res.update(part_ious(np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs]),
+                                     len(meta.get("objects", []))))
     # stage 1 on the "view" test frames, with the aligned cameras (and the exact ones when they differ)
     for key, cams in (("view_psnr_stage1", test), ("view_psnr_stage1_unaligned", test_exact))[:1 + (test_exact is not test)]:
         ps_v = [float(metrics.psnr(render_frame(run.state, run.spec, run.cfg, cams.viewmats[i], cams.Ks[i], cams.times[i],
@@ -303,17 +364,16 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
     if states_train is not None and k:
         errs = {}
         for c in range(k):
-            obj = objs.get(match[c])
-            if obj is None:
+            if match[c] not in objs:
                 continue
-            s_ref = float(states_train[ref, match[c] - 1])
-            true = [gt_point_motion(obj, s_ref, states_train[int(np.argmin(np.abs(t_train - tt))), match[c] - 1],
-                                    s2.traj[c, 0], norm) for tt in s2.traj_times]
+            true = [gt_point_motion(objs, match[c], states_train[ref],
+                                    states_train[int(np.argmin(np.abs(t_train - tt)))], s2.traj[c, 0], norm)
+                    for tt in s2.traj_times]
             errs[str(c + 1)] = float(np.mean(np.linalg.norm(np.asarray(true) - s2.traj[c], axis=-1)))
         if errs:
             res["trajectory_error"] = float(np.mean(list(errs.values())))
             res["trajectory_error_per_object"] = errs
-    ps, ps_c, ps1, by_obj, ps_exact, ps_run, swept = [], [], [], [], [], [], []
+    ps, ps_c, ps1, by_obj, ps_exact, ps_run, swept, ps_mov = [], [], [], [], [], [], [], []
     if maps_dir is not None:
         maps_dir = Path(maps_dir)
         maps_dir.mkdir(parents=True, exist_ok=True)
@@ -328,13 +388,12 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
                 continue
             d = norm.lengths_to_scene(c_test[i, j - 1] - c_train[ref, j - 1])
             vecs_c[c] = result.snap_vector(s2, c, d)[0]
-            obj = objs.get(j)
             s_test = meta["test_frames"][i].get("states")
-            if obj is None or s_test is None:
+            if j not in objs or s_test is None:
                 vecs[c] = vecs_c[c]
                 continue
-            s_ref = float(states_train[ref, j - 1]) if states_train is not None else 0.0
-            d = gt_point_motion(obj, s_ref, s_test[j - 1], s2.traj[c, 0], norm) - s2.traj[c, 0]
+            s_ref = states_train[ref] if states_train is not None else np.zeros(len(objs))
+            d = gt_point_motion(objs, j, s_ref, s_test, s2.traj[c, 0], norm) - s2.traj[c, 0]
             vecs[c] = result.snap_vector(s2, c, d)[0]
         for v, out in ((vecs, ps), (vecs_c, ps_c)):
             img = result.render_controlled(run, v[:k] if k else v, test.viewmats[i], test.Ks[i], test.width,
@@ -342,6 +401,9 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
             out.append(float(metrics.psnr(img, test.images[i])))
             if out is ps:
                 by_obj.append(error_by_object(img, test.images[i], ids_test[i]))
+                mov = ids_test[i] >= 1
+                if mov.any():
+                    ps_mov.append(masked_psnr(img, test.images[i], mov))
                 if src is not None and 0 <= int(src) < len(ids_train):
                     sw = swept_mask(ids_test[i], ids_train[int(src)]) & (ids_test[i] == 0)
                     swept.append(error_by_object(img, test.images[i], np.where(sw, 1, np.where(ids_test[i] == 0, 0, -1))))
@@ -364,6 +426,8 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
     if ps:
         res["state_psnr"] = float(np.mean(ps))
         res["state_psnr_per_frame"] = ps
+        if ps_mov:
+            res["state_psnr_moving"] = float(np.mean(ps_mov))
         res["state_psnr_centre"] = float(np.mean(ps_c))
         res["state_psnr_stage1"] = float(np.mean(ps1))
         if ps_exact:
@@ -450,9 +514,9 @@ def _motion_preference(run, train, objs: dict, match: dict[int, int], states, re
     for c, j in sorted(match.items()):
         if j < 1 or j not in objs:
             continue
-        s_ref = float(states[ref, j - 1])
+        s_ref = states[ref]
         moved = [i for i in range(train.num_frames)
-                 if np.linalg.norm(gt_point_motion(objs[j], s_ref, states[i, j - 1], s2.traj[c, 0], norm)
+                 if np.linalg.norm(gt_point_motion(objs, j, s_ref, states[i], s2.traj[c, 0], norm)
                                    - s2.traj[c, 0]) > min_move]
         if not moved:
             continue
@@ -465,7 +529,7 @@ def _motion_preference(run, train, objs: dict, match: dict[int, int], states, re
             vec[c] = result.cluster_vectors_at(s2, float(train.times[i]))[c]
             learned = result.render_controlled(run, vec, train.viewmats[i], train.Ks[i], train.width, train.height)
             poses = np.tile(np.eye(4), (s2.num_objects, 1, 1))
-            poses[c] = gt_motion_scene(objs[j], s_ref, float(states[i, j - 1]), norm)
+            poses[c] = gt_motion_scene(objs, j, s_ref, states[i], norm)
             row = [float(np.abs(learned - image).mean())]
             for labels in (s2.labels, lab_gt):
                 img = _render_posed(run, labels, poses, train.viewmats[i], train.Ks[i], train.width, train.height)
@@ -484,7 +548,7 @@ def _gt_poses(k: int, match: dict[int, int], objs: dict, s_from, s_to, norm) -> 
     poses = np.tile(np.eye(4), (k, 1, 1))
     for c, j in match.items():
         if j >= 1 and j in objs:
-            poses[c] = gt_motion_scene(objs[j], float(s_from[j - 1]), float(s_to[j - 1]), norm)
+            poses[c] = gt_motion_scene(objs, j, s_from, s_to, norm)
     return poses
 
 
@@ -587,4 +651,75 @@ def write_control_metrics(run, data_dir: Path | None = None, maps_dir: Path | No
     old = json.loads(path.read_text()) if path.is_file() else {}
     old["control"] = res
     atomic_write(path, lambda f: f.write(json.dumps(old, indent=1).encode()))
+    return res
+
+
+def discovery_trace(run_dir: Path, data_dir: Path, cfg, log=print, flow_threshold: float = 0.5) -> dict:
+    """Where discovery (step 5) loses a moving part, against the synthetic ground truth: step 5 is run again on
+    the stage-1 run (`fgjax.method.discover.discover_run` with the stage-2 options `cfg`), and its per-pixel
+    flags |u - u_cam| and its dynamic set D are compared with the truth.
+
+    - ``moving_pixels_flagged``: share of the true moving pixels (|gt object flow| > `flow_threshold` px, gt flow
+      valid) that the flag marks, pooled over the training pairs; per part in ``part_pixels_flagged``;
+    - ``static_pixels_flagged``: share of the true static pixels (gt id 0) it marks;
+    - per part (``part_gaussians``): how many live reconstructed Gaussians lie on it (nearest gt Gaussian within
+      0.06 scene units, at the first training time), how many of those entered D, and how many stage 2 put in an
+      object (``RUN/stage2.npz``'s labels, where present).
+
+    A part lost with few flagged pixels is lost to the flow or camera flow or the threshold; one with flagged
+    pixels but few Gaussians in D to the back-projection (scores); one with Gaussians in D but none in an object
+    to the clustering. Returns {} with a ``note`` when the run's image size is not the ground truth's.
+    """
+    run_dir, data_dir = Path(run_dir), Path(data_dir)
+    gt = data_dir / "gt"
+    meta = json.loads((gt / "meta.json").read_text())
+    run, scene, _ = prepare_run(run_dir, data_dir, log=lambda *_: None)
+    cache = Path(cfg.flow_cache) if getattr(cfg, "flow_cache", None) else run_dir / "flow_cache"
+    disc, _, _, (order, _, _) = discover_run(run, scene, cfg, cache, log=lambda *_: None)
+    ids = np.load(gt / "train" / "object_id.npy")
+    if ids.shape[1:] != (scene.height, scene.width):
+        return {"note": f"ground truth is {ids.shape[2]}x{ids.shape[1]}, the run {scene.width}x{scene.height}"}
+    obj_flow = np.load(gt / "train" / "object_flow.npy")
+    fvalid = np.load(gt / "train" / "flow_valid.npy")
+    n_parts = len(meta.get("objects", []))
+    flagged = {"moving": [0, 0], "static": [0, 0]}
+    per_part = {j: [0, 0] for j in range(1, n_parts + 1)}
+    for p, (a, b) in enumerate(zip(order[:-1], order[1:], strict=True)):
+        if b != a + 1:  # the gt flow is between consecutive frames (time order = index order for fgjax synth)
+            continue
+        mask = np.asarray(disc.masks[p], bool)
+        mov = fvalid[a] & (np.linalg.norm(obj_flow[a], axis=-1) > flow_threshold)
+        sta = fvalid[a] & (ids[a] == 0)
+        flagged["moving"][0] += int(np.sum(mask & mov))
+        flagged["moving"][1] += int(np.sum(mov))
+        flagged["static"][0] += int(np.sum(mask & sta))
+        flagged["static"][1] += int(np.sum(sta))
+        for j in per_part:
+            mj = mov & (ids[a] == j)
+            per_part[j][0] += int(np.sum(mask & mj))
+            per_part[j][1] += int(np.sum(mj))
+    share = lambda x: float(x[0] / x[1]) if x[1] else float("nan")
+    res: dict = {"moving_pixels_flagged": share(flagged["moving"]), "static_pixels_flagged": share(flagged["static"]),
+                 "part_pixels_flagged": {str(j): share(v) for j, v in per_part.items()},
+                 "part_moving_pixels": {str(j): v[1] for j, v in per_part.items()}}
+    states = np.load(gt / "train" / "states.npy")
+    norm = Normalization.from_dict(run.meta["normalization"])
+    objs = gt_objects(meta)
+    first = int(order[0])
+    means = np.asarray(run.deformed(float(scene.times[first]))[0])
+    lab = gt_labels_of_gaussians(means, gt, objs, states[first], norm, {j - 1: j for j in objs}, 0.06)
+    alive = np.asarray(run.state.densify.alive, bool)
+    s2_labels = None
+    if (run_dir / "stage2.npz").is_file():
+        with np.load(run_dir / "stage2.npz") as z:
+            s2_labels = np.asarray(z["labels"]) if len(z["labels"]) == len(lab) else None
+    res["part_gaussians"] = {}
+    for j in objs:
+        on = alive & (lab == j - 1)
+        row = {"on_part": int(on.sum()), "in_dynamic_set": int(np.sum(on & disc.dynamic))}
+        if s2_labels is not None:
+            row["in_an_object"] = int(np.sum(on & (s2_labels >= 0)))
+        res["part_gaussians"][str(j)] = row
+    res["dynamic_set"] = int(np.sum(disc.dynamic))
+    res["dynamic_set_on_static"] = int(np.sum(disc.dynamic & alive & (lab < 0)))
     return res

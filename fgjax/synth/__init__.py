@@ -63,13 +63,20 @@ schedule never shows (all objects open at once, to different degrees); their ``t
 training camera's time, so they are meant for control evaluation (``gt/test/kind.npy``,
 ``gt/meta.json`` say which frame is which).
 
+The scene family (`fgjax.synth.family`, ``fgjax synth --family SEED``) draws a random scene per seed: part
+kinds, joint axes, sizes, colours, schedules, camera paths and resolutions (its docstring lists them).
+
 Modules: `fgjax.synth.parts` (numpy helpers, surfaces, the room and the object kinds),
 `fgjax.synth.scene` (config, kinematics, layout, `make_scene`, camera path), `fgjax.synth.render`
-(rendering, ground-truth flow, flow colours), `fgjax.synth.write` (`generate`).
+(rendering, ground-truth flow, flow colours), `fgjax.synth.write` (`generate`),
+`fgjax.synth.family` (the scene family).
 """
 
 from __future__ import annotations
 
+from fgjax.synth.family import family_config as family_config
+from fgjax.synth.family import make_family_scene as make_family_scene
+from fgjax.synth.family import parse_seeds as parse_seeds
 from fgjax.synth.parts import ROOM_HALF as ROOM_HALF
 from fgjax.synth.parts import ROOM_HEIGHT as ROOM_HEIGHT
 from fgjax.synth.parts import ROOM_SIZE as ROOM_SIZE
@@ -79,12 +86,14 @@ from fgjax.synth.render import flow_to_color as flow_to_color
 from fgjax.synth.render import ground_truth_flow as ground_truth_flow
 from fgjax.synth.render import render_sequence as render_sequence
 from fgjax.synth.render import sequence_flow as sequence_flow
+from fgjax.synth.scene import FAMILY_KINDS as FAMILY_KINDS
 from fgjax.synth.scene import MAX_OBJECTS as MAX_OBJECTS
 from fgjax.synth.scene import OBJECT_KINDS as OBJECT_KINDS
 from fgjax.synth.scene import SynthConfig as SynthConfig
 from fgjax.synth.scene import SynthObject as SynthObject
 from fgjax.synth.scene import SynthScene as SynthScene
 from fgjax.synth.scene import camera_c2w as camera_c2w
+from fgjax.synth.scene import compose_transforms as compose_transforms
 from fgjax.synth.scene import deform as deform
 from fgjax.synth.scene import make_scene as make_scene
 from fgjax.synth.scene import object_centres as object_centres
@@ -99,5 +108,6 @@ __all__ = [
     "OBJECT_KINDS", "MAX_OBJECTS", "ROOM_HALF", "ROOM_HEIGHT", "ROOM_SIZE", "GENERATOR", "FORMAT_VERSION",
     "VALID_ALPHA", "SynthConfig", "SynthObject", "SynthScene", "Renders", "make_scene", "object_state",
     "object_transform", "scene_states", "deform", "object_centres", "camera_c2w", "render_sequence",
-    "ground_truth_flow", "sequence_flow", "flow_to_color", "generate",
+    "ground_truth_flow", "sequence_flow", "flow_to_color", "generate", "FAMILY_KINDS", "compose_transforms",
+    "family_config", "make_family_scene", "parse_seeds",
 ]

@@ -117,7 +117,7 @@ class Part:
         return Part(apply_rigid(m, self.points), self.normals @ m[:3, :3].T, self.colors, self.spacing)
 
 
-def _box_surface(lo, hi, spacing: float, skip: Sequence[str] = ()) -> tuple[np.ndarray, np.ndarray]:
+def box_surface(lo, hi, spacing: float, skip: Sequence[str] = ()) -> tuple[np.ndarray, np.ndarray]:
     """Points on the faces of the box [lo, hi] (grids including the edges), with face normals.
 
     Faces are named "-x", "+x", "-y", "+y", "-z", "+z"; those in `skip` are left open. Points
@@ -147,7 +147,7 @@ def _box_surface(lo, hi, spacing: float, skip: Sequence[str] = ()) -> tuple[np.n
     return p[idx], n[idx]
 
 
-def _sphere_surface(centre, radius: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+def sphere_surface(centre, radius: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """Fibonacci points on a sphere, about one per spacing^2 of area, with radial normals."""
     n = max(12, math.ceil(4 * math.pi * radius**2 / spacing**2))
     i = np.arange(n) + 0.5
@@ -167,7 +167,7 @@ def _value_noise(p: np.ndarray, rng: np.random.Generator, scale: float, n: int =
     return out / n
 
 
-def _texture(p: np.ndarray, base, rng: np.random.Generator, *, checker: float, contrast: float = 0.18,
+def texture(p: np.ndarray, base, rng: np.random.Generator, *, checker: float, contrast: float = 0.18,
              noise: float = 0.07, second=None) -> np.ndarray:
     """Per-Gaussian colours: a 3D checker of cell `checker` blending `base` and `second`, smooth
     value noise and iid noise (so that optical flow has texture at every scale)."""
@@ -185,8 +185,8 @@ def build_room(rng: np.random.Generator, spacing: float) -> Part:
     h, r = ROOM_HALF, ROOM_HEIGHT
     groups = []
     # floor: wooden checker
-    p, n = _box_surface([-h, -h, 0.0], [h, h, 0.0], spacing, skip=("-x", "+x", "-y", "+y", "+z"))
-    groups.append((p, n, _texture(p, (0.62, 0.45, 0.30), rng, checker=0.25, second=(0.45, 0.30, 0.18))))
+    p, n = box_surface([-h, -h, 0.0], [h, h, 0.0], spacing, skip=("-x", "+x", "-y", "+y", "+z"))
+    groups.append((p, n, texture(p, (0.62, 0.45, 0.30), rng, checker=0.25, second=(0.45, 0.30, 0.18))))
     # walls: each its own colour, stripes via the checker, and a few "posters"
     wall_specs = [
         (([-h, h, 0.0], [h, h, r]), ("-x", "+x", "-z", "+z", "+y"), (0.55, 0.62, 0.70)),  # back, normal -y
@@ -194,8 +194,8 @@ def build_room(rng: np.random.Generator, spacing: float) -> Part:
         (([h, -h, 0.0], [h, h, r]), ("-y", "+y", "-z", "+z", "+x"), (0.60, 0.70, 0.58)),  # right, normal -x
     ]
     for (lo, hi), skip, base in wall_specs:
-        p, n = _box_surface(lo, hi, spacing, skip=skip)
-        col = _texture(p, base, rng, checker=0.3, contrast=0.22)
+        p, n = box_surface(lo, hi, spacing, skip=skip)
+        col = texture(p, base, rng, checker=0.3, contrast=0.22)
         for _ in range(4):  # posters: rectangles of random colour
             c = p[rng.integers(len(p))]
             half = rng.uniform(0.12, 0.3, size=3)
@@ -224,10 +224,10 @@ class LocalObject:
 def build_door(rng, sp: float, palette) -> LocalObject:
     w, d, h, th = 0.32, 0.28, 0.5, 0.02
     bsp = 1.6 * sp
-    bp, bn = _box_surface([-w / 2, -d / 2, 0.0], [w / 2, d / 2, h], bsp, skip=("-y",))
-    body = Part(bp, bn, _texture(bp, palette[1], rng, checker=0.08), bsp)
-    pp, pn = _box_surface([-w / 2, -d / 2 - th, 0.0], [w / 2, -d / 2, h], sp)
-    part = Part(pp, pn, _texture(pp, palette[0], rng, checker=0.05, contrast=0.3), sp)
+    bp, bn = box_surface([-w / 2, -d / 2, 0.0], [w / 2, d / 2, h], bsp, skip=("-y",))
+    body = Part(bp, bn, texture(bp, palette[1], rng, checker=0.08), bsp)
+    pp, pn = box_surface([-w / 2, -d / 2 - th, 0.0], [w / 2, -d / 2, h], sp)
+    part = Part(pp, pn, texture(pp, palette[0], rng, checker=0.05, contrast=0.3), sp)
     kin = {"pivot": np.array([-w / 2, -d / 2 - th, 0.0]), "axis": np.array([0.0, 0.0, -1.0]),
            "max_angle": math.radians(85.0)}
     return LocalObject(body, part, w, d + w, kin)
@@ -236,13 +236,13 @@ def build_door(rng, sp: float, palette) -> LocalObject:
 def build_drawer(rng, sp: float, palette) -> LocalObject:
     w, d, h, th, inset = 0.36, 0.30, 0.30, 0.02, 0.03
     bsp = 1.6 * sp
-    bp, bn = _box_surface([-w / 2, -d / 2, 0.0], [w / 2, d / 2, h], bsp, skip=("-y",))
-    body = Part(bp, bn, _texture(bp, palette[1], rng, checker=0.08), bsp)
-    fp, fn = _box_surface([-w / 2, -d / 2 - th, 0.0], [w / 2, -d / 2, h], sp)  # front panel
-    tp, tn = _box_surface([-w / 2 + inset, -d / 2, inset], [w / 2 - inset, d / 2 - inset, h - 2 * inset], sp,
+    bp, bn = box_surface([-w / 2, -d / 2, 0.0], [w / 2, d / 2, h], bsp, skip=("-y",))
+    body = Part(bp, bn, texture(bp, palette[1], rng, checker=0.08), bsp)
+    fp, fn = box_surface([-w / 2, -d / 2 - th, 0.0], [w / 2, -d / 2, h], sp)  # front panel
+    tp, tn = box_surface([-w / 2 + inset, -d / 2, inset], [w / 2 - inset, d / 2 - inset, h - 2 * inset], sp,
                           skip=("-y", "+z"))  # open tray behind the panel
     pp, pn = np.concatenate([fp, tp]), np.concatenate([fn, tn])
-    col = _texture(pp, palette[0], rng, checker=0.05, contrast=0.3)
+    col = texture(pp, palette[0], rng, checker=0.05, contrast=0.3)
     part = Part(pp, pn, col, sp)
     travel = 0.75 * d
     kin = {"direction": np.array([0.0, -1.0, 0.0]), "distance": travel}
@@ -252,10 +252,10 @@ def build_drawer(rng, sp: float, palette) -> LocalObject:
 def build_lid(rng, sp: float, palette) -> LocalObject:
     w, d, h, th = 0.36, 0.26, 0.24, 0.02
     bsp = 1.6 * sp
-    bp, bn = _box_surface([-w / 2, -d / 2, 0.0], [w / 2, d / 2, h], bsp, skip=("+z",))
-    body = Part(bp, bn, _texture(bp, palette[1], rng, checker=0.08), bsp)
-    pp, pn = _box_surface([-w / 2, -d / 2, h], [w / 2, d / 2, h + th], sp)
-    part = Part(pp, pn, _texture(pp, palette[0], rng, checker=0.05, contrast=0.3), sp)
+    bp, bn = box_surface([-w / 2, -d / 2, 0.0], [w / 2, d / 2, h], bsp, skip=("+z",))
+    body = Part(bp, bn, texture(bp, palette[1], rng, checker=0.08), bsp)
+    pp, pn = box_surface([-w / 2, -d / 2, h], [w / 2, d / 2, h + th], sp)
+    part = Part(pp, pn, texture(pp, palette[0], rng, checker=0.05, contrast=0.3), sp)
     kin = {"pivot": np.array([0.0, d / 2, h]), "axis": np.array([-1.0, 0.0, 0.0]),
            "max_angle": math.radians(75.0)}
     return LocalObject(body, part, w, d, kin)
@@ -263,8 +263,8 @@ def build_lid(rng, sp: float, palette) -> LocalObject:
 
 def build_free(rng, sp: float, palette, *, straight: bool) -> LocalObject:
     r = 0.09
-    pp, pn = _sphere_surface([0.0, 0.0, r], r, sp)
-    part = Part(pp, pn, _texture(pp, palette[0], rng, checker=0.045, contrast=0.45), sp)
+    pp, pn = sphere_surface([0.0, 0.0, r], r, sp)
+    part = Part(pp, pn, texture(pp, palette[0], rng, checker=0.045, contrast=0.45), sp)
     length = 0.4
     wiggle = 0.0 if straight else 0.12
     kin = {"pivot": np.array([0.0, 0.0, r]), "direction": np.array([0.0, -1.0, 0.0]),

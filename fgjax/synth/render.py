@@ -15,7 +15,7 @@ from jaxtyping import Bool, Float, Int
 
 from fgjax.render.api import count_intersections, rasterization
 from fgjax.synth.parts import rigid_inv
-from fgjax.synth.scene import SynthScene, deform, object_transforms
+from fgjax.synth.scene import SynthScene, deform, moving_labels, object_transforms
 
 VALID_ALPHA = 0.5  # pixels with alpha below this are background (id -1, no flow)
 
@@ -251,7 +251,7 @@ def sequence_flow(scene: SynthScene, states: Float[np.ndarray, "T K"], viewmats:
 
     Returns:
         dict with flow, camera_flow, object_flow [T-1, H, W, 2] float32, flow_valid,
-        flow_occluded [T-1, H, W] bool, and moving [T-1, K] bool (object k's state changes).
+        flow_occluded [T-1, H, W] bool, and moving [T-1, K] bool (object k moves: `fgjax.synth.scene.moving_labels`).
     """
     t, h, w = renders.depth.shape
     out = {
@@ -260,7 +260,7 @@ def sequence_flow(scene: SynthScene, states: Float[np.ndarray, "T K"], viewmats:
         "object_flow": np.zeros((t - 1, h, w, 2), np.float32),
         "flow_valid": np.zeros((t - 1, h, w), bool),
         "flow_occluded": np.zeros((t - 1, h, w), bool),
-        "moving": np.abs(np.diff(states, axis=0)) > 0,
+        "moving": moving_labels(scene.objects, states),
     }
     transforms = [object_transforms(scene, s) for s in states]
     for i in range(t - 1):

@@ -32,6 +32,9 @@ from fgjax.synth.parts import (
 )
 
 OBJECT_KINDS = ("door", "drawer", "lid", "free")
+# the scene family's joint kinds (`fgjax.synth.family`): a revolute joint about any axis, a prismatic one along
+# any direction, a revolute joint about an axis through the part itself, and a free rigid motion
+FAMILY_KINDS = ("hinge", "slide", "spin", "free")
 MAX_OBJECTS = 6
 
 
@@ -66,6 +69,9 @@ class SynthConfig:
             the roll 150 degrees per unit, i.e. 1.5 degrees at the default 0.01).
         test_views: number of test frames from other camera positions (at training times).
         test_states: number of test frames with unseen object-state combinations.
+        family: None for the hand-made scenes above; an int for a scene of the random family
+            (`fgjax.synth.family`): its seed, from which `fgjax.synth.family.family_config`
+            draws the other fields and `fgjax.synth.family.make_family_scene` the scene.
     """
 
     objects: tuple[str, ...] = ("door", "drawer", "lid")
@@ -86,15 +92,20 @@ class SynthConfig:
     jitter: float = 0.01
     test_views: int = 6
     test_states: int = 4
+    family: int | None = None
 
     def __post_init__(self):
         objs = (self.objects,) if isinstance(self.objects, str) else tuple(self.objects)
         object.__setattr__(self, "objects", objs)
         if not 1 <= len(objs) <= MAX_OBJECTS:
             raise ValueError(f"SynthConfig.objects: need 1 to {MAX_OBJECTS} objects, got {len(objs)}")
+        if self.family is not None and (isinstance(self.family, bool) or not isinstance(self.family, int)
+                                        or self.family < 0):
+            raise ValueError(f"SynthConfig.family must be None or a non-negative integer seed, got {self.family!r}")
+        kinds = FAMILY_KINDS if self.family is not None else OBJECT_KINDS
         for o in objs:
-            if o not in OBJECT_KINDS:
-                raise ValueError(f"SynthConfig.objects: unknown kind {o!r} (choose from {', '.join(OBJECT_KINDS)})")
+            if o not in kinds:
+                raise ValueError(f"SynthConfig.objects: unknown kind {o!r} (choose from {', '.join(kinds)})")
         for name, lo in (("width", 16), ("height", 16), ("frames", 2)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
@@ -153,6 +164,9 @@ class SynthObject:
         pivot, axis, direction, lateral: [3] world vectors (unused ones are zero).
         max_angle: radians; distance, wiggle, radius: scene units (unused ones 0).
         key_times, key_states: [M] schedule keyframes (times increasing in [0, 1]).
+        parent: 0, or the label of the part this one is attached to (a smaller label). The
+            transform above is then relative to the parent in its canonical state, and the world
+            transform is T_parent(s_parent) T(s) (`compose_transforms`).
     """
 
     label: int
@@ -168,6 +182,7 @@ class SynthObject:
     radius: float
     key_times: np.ndarray
     key_states: np.ndarray
+    parent: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         out = {}
@@ -180,9 +195,9 @@ class SynthObject:
 def object_transform(obj: SynthObject, s: float) -> Float[np.ndarray, "4 4"]:
     """Rigid world transform T(s) taking the canonical (s = 0) object to state s (see `SynthObject`)."""
     s = float(s)
-    if obj.kind in ("door", "lid"):
+    if obj.kind in ("door", "lid", "hinge", "spin"):
         r, d = axis_angle_matrix(obj.axis, s * obj.max_angle), np.zeros(3)
-    elif obj.kind == "drawer":
+    elif obj.kind in ("drawer", "slide"):
         r, d = np.eye(3), s * obj.distance * obj.direction
     elif obj.kind == "free":
         d = s * obj.distance * obj.direction + obj.wiggle * math.sin(math.pi * s) * obj.lateral
@@ -333,6 +348,9 @@ def make_scene(cfg: SynthConfig, key_or_seed: int | Any | None = None) -> SynthS
     Returns:
         The `SynthScene` (canonical Gaussians with every object at state 0).
     """
+    if cfg.family is not None:
+        raise ValueError("make_scene: a family scene (SynthConfig.family set) is built by "
+                         "fgjax.synth.family.make_family_scene")
     seed = cfg.seed if key_or_seed is None else _seed_of(key_or_seed)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5EED]))
     room = build_room(rng, cfg.room_spacing)
@@ -435,12 +453,32 @@ def scene_states(scene: SynthScene, times: Float[np.ndarray, " T"]) -> Float[np.
     return np.stack([object_state(o, times) for o in scene.objects], axis=-1).reshape(len(times), -1)
 
 
-def object_transforms(scene: SynthScene, states: np.ndarray) -> np.ndarray:
-    """[K + 1, 4, 4] transforms by label (identity for label 0) at one state vector [K]."""
-    out = np.tile(np.eye(4), (scene.num_objects + 1, 1, 1))
-    for k, obj in enumerate(scene.objects, start=1):
+def compose_transforms(objects, states: np.ndarray) -> np.ndarray:
+    """[K + 1, 4, 4] world transforms by label (identity for label 0) of `objects` (in label order, label k =
+    objects[k - 1]) at one state vector [K]: T_k = T_parent(k) T_k(s_k) (`SynthObject.parent`; parents have
+    smaller labels)."""
+    out = np.tile(np.eye(4), (len(objects) + 1, 1, 1))
+    for k, obj in enumerate(objects, start=1):
         out[k] = object_transform(obj, states[k - 1])
+        if obj.parent:
+            out[k] = out[obj.parent] @ out[k]
     return out
+
+
+def object_transforms(scene: SynthScene, states: np.ndarray) -> np.ndarray:
+    """[K + 1, 4, 4] world transforms by label (identity for label 0) at one state vector [K]
+    (`compose_transforms`)."""
+    return compose_transforms(scene.objects, states)
+
+
+def moving_labels(objects, states: Float[np.ndarray, "T K"]) -> Float[np.ndarray, "T-1 K"]:
+    """[T - 1, K] bool: object k moves in the world between consecutive state vectors (its own state
+    changes, or that of a part it is attached to)."""
+    moving = np.abs(np.diff(np.asarray(states), axis=0)) > 0
+    for k, obj in enumerate(objects):
+        if obj.parent:
+            moving[:, k] |= moving[:, obj.parent - 1]
+    return moving
 
 
 def deform(scene: SynthScene, states: Float[np.ndarray, " K"]) -> tuple[Float[np.ndarray, "N 3"], Float[np.ndarray, "N 4"]]:
@@ -460,10 +498,10 @@ def object_centres(scene: SynthScene, states: Float[np.ndarray, "T K"]) -> Float
     """3D centre (mean of the deformed Gaussians of each object's moving part) per state vector."""
     states = np.atleast_2d(np.asarray(states, dtype=np.float64))
     out = np.zeros((len(states), scene.num_objects, 3))
-    for k, obj in enumerate(scene.objects, start=1):
-        c0 = scene.means[scene.labels == k]
-        for t, s in enumerate(states):
-            out[t, k - 1] = apply_rigid(object_transform(obj, s[k - 1]), c0).mean(axis=0)
+    for t, s in enumerate(states):
+        tr = object_transforms(scene, s)
+        for k in range(1, scene.num_objects + 1):
+            out[t, k - 1] = apply_rigid(tr[k], scene.means[scene.labels == k]).mean(axis=0)
     return out
 
 
@@ -482,6 +520,8 @@ def camera_c2w(scene: SynthScene, t: float, *, d_azimuth: float = 0.0, d_height:
     (test views).
     """
     cam, cfg = scene.camera, scene.cfg
+    if "path" in cam:
+        return _path_c2w(cam, t, d_azimuth=d_azimuth, d_height=d_height, d_radius=d_radius)
     j = _jitter(cam, t)
     phi = -cam["sweep"] / 2 + cam["sweep"] * t + d_azimuth
     rad = cam["radius"] + 0.05 * math.sin(2 * math.pi * 1.3 * t) + d_radius
@@ -495,3 +535,26 @@ def camera_c2w(scene: SynthScene, t: float, *, d_azimuth: float = 0.0, d_height:
     roll = math.radians(150.0 * cfg.jitter * j[6])
     rot = np.stack([x, y, z], axis=-1) @ axis_angle_matrix([0, 0, 1], roll)
     return rigid(rot, pos)
+
+
+def _path_c2w(cam: dict[str, Any], t: float, *, d_azimuth: float, d_height: float,
+              d_radius: float) -> Float[np.ndarray, "4 4"]:
+    """OpenCV camera-to-world of the scene family's camera paths (`fgjax.synth.family`).
+
+    The camera looks at ``target`` from azimuth phi(t) = azimuth + sweep (t - 1/2) (+ `d_azimuth`), at horizontal
+    distance r(t) = radius + (radius_end - radius) smoothstep(t) (+ `d_radius`: a dolly when radius_end differs)
+    and height ``height`` (+ `d_height`), plus hand-held jitter of amplitude ``jitter`` (position; the look-at
+    point 1.5x) and a roll of ``roll_deg`` + ``roll_jitter_deg`` j(t) degrees about the viewing axis.
+    A still camera has sweep 0, radius_end = radius and no jitter.
+    """
+    j = _jitter(cam, t)
+    phi = cam["azimuth"] + cam["sweep"] * (t - 0.5) + d_azimuth
+    rad = cam["radius"] + (cam["radius_end"] - cam["radius"]) * float(smoothstep(np.asarray(t))) + d_radius
+    target = np.asarray(cam["target"]) + 1.5 * cam["jitter"] * j[3:6]
+    pos = np.array([cam["target"][0] + rad * math.sin(phi), cam["target"][1] - rad * math.cos(phi),
+                    cam["height"] + d_height]) + cam["jitter"] * j[:3]
+    z = normalize(target - pos)
+    x = normalize(np.cross(z, [0.0, 0.0, 1.0]))
+    y = np.cross(z, x)
+    roll = math.radians(cam["roll_deg"] + cam["roll_jitter_deg"] * j[6])
+    return rigid(np.stack([x, y, z], axis=-1) @ axis_angle_matrix([0, 0, 1], roll), pos)

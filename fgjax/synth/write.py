@@ -18,6 +18,7 @@ import numpy as np
 
 from fgjax.data.write import write_transforms
 from fgjax.io import replace_folder
+from fgjax.synth.family import make_family_scene
 from fgjax.synth.parts import ROOM_SIZE, axis_angle_matrix, normalize, rigid_inv, smoothstep
 from fgjax.synth.render import Renders, render_sequence, sequence_flow
 from fgjax.synth.scene import SynthConfig, SynthScene, camera_c2w, make_scene, object_centres, scene_states
@@ -50,12 +51,16 @@ def _test_frames(scene: SynthScene, train_times: np.ndarray, train_states: np.nd
     t = len(train_times)
     out = []
     view_idx = np.round(np.linspace(0, t - 1, cfg.test_views + 2)[1:-1]).astype(int) if cfg.test_views else []
+    # the hand-made scenes: 10 degrees off the arc, higher and closer, at a training time; the family's paths
+    # (some still, some short) give their own offset and a time between two training frames
+    d_az, d_h, d_r = scene.camera.get("test_offset", (math.radians(10.0), 0.15, -0.15))
+    shift = float(scene.camera.get("test_time_shift", 0.0))
     for j, i in enumerate(view_idx):
         sign = 1.0 if j % 2 == 0 else -1.0
-        c2w = camera_c2w(scene, float(train_times[i]), d_azimuth=sign * math.radians(10.0), d_height=0.15,
-                         d_radius=-0.15)
-        out.append({"kind": "view", "time": float(train_times[i]), "source": int(i), "c2w": c2w,
-                    "states": train_states[i].copy()})
+        tt = float(train_times[i]) + shift * (float(train_times[min(i + 1, t - 1)]) - float(train_times[i]))
+        c2w = camera_c2w(scene, tt, d_azimuth=sign * d_az, d_height=d_h, d_radius=d_r)
+        st = train_states[i].copy() if tt == float(train_times[i]) else scene_states(scene, np.array([tt]))[0]
+        out.append({"kind": "view", "time": tt, "source": int(i), "c2w": c2w, "states": st})
     state_idx = np.round(np.linspace(0, t - 1, cfg.test_states + 2)[1:-1]).astype(int) if cfg.test_states else []
     kmax = np.array([o.key_states.max() for o in scene.objects])
     for j, i in enumerate(state_idx):
@@ -168,6 +173,10 @@ def _write_all(tmp: Path, scene: SynthScene, train: dict[str, Any], tests: list[
         "min_separation": scene.min_separation,
         "close_pair": [1, 2] if cfg.close_pair else None,
         "close_gap": scene.close_gap,
+        **({"family": cfg.family, "camera_path": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                                                  for k, v in scene.camera.items()
+                                                  if k not in ("freqs", "phases", "weights")}}
+           if cfg.family is not None else {}),
         "test_frames": [
             {"name": nm, "kind": f["kind"], "time": f["time"], "source_index": f["source"],
              "states": f["states"].tolist(), "novelty": f["novelty"]}
@@ -231,7 +240,7 @@ def generate(
     tmp = out.with_name(f".{out.name}.synth-tmp-{uuid.uuid4().hex[:8]}")
     try:
         tmp.mkdir()
-        scene = make_scene(cfg)
+        scene = make_family_scene(cfg) if cfg.family is not None else make_scene(cfg)
         rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0xCA3E]))
         times = np.arange(cfg.frames) / (cfg.frames - 1)
         states = scene_states(scene, times)

@@ -230,15 +230,15 @@ def test_gt_point_motion_matches_hinge_and_slide_geometry():
                        wiggle=0.0, radius=0.0, key_times=np.array([0.0, 1.0]), key_states=np.array([0.0, 1.0]))
     p_world = np.array([1.0, 0.4, 0.7])  # 0.4 from the hinge axis
     p = norm.points_to_scene(p_world)
-    q = gt_point_motion(door, 0.25, 0.75, p, norm)  # turns by 0.5 * 1.2 rad
+    q = gt_point_motion({1: door}, 1, [0.25], [0.75], p, norm)  # turns by 0.5 * 1.2 rad
     assert np.linalg.norm(q - p) == pytest.approx(0.8 * 2 * 0.4 * np.sin(0.3), rel=1e-9)
     q_world = norm.points_to_world(q)
     assert np.hypot(q_world[0] - 1.0, q_world[1]) == pytest.approx(0.4, rel=1e-9) and q_world[2] == pytest.approx(0.7)
-    np.testing.assert_allclose(gt_point_motion(door, 0.75, 0.25, q, norm), p, atol=1e-12)  # and back
-    drawer = SynthObject(label=2, kind="drawer", name="drawer_2", pivot=z, axis=z, direction=np.array([0.0, -1.0, 0.0]),
+    np.testing.assert_allclose(gt_point_motion({1: door}, 1, [0.75], [0.25], q, norm), p, atol=1e-12)  # and back
+    drawer = SynthObject(label=1, kind="drawer", name="drawer_1", pivot=z, axis=z, direction=np.array([0.0, -1.0, 0.0]),
                          lateral=z, max_angle=0.0, distance=0.3, wiggle=0.0, radius=0.0,
                          key_times=np.array([0.0, 1.0]), key_states=np.array([0.0, 1.0]))
-    np.testing.assert_allclose(gt_point_motion(drawer, 0.0, 0.5, p, norm) - p, [0.0, -0.8 * 0.15, 0.0], atol=1e-12)
+    np.testing.assert_allclose(gt_point_motion({1: drawer}, 1, [0.0], [0.5], p, norm) - p, [0.0, -0.8 * 0.15, 0.0], atol=1e-12)
 
 
 def test_gt_motion_scene_matches_point_motion():
@@ -257,13 +257,13 @@ def test_gt_motion_scene_matches_point_motion():
                       axis=np.array([1.0, 0.0, 0.0]), direction=z, lateral=z, max_angle=1.0, distance=0.0,
                       wiggle=0.0, radius=0.0, key_times=np.array([0.0, 1.0]), key_states=np.array([0.0, 1.0]))
     pts = np.random.default_rng(0).normal(size=(5, 3))
-    tr = gt_motion_scene(lid, 0.1, 0.9, norm)
+    tr = gt_motion_scene({1: lid}, 1, [0.1], [0.9], norm)
     np.testing.assert_allclose(tr[:3, :3] @ tr[:3, :3].T, np.eye(3), atol=1e-12)
     mo = object_transform(lid, 0.9) @ np.linalg.inv(object_transform(lid, 0.1))  # world units
     for x in pts:
         ref = norm.points_to_scene(mo[:3, :3] @ norm.points_to_world(x) + mo[:3, 3])
         np.testing.assert_allclose(tr[:3, :3] @ x + tr[:3, 3], ref, atol=1e-12)
-        np.testing.assert_allclose(gt_point_motion(lid, 0.1, 0.9, x, norm), ref, atol=1e-12)
+        np.testing.assert_allclose(gt_point_motion({1: lid}, 1, [0.1], [0.9], x, norm), ref, atol=1e-12)
 
 
 def test_gt_labels_of_gaussians_labels_the_gt_parts(tiny):

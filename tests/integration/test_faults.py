@@ -9,6 +9,7 @@ import errno
 import json
 import os
 import shutil
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,12 @@ def one_line_error(err: str, *needles: str) -> None:
     assert lines, err
     for n in needles:
         assert n in lines[-1], (n, lines[-1])
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -107,6 +114,7 @@ def test_stage2_left_by_an_earlier_stage1_is_refused_naming_both(made, run, caps
     cams = made[0] / "transforms_test.json"
     for argv in (["render", "--run", run, "--cameras", cams, "--out", run.parent / "r", "--clusters"],
                  ["control", "--run", run, "--object", "1", "--vector", "0,0,0", "--out", run.parent / "c"],
+                 ["export", "--run", run, "--object", "1", "--vector", "0,0,0", "--out", run.parent / "e.ply"],
                  ["eval", "--run", run]):
         code, _, err = run_cli(capsys, *argv)
         assert code == 2, argv
@@ -129,9 +137,11 @@ def test_a_truncated_stage2_result_is_one_line(made, run, capsys):
 
 def test_a_corrupt_checkpoint_is_one_line(made, run, capsys):
     (run / "checkpoint.npz").write_bytes(b"not a checkpoint")
-    code, _, err = run_cli(capsys, "eval", "--run", run)
-    assert code == 2
-    one_line_error(err, "checkpoint.npz")
+    for argv in (["eval", "--run", run], ["export", "--run", run, "--out", run.parent / "e.ply"],
+                 ["view", "--run", run, "--port", free_port()]):
+        code, _, err = run_cli(capsys, *argv)
+        assert code == 2, argv
+        one_line_error(err, "checkpoint.npz")
 
 
 def test_a_read_only_folder_is_one_line_and_leaves_no_temporary_file(made, run, capsys, monkeypatch):
@@ -158,6 +168,9 @@ def test_out_paths_that_are_files_or_under_files(made, tmp_path, capsys):
     assert code == 2
     one_line_error(err, str(f), "is a file")
     code, _, err = run_cli(capsys, "synth", "--out", f / "sub", "--width", "32", "--height", "24", "--frames", "4")
+    assert code == 2
+    one_line_error(err, str(f))
+    code, _, err = run_cli(capsys, "export", "--run", made[2], "--out", f / "sub" / "s.ply")
     assert code == 2
     one_line_error(err, str(f))
 
@@ -233,7 +246,8 @@ def test_version_and_public_api(capsys):
     assert code == 0 and out.strip() == f"fgjax {fgjax.__version__}"
     names = dir(fgjax)
     for name in ("rasterization", "estimate_flow", "load_config", "run_stage1", "run_stage2", "run_articulated",
-                 "load_stage2", "render_controlled", "snap_vector", "flow", "geometry"):
+                 "load_stage2", "render_controlled", "snap_vector", "flow", "geometry", "scene_gaussians",
+                 "viewer_gaussians", "write_ply", "read_ply"):
         assert name in names
     assert callable(fgjax.run_articulated) and np.isfinite(float(fgjax.geometry.so3_exp(np.zeros(3))[0, 0]))
 

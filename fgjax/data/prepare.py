@@ -299,6 +299,8 @@ def write_scene(out: str | os.PathLike, cap: Capture, *, test_every: int = 8, ov
     vm = c2w_to_viewmat(cap.c2w)
     ks = np.tile(cap.K, (n, 1, 1))
     extra = {"normalization": cap.normalization.to_dict(), "fgjax_prepare": PREPARE_NAME}
+    if cap.depths is not None:
+        extra["depth_format"] = "16-bit PNG, millimetres (depth_scale 0.001 m); 0 = unknown"
     made = [d for d in reversed([out.parent, *out.parent.parents]) if not d.exists()]
     for d in made:
         d.mkdir()

@@ -207,7 +207,9 @@ def test_record3d_reader_reprojects_a_known_point(tmp_path):
         p = s.Ks[i] @ (vm[:3, :3] @ s.normalization.points_to_scene(x) + vm[:3, 3])
         assert np.allclose(p[:2] / p[2], 0.5 * p_true[:2] / p_true[2], atol=1e-3)
     assert np.allclose(s.normalization.lengths_to_world(s.depths[3][16:]), 1.8, atol=1e-3)
-    assert json.loads((scene / "transforms_train.json").read_text())["depth_scale"] == 0.001
+    doc = json.loads((scene / "transforms_train.json").read_text())
+    assert doc["depth_scale"] == 0.001 and doc["depth_format"].startswith("16-bit PNG, millimetres")
+    assert doc["frames"][0]["depth_file_path"].endswith(".png")
 
 
 def test_record3d_missing_field_and_missing_frame_name_the_file(tmp_path):

@@ -39,7 +39,7 @@ from fgjax.method.result import LoadedRun, cluster_vectors_at, load_stage2, rend
 from fgjax.method.stage2 import run_stage2
 from fgjax.viz import caption, grid, ids_to_color, overlay_ids, pad16, to_u8, upscale
 
-__all__ = ["run_pipeline", "train_and_discover", "write_run_pictures", "write_control_pictures", "test_view_sheet",
+__all__ = ["run_pipeline", "train_and_discover", "discover_objects", "write_run_pictures", "write_control_pictures", "test_view_sheet",
            "objects_sheet", "sweep_times", "changed_share"]
 
 
@@ -159,11 +159,18 @@ def train_and_discover(cfg: Config, scene_dir: Path, run_dir: Path, *, log: Call
     t0 = time.perf_counter()
     stage1.run(cfg, scene_dir, run_dir, log=log, overwrite=overwrite)
     log(f"stage 1 done ({time.perf_counter() - t0:.1f} s)")
+    run = discover_objects(cfg, scene_dir, run_dir, log=log)
+    log(f"stage 2 done ({time.perf_counter() - t0:.1f} s)")
+    return run
+
+
+def discover_objects(cfg: Config, scene_dir: Path, run_dir: Path, *, log: Callable[[str], None] = print) -> LoadedRun:
+    """Stage 2 on the stage-1 run ``run_dir`` as ``cfg.stage2.variant`` says (``"articulated"``:
+    `fgjax.articulate.run_articulated`, else the paper's `fgjax.method.stage2.run_stage2`); returns the loaded run."""
     if cfg.stage2.variant == "articulated":
         run_articulated(run_dir, scene_dir, cfg.stage2, cfg.articulate, log=log)
     else:
         run_stage2(run_dir, scene_dir, cfg.stage2, log=log)
-    log(f"stage 2 done ({time.perf_counter() - t0:.1f} s)")
     return load_stage2(run_dir)
 
 

@@ -34,7 +34,6 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from fgjax.articulate.pipeline import run_articulated
 from fgjax.config import Config, load_config
 from fgjax.data.loaders import load_scene
 from fgjax.data.opticalflow import estimate_flow
@@ -42,8 +41,8 @@ from fgjax.data.scene import Normalization
 from fgjax.io import atomic_write
 from fgjax.method import stage1
 from fgjax.method.evaluate import discovery_trace, write_control_metrics
-from fgjax.method.result import cluster_vectors_at, load_stage2, render_clusters, render_controlled
-from fgjax.method.stage2 import run_stage2
+from fgjax.method.result import cluster_vectors_at, render_clusters, render_controlled
+from fgjax.pipeline import discover_objects
 from fgjax.synth import family_config, generate, make_family_scene, parse_seeds
 from fgjax.viz import ids_to_color, to_u8
 
@@ -142,11 +141,7 @@ def run_seed(seed: int, out: Path, cfg: Config, *, size=None, frames=None, trace
             estimate_flow(to_u8(train.images[a]), to_u8(train.images[b]), cfg.stage2.flow_method, cache_dir=cache)
         stage1.run(cfg, scene_dir, run_dir, log=quiet, overwrite=True)
         say(f"bench family: seed {seed}: stage 1 done ({time.perf_counter() - t0:.0f} s)")
-    if cfg.stage2.variant == "articulated":
-        run_articulated(run_dir, scene_dir, cfg.stage2, cfg.articulate, log=quiet)
-    else:
-        run_stage2(run_dir, scene_dir, cfg.stage2, log=quiet)
-    run = load_stage2(run_dir)
+    run = discover_objects(cfg, scene_dir, run_dir, log=quiet)
     res = write_control_metrics(run, scene_dir, log=quiet) or {}
     wall = time.perf_counter() - t0
     row = {"seed": seed, "ari": res.get("ari", float("nan")), "parts_true": res.get("parts_true", 0),

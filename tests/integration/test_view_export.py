@@ -388,3 +388,33 @@ def test_view_page_draws_the_splat_in_a_browser(moving_run, tmp_path):
             browser.close()
         assert served.stop() == 0
         served.kill()
+
+
+def test_an_exported_ply_opens_in_viser(tiny, tmp_path):
+    """The .ply read back by an independent reader (plyfile) becomes a viser splat: its activated Gaussians
+    (`splat_arrays`, the viewer's own formulas) go into `scene.add_gaussian_splats` of a running viser server, one
+    per vertex, finite, with positive-definite covariances."""
+    import viser
+
+    from fgjax.method.splats import splat_arrays
+
+    run_dir, _ = tiny
+    out = tmp_path / "scene.ply"
+    assert cli.main(["export", "--run", str(run_dir), "--out", str(out), "--time", "0.25"]) == 0
+    d = PlyData.read(str(out))["vertex"].data
+    col = lambda *ns: np.stack([np.asarray(d[n], np.float32) for n in ns], -1)
+    k = sum(1 for n in d.dtype.names if n.startswith("f_rest_")) // 3 + 1
+    sh = np.concatenate([col("f_dc_0", "f_dc_1", "f_dc_2")[:, None],
+                         np.transpose(col(*(f"f_rest_{i}" for i in range(3 * (k - 1)))).reshape(-1, 3, k - 1),
+                                      (0, 2, 1))], 1)
+    g = Gaussians(means=col("x", "y", "z"), log_scales=col("scale_0", "scale_1", "scale_2"),
+                  quats=col("rot_0", "rot_1", "rot_2", "rot_3"), opacity_logits=np.asarray(d["opacity"], np.float32),
+                  sh=sh)
+    cov, rgb, opa = (np.asarray(x) for x in splat_arrays(g))
+    assert np.all(np.isfinite(cov)) and np.all(np.linalg.eigvalsh(cov.astype(np.float64)) > 0)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    try:
+        handle = server.scene.add_gaussian_splats("/ply", np.asarray(g.means), cov, rgb, opa)
+        assert handle is not None and len(g.means) == len(d) > 0
+    finally:
+        server.stop()

@@ -53,16 +53,22 @@ from fgjax.synth.parts import (
     ROOM_HALF,
     ROOM_HEIGHT,
     Part,
-    apply_rigid,
     axis_angle_matrix,
     box_surface,
     normalize,
-    quat_from_z,
     rigid,
     sphere_surface,
     texture,
 )
-from fgjax.synth.scene import FAMILY_KINDS, SynthConfig, SynthObject, SynthScene, compose_transforms
+from fgjax.synth.scene import (
+    FAMILY_KINDS,
+    SynthConfig,
+    SynthObject,
+    SynthScene,
+    compose_transforms,
+    gaussians_of_parts,
+    placed_object,
+)
 
 __all__ = ["family_config", "make_family_scene", "FAMILY_SIZES", "MIN_SEPARATION", "parse_seeds"]
 
@@ -512,19 +518,8 @@ def _assemble(cfg, room, builts, tilts, distractors, places, drawn, schedules, r
             groups.append((b.body.transformed(m), 0, i + 1))
         for label, kind, part, kin, parent in b.parts:
             groups.append((part.transformed(m), label, i + 1))
-            rot = m[:3, :3]
-
-            def vec(name, *, point=False, kin=kin, rot=rot, m=m):
-                if name not in kin:
-                    return np.zeros(3)
-                return apply_rigid(m, kin[name]) if point else rot @ kin[name]
-
             times, states = schedules[label - 1]
-            objects.append(SynthObject(
-                label=label, kind=kind, name=f"{kind}_{label}", pivot=vec("pivot", point=True), axis=vec("axis"),
-                direction=vec("direction"), lateral=vec("lateral"), max_angle=float(kin.get("max_angle", 0.0)),
-                distance=float(kin.get("distance", 0.0)), wiggle=float(kin.get("wiggle", 0.0)),
-                radius=float(kin.get("radius", 0.0)), key_times=times, key_states=states, parent=int(parent)))
+            objects.append(placed_object(label, kind, kin, m, times, states, parent))
     objects.sort(key=lambda o: o.label)
     for j, (part, _) in enumerate(distractors):
         groups.append((part.transformed(places[len(builts) + j]), 0, len(builts) + 1 + j))
@@ -532,12 +527,7 @@ def _assemble(cfg, room, builts, tilts, distractors, places, drawn, schedules, r
     if kinds != tuple(k for k, _ in drawn):
         raise AssertionError(f"family: built {kinds}, drawn {drawn}")  # pragma: no cover - construction order
 
-    means = np.concatenate([p.points for p, _, _ in groups])
-    normals = np.concatenate([p.normals for p, _, _ in groups])
-    colors = np.concatenate([p.colors for p, _, _ in groups])
-    labels = np.concatenate([np.full(len(p.points), lab, dtype=np.int32) for p, lab, _ in groups])
-    owner = np.concatenate([np.full(len(p.points), own, dtype=np.int32) for p, _, own in groups])
-    sig = np.concatenate([np.full(len(p.points), p.spacing) for p, _, _ in groups])
+    means, quats, scales, opacities, colors, labels, owner = gaussians_of_parts(groups)
 
     clouds = _owned_clouds(objects, means, labels, owner)
     below = np.array([max(0.0, -float(clouds[i + 1][:, 2].min())) for i in range(len(builts))])
@@ -558,11 +548,8 @@ def _assemble(cfg, room, builts, tilts, distractors, places, drawn, schedules, r
     moving = np.concatenate([clouds[o] for o in range(1, len(builts) + 1)])
     camera = _camera(rng, moving, fx, cfg.width, cfg.height)
     K = np.array([[fx, 0.0, cfg.width / 2.0], [0.0, fx, cfg.height / 2.0], [0.0, 0.0, 1.0]])
-    return SynthScene(
-        cfg=cfg, means=means, quats=quat_from_z(normals),
-        scales=np.stack([0.6 * sig, 0.6 * sig, 0.12 * sig], axis=-1), opacities=np.full(len(means), 0.97),
-        colors=colors, labels=labels, objects=tuple(objects), K=K, camera=camera, min_separation=sep,
-        close_gap=None)
+    return SynthScene(cfg=cfg, means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                      labels=labels, objects=tuple(objects), K=K, camera=camera, min_separation=sep, close_gap=None)
 
 
 def _focal(cfg: SynthConfig) -> float:

@@ -374,31 +374,9 @@ def make_scene(cfg: SynthConfig, key_or_seed: int | Any | None = None) -> SynthS
         if lo.body is not None:
             parts.append((lo.body.transformed(place), 0, label))
         parts.append((lo.part.transformed(place), label, label))
-        rot = place[:3, :3]
-        kin = lo.kin
+        objects.append(placed_object(label, cfg.objects[i], lo.kin, place, scheds[i][0], scheds[i][1]))
 
-        def vec(name, *, point=False, kin=kin, rot=rot, place=place):
-            if name not in kin:
-                return np.zeros(3)
-            return apply_rigid(place, kin[name]) if point else rot @ kin[name]
-
-        objects.append(SynthObject(
-            label=label, kind=cfg.objects[i], name=f"{cfg.objects[i]}_{label}",
-            pivot=vec("pivot", point=True), axis=vec("axis"), direction=vec("direction"), lateral=vec("lateral"),
-            max_angle=float(kin.get("max_angle", 0.0)), distance=float(kin.get("distance", 0.0)),
-            wiggle=float(kin.get("wiggle", 0.0)), radius=float(kin.get("radius", 0.0)),
-            key_times=scheds[i][0], key_states=scheds[i][1],
-        ))
-
-    means = np.concatenate([p.points for p, _, _ in parts])
-    normals = np.concatenate([p.normals for p, _, _ in parts])
-    colors = np.concatenate([p.colors for p, _, _ in parts])
-    labels = np.concatenate([np.full(len(p.points), lab, dtype=np.int32) for p, lab, _ in parts])
-    owner = np.concatenate([np.full(len(p.points), own, dtype=np.int32) for p, _, own in parts])
-    sig = np.concatenate([np.full(len(p.points), p.spacing) for p, _, _ in parts])
-    scales = np.stack([0.6 * sig, 0.6 * sig, 0.12 * sig], axis=-1)
-    quats = quat_from_z(normals)
-    opacities = np.full(len(means), 0.97)
+    means, quats, scales, opacities, colors, labels, owner = gaussians_of_parts(parts)
 
     fx = cfg.focal * cfg.width
     K = np.array([[fx, 0.0, cfg.width / 2.0], [0.0, fx, cfg.height / 2.0], [0.0, 0.0, 1.0]])
@@ -419,6 +397,37 @@ def make_scene(cfg: SynthConfig, key_or_seed: int | Any | None = None) -> SynthS
     )
     sep, close = _separations(scene, owner)
     return dataclasses.replace(scene, min_separation=sep, close_gap=close)
+
+
+def placed_object(label: int, kind: str, kin: dict[str, Any], place: Float[np.ndarray, "4 4"],
+                  key_times: np.ndarray, key_states: np.ndarray, parent: int = 0) -> SynthObject:
+    """The `SynthObject` of kinematics `kin` given in an object's local frame (``pivot`` a point; ``axis``,
+    ``direction``, ``lateral`` directions; ``max_angle``, ``distance``, ``wiggle``, ``radius`` numbers; a missing one
+    is zero), placed in the world by the rigid `place` [4, 4]."""
+    def vec(name: str, point: bool = False) -> np.ndarray:
+        if name not in kin:
+            return np.zeros(3)
+        return apply_rigid(place, kin[name]) if point else place[:3, :3] @ kin[name]
+
+    return SynthObject(
+        label=label, kind=kind, name=f"{kind}_{label}", pivot=vec("pivot", point=True), axis=vec("axis"),
+        direction=vec("direction"), lateral=vec("lateral"), max_angle=float(kin.get("max_angle", 0.0)),
+        distance=float(kin.get("distance", 0.0)), wiggle=float(kin.get("wiggle", 0.0)),
+        radius=float(kin.get("radius", 0.0)), key_times=key_times, key_states=key_states, parent=int(parent))
+
+
+def gaussians_of_parts(parts: list[tuple[Part, int, int]]) -> tuple[np.ndarray, ...]:
+    """The Gaussians of surface groups `parts` [(part, label, owner)] (world frame), as `SynthScene` stores them:
+    (means [N, 3], quats [N, 4] taking local z to each normal, scales [N, 3] = (0.6, 0.6, 0.12) x the group's
+    spacing, opacities [N] = 0.97, colors [N, 3], labels [N] int32, owner [N] int32)."""
+    means = np.concatenate([p.points for p, _, _ in parts])
+    normals = np.concatenate([p.normals for p, _, _ in parts])
+    colors = np.concatenate([p.colors for p, _, _ in parts])
+    labels = np.concatenate([np.full(len(p.points), lab, dtype=np.int32) for p, lab, _ in parts])
+    owner = np.concatenate([np.full(len(p.points), own, dtype=np.int32) for p, _, own in parts])
+    sig = np.concatenate([np.full(len(p.points), p.spacing) for p, _, _ in parts])
+    scales = np.stack([0.6 * sig, 0.6 * sig, 0.12 * sig], axis=-1)
+    return means, quat_from_z(normals), scales, np.full(len(means), 0.97), colors, labels, owner
 
 
 def _separations(scene: SynthScene, owner: np.ndarray) -> tuple[float, float | None]:

@@ -24,7 +24,6 @@ controlled render and the gt image. The protocol (seeds 0-5 tune, 6-11 validate)
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import shutil
 import sys
@@ -36,7 +35,6 @@ import numpy as np
 
 from fgjax.config import Config, load_config
 from fgjax.data.loaders import load_scene
-from fgjax.data.opticalflow import estimate_flow
 from fgjax.data.scene import Normalization
 from fgjax.io import atomic_write
 from fgjax.method import stage1
@@ -100,10 +98,11 @@ def _sheet(run, scene_dir: Path, path: Path) -> None:
 
 
 def _copy_stage1(src: Path, dst: Path) -> None:
-    """The stage-1 run folder `src` copied to `dst` without its stage-2 results."""
+    """The stage-1 run folder `src` copied to `dst` without its stage-2 results (its flow cache, RUN/flow_cache, which
+    stage 1 and stage 2 share, comes along)."""
     if dst.exists():
         shutil.rmtree(dst)
-    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("stage2.*", "control*", "flow_cache"))
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("stage2.*", "control*"))
     metrics = dst / "metrics.json"
     if metrics.is_file():
         m = json.loads(metrics.read_text())
@@ -126,21 +125,14 @@ def run_seed(seed: int, out: Path, cfg: Config, *, size=None, frames=None, trace
         if not (src / "run" / "checkpoint.npz").is_file():
             raise FileNotFoundError(f"--stage1-from: {src / 'run' / 'checkpoint.npz'} is missing (run the benchmark "
                                     f"on seed {seed} into {stage1_from} first)")
-        scene_dir, cache = src / "scene", src / "flow_cache"
+        scene_dir = src / "scene"
         _copy_stage1(src / "run", run_dir)
-        cfg = dataclasses.replace(cfg, stage2=dataclasses.replace(cfg.stage2, flow_cache=str(cache)))
-        train = load_scene(scene_dir, "train")
     else:
         scene_dir = _scene(seed, root, size, frames, say)
         t0 = time.perf_counter()
-        cache = root / "flow_cache"
-        cfg = dataclasses.replace(cfg, stage2=dataclasses.replace(cfg.stage2, flow_cache=str(cache)))
-        train = load_scene(scene_dir, "train")
-        order = np.argsort(train.times, kind="stable")
-        for a, b in zip(order[:-1], order[1:], strict=True):
-            estimate_flow(to_u8(train.images[a]), to_u8(train.images[b]), cfg.stage2.flow_method, cache_dir=cache)
         stage1.run(cfg, scene_dir, run_dir, log=quiet, overwrite=True)
         say(f"bench family: seed {seed}: stage 1 done ({time.perf_counter() - t0:.0f} s)")
+    train = load_scene(scene_dir, "train")
     run = discover_objects(cfg, scene_dir, run_dir, log=quiet)
     res = write_control_metrics(run, scene_dir, log=quiet) or {}
     wall = time.perf_counter() - t0

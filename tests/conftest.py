@@ -16,7 +16,8 @@ import pytest  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_default_matmul_precision", "highest")
 
-from fgjax import synth  # noqa: E402, F401  (re-exported for the tests: `from conftest import synth`)
+# re-exported for the tests: `from conftest import synth`
+from fgjax import cli, synth  # noqa: E402, F401
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -28,6 +29,14 @@ def shared_data(name: str) -> pathlib.Path:
     if not path.exists():
         pytest.skip(f"shared dataset {path} is absent (expected at ../shared/data relative to the repo root)")
     return path
+
+
+def run_cli(capsys, *argv) -> tuple[int, str, str]:
+    """``fgjax ARGV`` in this process (arguments made strings): (exit status, stdout, stderr) of that call alone."""
+    capsys.readouterr()
+    code = cli.main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
 
 
 @pytest.fixture

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import synth
+from conftest import run_cli, synth
 
 from fgjax import cli
 
@@ -23,13 +23,6 @@ QUICK = ["--config", str(REPO / "experiments" / "quick.toml"), "--set", "train.s
          "train.warmup_steps=2", "--set", "densify.enabled=false", "--set", "train.video_frames=0", "--set",
          "train.log_every=4", "--set", "train.checkpoint_every=0", "--set", "static.detect=false"]
 FAST_STAGE2 = ["--set", "stage2.auto_eps=true", "--set", "stage2.distill_steps=3", "--set", "stage2.photo_steps=0"]
-
-
-def run_cli(capsys, *argv) -> tuple[int, str, str]:
-    capsys.readouterr()
-    code = cli.main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def one_line_error(err: str, *needles: str) -> None:

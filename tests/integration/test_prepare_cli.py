@@ -9,17 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from _captures import TexturedRoom, look_at_c2w, pinhole, write_record3d
+from conftest import run_cli
 
-from fgjax import cli
 from fgjax.data import prepare as prepare_lib
 from fgjax.io import write_video
-
-
-def run_cli(capsys, *argv) -> tuple[int, str, str]:
-    capsys.readouterr()
-    code = cli.main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def one_line_error(err: str, *needles: str) -> None:

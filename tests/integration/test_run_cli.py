@@ -12,6 +12,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 from _captures import TexturedRoom, look_at_c2w, pinhole, write_record3d
+from conftest import run_cli
 
 from fgjax import cli
 from fgjax.config import load_config
@@ -23,13 +24,6 @@ TINY = ["--config", REPO / "experiments" / "quick.toml", "--set", "train.steps=8
         "--set", "densify.enabled=false", "--set", "train.video_frames=0", "--set", "train.checkpoint_every=0",
         "--set", "static.detect=false", "--set", "stage2.auto_eps=true", "--set", "stage2.distill_steps=3",
         "--set", "stage2.photo_steps=0", "--set", "stage2.camera_correction=on"]
-
-
-def run_cli(capsys, *argv) -> tuple[int, str, str]:
-    capsys.readouterr()
-    code = cli.main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture(scope="module")

@@ -82,6 +82,12 @@ class DeformConfig:
     hash_max_res: int = 256
     x_freqs_hash: int = 2
     """Low frequencies of gamma(X) next to the hash features."""
+    anchor: str = "none"
+    """"first": the field is zero at the first training time (`fgjax.models.deform.DeformSpec.anchor`), so the
+    canonical Gaussians are the scene in its first frame (where ``model.init = "flow"`` puts them) and the field
+    holds only motion: a constant offset of the whole scene, which neither the flow loss (it sees differences
+    between frames) nor the photometric loss (the canonical means can absorb it) pins, cannot drift in it.
+    "none": a canonical space of the network's choosing (Deformable-3DGS)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -180,6 +186,12 @@ class FlowConfig:
     method: str = "dis_deepflow"
     threshold: float = 0.5
     """Flow-target magnitude threshold (pixels) below which motion counts as static (0: off)."""
+    photo_motion: float = 1.0
+    """While the flow loss is on, the factor on the photometric loss's gradient into the deformation field's
+    displacements dx (the flow loss's reaches them in full). 1: both losses train the motion (the paper); 0: the
+    motion is learned from the dynamic flow alone and the photometric loss trains appearance, sizes and rotations.
+    With canonical Gaussians fitted before the parts move (the warm-up), the photometric loss prefers them where they
+    are and pulls a part back from the motion the flow loss gives it (docs/benchmarks.md, "Do the parts move?")."""
     start: int = 1000
     """First step with the flow loss (it also needs the deformation field on, i.e. after the warm-up).
     Training flows come from ``method`` (OpenCV, cached under RUN/flow_cache) unless passed to
@@ -600,6 +612,8 @@ def validate_stage1(cfg: Config) -> None:
     need(_finite(fl.weight) and fl.weight >= 0, "flow.weight", ">= 0", fl.weight)
     need(_finite(fl.threshold) and fl.threshold >= 0, "flow.threshold", ">= 0", fl.threshold)
     need(fl.start >= 0, "flow.start", ">= 0", fl.start)
+    need(f.anchor in ("none", "first"), "deform.anchor", "'none' or 'first'", f.anchor)
+    need(_finite(fl.photo_motion) and 0 <= fl.photo_motion <= 1, "flow.photo_motion", "in [0, 1]", fl.photo_motion)
     for k in ("lr", "lr_final"):
         v = getattr(cfg.pose, k)
         need(_finite(v) and v > 0, f"pose.{k}", "a finite number > 0", v)

@@ -57,6 +57,7 @@ __all__ = [
     "look_at_point",
     "project_points",
     "as_float",
+    "abs0",
 ]
 
 _FLIP_YZ = (1.0, -1.0, -1.0, 1.0)
@@ -98,6 +99,13 @@ def as_float(x: ArrayLike) -> Array:
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
+
+
+def abs0(x: ArrayLike) -> Array:
+    """|x| with a zero derivative at x = 0, where jnp.abs's is 1: a residual that is exactly zero (a deformation
+    at rest, a flow target that the prediction matches) pushes nothing."""
+    x = jnp.asarray(x)
+    return jnp.where(x != 0, jnp.abs(x), 0.0)
 
 
 def _small_angle_threshold(dtype) -> float:

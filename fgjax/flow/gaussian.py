@@ -14,7 +14,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from fgjax import geometry
 from fgjax.flow._common import mm, safe_inv_depth
 from fgjax.flow.motion import motion_field_inv_depth, pixel_centers, reprojection_flow
-from fgjax.geometry import as_float
+from fgjax.geometry import abs0, as_float
 from fgjax.render.api import rasterization
 from fgjax.render.project import project_gaussians
 
@@ -368,7 +368,8 @@ def flow_loss(
         flow_cam: camera flow u_cam (``motion_field`` or ``reprojection_flow``), [..., H, W, 2].
         flow_gs: rendered dynamic Gaussian flow u~_GS (``dynamic_gaussian_flow``), [..., H, W, 2].
         valid: pixel mask (bool, or float weights in [0, 1]), [..., H, W]; None = all pixels.
-        norm: "l1" = |dx| + |dy| per pixel; "l2" = sqrt(dx^2 + dy^2) per pixel (end-point error; zero
+        norm: "l1" = |dx| + |dy| per pixel (zero gradient where a component's residual is exactly 0);
+            "l2" = sqrt(dx^2 + dy^2) per pixel (end-point error; zero
             gradient at a zero residual instead of NaN).
         threshold: optional magnitude threshold (pixels) on the target u - u_cam; None = off. A Python
             float (static under jit, like ``norm``).
@@ -390,7 +391,9 @@ def flow_loss(
         target = jnp.where(mag2 >= threshold * threshold, target, 0.0)
     r = target - flow_gs
     if norm == "l1":
-        err = jnp.sum(jnp.abs(r), axis=-1)
+        # abs0: jnp.abs's derivative 1 at r = 0 would push every pixel whose target and flow agree exactly (a static
+        # pixel at rest, a thresholded target) towards +x, +y
+        err = jnp.sum(abs0(r), axis=-1)
     else:
         r2 = jnp.sum(r * r, axis=-1)
         pos = r2 > 0

@@ -17,6 +17,7 @@ import json
 import math
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -49,7 +50,7 @@ from fgjax.train.losses import isometry_loss, photometric_loss, scale_change_los
 from fgjax.train.optim import OptimSpec, active_sh_degree, make_optimizer
 from fgjax.version import __version__
 
-__all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "FlowBatch",
+__all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "FlowBatch", "flow_term",
            "estimate_training_flows", "previous_frames", "load_run", "render_frame", "evaluate", "template_state",
            "refined_viewmats", "load_test_views", "prepare_run_folder", "make_step", "compute_capacity", "active_sh_mask", "StepSpec"]
 
@@ -101,9 +102,15 @@ def init_gaussians(cfg: Config, scene, key, log=print, cache_dir=None) -> tuple[
                             init_opacity=cfg.model.init_opacity, scale_factor=cfg.model.init_scale)
 
 
-def deform_spec_from_config(cfg: Config, aabb) -> DeformSpec:
+def deform_spec_from_config(cfg: Config, aabb, times=None) -> DeformSpec:
+    """The field's static description; ``times`` (the training times) place ``deform.anchor = "first"``."""
     d = cfg.deform
-    return DeformSpec(
+    anchor = None
+    if d.anchor == "first":
+        if times is None or len(times) == 0:
+            raise ValueError("deform.anchor = 'first' needs the training times")
+        anchor = float(np.min(times))
+    return DeformSpec(anchor=anchor, 
         kind=d.kind, depth=d.depth, width=d.width, x_freqs=d.x_freqs, t_freqs=d.t_freqs, skip=d.skip,
         hash_levels=d.hash_levels, hash_log2_table=d.hash_log2_table, hash_features=d.hash_features,
         hash_base_res=d.hash_base_res, hash_max_res=d.hash_max_res, x_freqs_hash=d.x_freqs_hash,
@@ -140,6 +147,7 @@ class StepSpec:
     rigid_cap: float = 0.0  # saturation of a pair's stretch in the isometry regulariser (0: none)
     freeze_gaussians: bool = False  # only the deformation (and poses) update: the canonical Gaussians stay
     vmap_cameras: bool = False  # vmap the batch's cameras (a data-parallel mesh splits them); else a loop
+    photo_motion: float = 1.0  # scale of the photometric loss's gradient into the field's displacements
 
 
 class FlowBatch(NamedTuple):
@@ -152,7 +160,7 @@ class FlowBatch(NamedTuple):
     weight: Any  # [B] 1 where frame t-1 exists, else 0
 
 
-def _flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
+def flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
     """L_uGS of one camera (``fgjax.flow.gaussian_flow_loss``): the model deformed to t-1 and t, both seen
     by camera t-1. Returns (weighted loss, overflow flag)."""
     vm_prev = fl.viewmat_prev
@@ -179,7 +187,7 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         img, _, info, geo = render_params(
             params, alive, viewmat, K, t, spec=ss.spec, sh_degree=ss.sh_degree, width=ss.width,
             height=ss.height, background=bg, capacity=ss.capacity, tile_size=ss.tile_size, delta2d=delta2d,
-            sh_mask=sh_mask,
+            sh_mask=sh_mask, motion_grad=ss.photo_motion,
         )
         loss = photometric_loss(img, image, ss.lambda_dssim)
         if ss.scale_reg > 0:
@@ -192,7 +200,7 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
                                                                     alive)
         overflow = info["overflow"]
         if fl is not None:
-            lf, of = _flow_term(ss, params, alive, viewmat, K, t, fl)
+            lf, of = flow_term(ss, params, alive, viewmat, K, t, fl)
             loss = loss + ss.flow_weight * lf
             overflow = overflow | of
         mse = jnp.mean((img - image) ** 2)
@@ -354,7 +362,7 @@ def initial_state(cfg: Config, scene, log=print, cache_dir=None) -> tuple[TrainS
         scene, deltas = _bundle_adjusted(cfg, scene, cache_dir, log)
     g, alive = init_gaussians(cfg, scene, k_init, log=log, cache_dir=cache_dir)
     lo, hi = scene_box(scene.viewmats, scene.Ks, scene.width, scene.height)
-    spec = deform_spec_from_config(cfg, np.concatenate([lo, hi]))
+    spec = deform_spec_from_config(cfg, np.concatenate([lo, hi]), scene.times)
     params: dict[str, Any] = {"gaussians": g, "deform": deform_init(k_def, spec)}
     if cfg.pose.enabled:
         params["pose"] = jnp.asarray(deltas, jnp.float32)
@@ -414,6 +422,7 @@ def train_stage1(
     log=print,
     devices=None,
     flows: np.ndarray | None = None,
+    monitor: Callable[[int, TrainState, DeformSpec], None] | None = None,
 ) -> dict[str, Any]:
     """Train stage 1. Returns {"state", "spec", "losses" (per step), "static", "time_s", "capacity"}.
 
@@ -429,6 +438,9 @@ def train_stage1(
         flows: observed optical flow into each frame from its predecessor in time, [T, H, W, 2] on the
             predecessor's grid (NaN = unknown), for the flow loss (flow.enabled and flow.weight > 0);
             None: estimated with ``flow.method`` (cached under out_dir/flow_cache).
+        monitor: called as monitor(step, state, spec) every ``train.log_every`` steps and at the end (after the
+            losses are synced); it must not modify the state (`fgjax bench motion --trace` records the learned
+            motion with it).
     """
     validate_stage1(cfg)  # a Config built in code has not been through load_config's checks
     out = None if out_dir is None else Path(out_dir)
@@ -488,7 +500,8 @@ def train_stage1(
                       t.scale_reg, t.scale_reg_max, "pose" in state.params,
                       fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
-                      t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None)
+                      t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
+                      fc.photo_motion if flow_on else 1.0)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
@@ -589,6 +602,8 @@ def train_stage1(
                 log(f"step {s1:>6}/{t.steps}  {rate:6.1f} it/s  loss {float(vals[-1][0]):.4f}  "
                     f"PSNR {10 * math.log10(1.0 / max(mse_mean, 1e-12)):5.2f}  "
                     f"alive {int(jnp.sum(state.densify.alive))}  ETA {eta:6.0f} s")
+            if monitor is not None:
+                monitor(s1, state, spec)
         if test_scene is not None and t.eval_every and s1 % t.eval_every == 0:
             m = evaluate(state, spec, cfg, test_scene)
             metrics_hist.append({"step": s1, "time_s": time.time() - t_start,
@@ -731,17 +746,17 @@ def prepare_run_folder(out: Path, data_dir: Path, *, resume: bool = False, overw
 
 
 def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print, *,
-        overwrite: bool = False) -> dict[str, Any]:
+        overwrite: bool = False, monitor=None) -> dict[str, Any]:
     """Load, train, evaluate and write RUN/{config.toml, checkpoint.npz, metrics.json, provenance.json, test/*.png,
-    sweep.mp4}. The folder must be new or empty, or hold a run to continue (``resume``) or replace (``overwrite``):
-    `prepare_run_folder`."""
+    sweep.mp4}; ``monitor`` as in `train_stage1`. The folder must be new or empty, or hold a run to continue
+    (``resume``) or replace (``overwrite``): `prepare_run_folder`."""
     out, data_dir = Path(out), Path(data_dir)
     prepare_run_folder(out, data_dir, resume=resume, overwrite=overwrite)
     scene = load_scene(data_dir, "train", downscale=cfg.data.downscale)
     test, masks, names = load_test_views(data_dir, cfg, scene.normalization)
     log(f"train: {scene.num_frames} frames {scene.width}x{scene.height}; "
         f"test: {0 if test is None else test.num_frames} views")
-    res = train_stage1(cfg, scene, out, test_scene=test, resume=resume, log=log)
+    res = train_stage1(cfg, scene, out, test_scene=test, resume=resume, log=log, monitor=monitor)
     metrics: dict[str, Any] = {"train_time_s": res["time_s"], "steps": cfg.train.steps, "static": bool(res["static"]),
                                "num_gaussians": int(jnp.sum(res["state"].densify.alive)),
                                "eval_history": res["eval_history"]}

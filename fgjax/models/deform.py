@@ -59,6 +59,9 @@ class DeformSpec:
     """Low frequencies of gamma(X) added next to the hash features."""
     aabb: tuple[float, ...] = (-1.0, -1.0, -1.0, 1.0, 1.0, 1.0)
     """Scene box (lo xyz, hi xyz) that the hash grid covers."""
+    anchor: float | None = None
+    """A time t_a at which the field is the identity: f(X, t) = g(X, t) - g(X, t_a) with g the network, so the
+    canonical Gaussians are the scene at t_a (None: f = g, a canonical space of the network's choosing)."""
 
     def __post_init__(self):
         if self.kind not in ("frequency", "hash"):
@@ -68,6 +71,8 @@ class DeformSpec:
         if len(self.aabb) != 6 or any(self.aabb[i + 3] <= self.aabb[i] for i in range(3)):
             raise ValueError(f"DeformSpec.aabb must be (lo x, y, z, hi x, y, z) with lo < hi; got {self.aabb}")
         object.__setattr__(self, "aabb", tuple(float(a) for a in self.aabb))
+        if self.anchor is not None:
+            object.__setattr__(self, "anchor", float(self.anchor))
 
     @property
     def resolutions(self) -> tuple[int, ...]:
@@ -126,16 +131,24 @@ def deform_apply(
 ) -> tuple[Float[Array, "N 3"], Float[Array, "N 4"], Float[Array, "N 3"]]:
     """(dX, dq, ds) at canonical centres `x` [N, 3] and time `t` (scalar or [N]).
 
-    Add dX to the means, dq to the raw quaternions and ds to the log-scales. X is not detached
+    Add dX to the means, dq to the raw quaternions and ds to the log-scales. With ``spec.anchor`` = t_a the
+    network's output at t_a is subtracted (one more evaluation), so the field is exactly zero at t_a. X is not
+    detached
     (Deformable-3DGS detaches it only through the canonical optimiser step, which we do too by
     giving both the same gradient).
     """
     x = jnp.asarray(x)
+    out = _network(spec, params, x, t)  # [N, 10]
+    if spec.anchor is not None:  # zero at the anchor time: the canonical space is the scene then
+        out = out - _network(spec, params, x, spec.anchor)
+    return out[:, :3], out[:, 3:7], out[:, 7:10]
+
+
+def _network(spec: DeformSpec, params, x, t):
     inp = _encode(spec, params, x, t)  # [N, E]
     h = inp
     for i, layer in enumerate(params["layers"]):
         if spec.skip > 0 and i == spec.skip:
             h = jnp.concatenate([h, inp], axis=-1)
         h = jax.nn.relu(h @ layer["w"] + layer["b"])
-    out = h @ params["head"]["w"] + params["head"]["b"]  # [N, 10]
-    return out[:, :3], out[:, 3:7], out[:, 7:10]
+    return h @ params["head"]["w"] + params["head"]["b"]

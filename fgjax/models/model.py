@@ -30,14 +30,25 @@ def scene_extent(viewmats: np.ndarray) -> float:
     return 1.1 * max(spread, 0.25 * look_at_point(viewmats)[1], 1e-3)
 
 
-def deformed_gaussians(params, alive, t, spec: DeformSpec | None):
+def scale_gradient(x, factor: float):
+    """x in the forward pass; ``factor`` times its gradient in the backward pass (0: stop-gradient)."""
+    if factor == 1.0:
+        return x
+    sg = jax.lax.stop_gradient(x)
+    return sg if factor == 0.0 else sg + factor * (x - sg)
+
+
+def deformed_gaussians(params, alive, t, spec: DeformSpec | None, motion_grad: float = 1.0):
     """(means [N, 3], activated quats [N, 4], scales [N, 3], opacities [N], log-scales [N, 3]) of the model at time
     t: x + dx, q + dq, log s + ds with (dx, dq, ds) = f(sg(x), t) (the deformation field reads stop-gradient
-    canonical centres, as in Deformable-3DGS); ``spec`` None: the canonical Gaussians."""
+    canonical centres, as in Deformable-3DGS); ``spec`` None: the canonical Gaussians. ``motion_grad`` (a Python
+    float) scales the gradient that reaches the field through dx (0: the loss that renders these Gaussians does not
+    train the motion: `fgjax.config.FlowConfig.photo_motion`)."""
     g: Gaussians = params["gaussians"]
     means, quats, log_scales = g.means, g.quats, g.log_scales
     if spec is not None:
         dx, dq, ds = deform_apply(spec, params["deform"], jax.lax.stop_gradient(means), t)
+        dx = scale_gradient(dx, motion_grad)
         means, quats, log_scales = means + dx, quats + dq, log_scales + ds
     g2 = Gaussians(means, log_scales, quats, g.opacity_logits, g.sh)
     q, s, o = activate(g2, alive)
@@ -47,7 +58,7 @@ def deformed_gaussians(params, alive, t, spec: DeformSpec | None):
 def render_params(
     params, alive, viewmat, K, t, *, spec: DeformSpec | None, sh_degree: int, width: int, height: int,
     background, capacity: int | None, tile_size: int = 8, delta2d=None, render_depth: bool = False, sh_mask=None,
-    active=None,
+    active=None, motion_grad: float = 1.0,
 ):
     """Render the model at time t from one camera: (image [H, W, 3], alpha, info, geometry) with geometry =
     {"means": deformed centres [N, 3], "log_scales": deformed log-scales [N, 3]}.
@@ -55,9 +66,10 @@ def render_params(
     ``delta2d`` [N, 2] (zeros) shifts each Gaussian by that many pixels on screen (a camera-space
     offset proportional to depth); its gradient is the screen-space gradient densification needs.
     ``active`` [N] bool: composite only the tiles these Gaussians reach (`fgjax.rasterization`'s ``active``).
+    ``motion_grad``: `deformed_gaussians`'s.
     """
 
-    means, q, s, o, log_scales = deformed_gaussians(params, alive, t, spec)
+    means, q, s, o, log_scales = deformed_gaussians(params, alive, t, spec, motion_grad)
     geometry = {"means": means, "log_scales": log_scales}
     rot = viewmat[:3, :3]
     if delta2d is not None:

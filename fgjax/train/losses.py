@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from fgjax.geometry import abs0
 from fgjax.metrics import ssim
 
 __all__ = ["l1", "photometric_loss", "scale_regularizer", "isometry_loss", "scale_change_loss"]
@@ -55,7 +56,7 @@ def isometry_loss(
 
     With ``cap`` > 0 each pair costs the robust (Geman-McClure) cap e^2 / (e^2 + cap^2) of its stretch e:
     quadratic near 0, so a part can start to move before it moves as one piece (the plain |e| has a
-    gradient of 1 / |X_i - X_j| at rest and holds every Gaussian in place), and bounded by cap, so a pair
+    gradient of 1 / |X_i - X_j| as soon as a pair stretches at all, which holds every Gaussian in place), and bounded by cap, so a pair
     that spans a part's boundary (a door Gaussian and its static frame) breaks once the part moves,
     instead of pulling it back with a cost that grows without bound."""
     xt = jnp.asarray(means_t)
@@ -63,7 +64,7 @@ def isometry_loss(
     w = jnp.asarray(nbr_w).astype(xt.dtype)
     d_t = _safe_norm(xt[:, None, :] - xt[nbr_idx])  # [N, K]
     d_c = _safe_norm(xc[:, None, :] - xc[nbr_idx])
-    err = jnp.abs(d_t / (d_c + eps) - d_c / (d_c + eps))
+    err = abs0(d_t / (d_c + eps) - d_c / (d_c + eps))
     if cap > 0:
         err = cap * err**2 / (err**2 + cap**2)
     return jnp.sum(w * err) / jnp.maximum(jnp.sum(w), 1.0)
@@ -75,6 +76,6 @@ def scale_change_loss(
     """mean_i w_i mean_k |s_ik(t) - s_ik| in log-scale: rigid parts keep their Gaussians' sizes. Without it a
     deformation field can fake motion by shrinking Gaussians to nothing at one place and growing others
     elsewhere (appearance by scale), which leaves no trajectory to control."""
-    d = jnp.mean(jnp.abs(jnp.asarray(log_scales_t) - jax.lax.stop_gradient(jnp.asarray(log_scales_c))), axis=-1)
+    d = jnp.mean(abs0(jnp.asarray(log_scales_t) - jax.lax.stop_gradient(jnp.asarray(log_scales_c))), axis=-1)
     w = jnp.asarray(weights).astype(d.dtype)
     return jnp.sum(w * d) / jnp.maximum(jnp.sum(w), 1.0)

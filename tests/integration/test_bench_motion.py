@@ -52,3 +52,39 @@ def test_motion_report_needs_the_ground_truth(tiny, tmp_path, capsys):
     run_dir, _ = tiny
     assert motion.main(["--run", str(run_dir), "--data", str(tmp_path)]) == 2
     assert "needs a dataset written by `fgjax synth`" in capsys.readouterr().err
+
+
+def test_motion_scores_ratio_and_angle():
+    true = np.zeros((1, 5, 3))
+    true[0, :, 0] = [0.0, 0.05, 0.2, 0.1, 0.0]  # largest displacement at t* = index 2, along x
+    rot = lambda deg: np.array([np.cos(np.radians(deg)), np.sin(np.radians(deg)), 0.0])
+    for scale, deg, ok in ((1.0, 0.0, True), (0.85, 10.0, True), (0.7, 0.0, False), (1.0, 20.0, False),
+                           (0.03, 0.0, False)):
+        learned = np.zeros_like(true)
+        learned[0, 2] = 0.2 * scale * rot(deg)
+        s = motion.motion_scores(learned, true)[0]
+        assert s["ratio"] == pytest.approx(scale) and s["angle_deg"] == pytest.approx(deg, abs=1e-4)
+        assert s["ok"] is ok and s["true"] == pytest.approx(0.2)
+    assert not motion.motion_scores(np.full_like(true, np.nan), true)[0]["ok"]  # a part without Gaussians
+
+
+def test_bench_motion_trains_traces_and_diagnoses_the_flow(tiny, tmp_path, capsys):
+    """--train records the learned motion over training; --flow measures the dynamic flow on each part's pixels."""
+    _, data = tiny
+    run = tmp_path / "run"
+    quick = Path(__file__).resolve().parents[2] / "experiments" / "quick.toml"
+    sets = ["train.steps=8", "train.warmup_steps=2", "densify.enabled=false", "train.video_frames=0",
+            "train.log_every=4", "train.checkpoint_every=0", "static.force=dynamic", "flow.enabled=true",
+            "flow.start=0", "flow.method=dis"]
+    args = ["--run", str(run), "--data", str(data), "--train", str(quick), "--flow", "--json", str(tmp_path / "r.json")]
+    assert motion.main(args + [a for s in sets for a in ("--set", s)]) == 0
+    out = capsys.readouterr().out
+    assert "over training" in out and "EPE GS-target" in out
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert [t["step"] for t in r["trace"]] == [4, 8]
+    assert all(len(t["ratios"]) == len(r["objects"]) for t in r["trace"])
+    for o in r["objects"]:
+        f = o["flow"]
+        if f["frames"]:
+            assert f["grad_flow"] > 0 and np.isfinite(f["epe_gs_target"]) and np.isfinite(f["grad_photo"])
+    assert any(o["flow"]["frames"] for o in r["objects"])  # the tiny scene's parts move

@@ -104,3 +104,26 @@ def test_scale_change_loss():
     assert float(scale_change_loss(shrunk, ls, w)) == pytest.approx(2.0 / 3)
     g = jax.grad(lambda x: scale_change_loss(x, ls, w))(shrunk)
     assert bool(jnp.all(jnp.isfinite(g))) and float(jnp.abs(g[3]).max()) == 0.0
+
+
+def test_l1_terms_push_nothing_at_a_zero_residual():
+    """jnp.abs has derivative 1 at 0: the isometry and scale-change priors at rest, and the flow loss where target and
+    Gaussian flow agree, must have zero gradient instead (`fgjax.geometry.abs0`)."""
+    import jax
+
+    from fgjax.flow import flow_loss
+    from fgjax.geometry import abs0
+    from fgjax.train.losses import isometry_loss, scale_change_loss
+
+    assert float(jax.grad(abs0)(0.0)) == 0.0 and float(jax.grad(abs0)(-2.0)) == -1.0
+    x = jnp.asarray(np.random.default_rng(0).normal(size=(6, 3)), jnp.float32)
+    idx = jnp.asarray([[1, 2], [0, 2], [0, 1], [4, 5], [3, 5], [3, 4]])
+    g = jax.grad(lambda m: isometry_loss(m, x, idx, jnp.ones((6, 2))))(x)
+    assert float(jnp.abs(g).max()) == 0.0
+    ls = jnp.zeros((6, 3))
+    assert float(jnp.abs(jax.grad(lambda s: scale_change_loss(s, ls, jnp.ones(6)))(ls)).max()) == 0.0
+    f = jnp.zeros((4, 5, 2))
+    assert float(jnp.abs(jax.grad(lambda gs: flow_loss(f, f, gs))(f)).max()) == 0.0
+    # and a stretched pair still pulls back
+    g2 = jax.grad(lambda m: isometry_loss(m, x, idx, jnp.ones((6, 2))))(x.at[0].add(0.3))
+    assert float(jnp.abs(g2).max()) > 0.0

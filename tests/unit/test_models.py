@@ -103,3 +103,24 @@ def test_gaussians_init_and_activate(key):
     assert bool(jnp.all(s > 0))
     with pytest.raises(ValueError, match="opacity_logits"):
         G.Gaussians(g.means, g.log_scales, g.quats, g.opacity_logits[:3], g.sh)
+
+
+@pytest.mark.parametrize("kind", ["hash", "frequency"])
+def test_anchored_field_is_zero_at_its_anchor_and_holds_no_constant_offset(key, kind):
+    """DeformSpec.anchor: f(X, t) = g(X, t) - g(X, t_a): exactly zero at t_a for any parameters, and the network's
+    output elsewhere minus its output at t_a (DESIGN section 1, step 1; config deform.anchor)."""
+    kw = {"kind": kind, "depth": 2, "width": 16}
+    free, anch = deform.DeformSpec(**kw), deform.DeformSpec(**kw, anchor=0.25)
+    p = deform.deform_init(key, free)
+    p = jax.tree_util.tree_map(lambda a: a + 0.1 * jax.random.normal(jax.random.fold_in(key, a.size), a.shape), p)
+    x = jax.random.uniform(jax.random.fold_in(key, 7), (50, 3), minval=-0.9, maxval=0.9)
+    for out in deform.deform_apply(anch, p, x, 0.25):
+        assert float(jnp.max(jnp.abs(out))) == 0.0
+    a = deform.deform_apply(anch, p, x, 0.8)
+    g8, g25 = deform.deform_apply(free, p, x, 0.8), deform.deform_apply(free, p, x, 0.25)
+    assert float(jnp.max(jnp.abs(g8[0] - g25[0]))) > 1e-3  # the network does vary with t
+    for o, u, v in zip(a, g8, g25):
+        np.testing.assert_allclose(np.asarray(o), np.asarray(u - v), atol=1e-6)
+    grads = jax.grad(lambda q: jnp.sum(deform.deform_apply(anch, q, x, 0.8)[0] ** 2))(p)
+    assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grads))
+    assert hash(anch) != hash(free)  # a static jit argument: the anchor is part of the compiled function

@@ -238,7 +238,7 @@ def test_flow_loss_is_finite_and_reaches_the_deformation():
     t = jnp.float32(scene.times[3])
 
     def f(p):
-        return stage1._flow_term(ss, p, state.densify.alive, vm, K, t, fb)[0]
+        return stage1.flow_term(ss, p, state.densify.alive, vm, K, t, fb)[0]
 
     loss, g = jax.jit(jax.value_and_grad(f))(params)
     assert np.isfinite(float(loss)) and float(loss) > 0.1  # the constant target is not explained at init
@@ -246,7 +246,7 @@ def test_flow_loss_is_finite_and_reaches_the_deformation():
     assert np.all(np.isfinite(head)) and np.abs(head).max() > 0  # the gradient reaches the field
     # no previous frame: weight 0, loss 0
     fb0 = fb._replace(weight=jnp.float32(0.0))
-    assert float(stage1._flow_term(ss, params, state.densify.alive, vm, K, t, fb0)[0]) == 0.0
+    assert float(stage1.flow_term(ss, params, state.densify.alive, vm, K, t, fb0)[0]) == 0.0
 
 
 def test_training_step_with_flow_loss_runs():

@@ -458,7 +458,28 @@ def _run_tvl1(image0, image1, p: TVL1Params):
     return t.calc(_gray(image0), _gray(image1), None)
 
 
+RLOF_ATTEMPTS = 6
+
+
 def _run_rlof(image0, image1, p: RLOFParams):
+    """OpenCV's dense RLOF returns an exactly all-zero field on some calls for the same input (6-25 of 60 repeated
+    calls on a 2-core machine; under 1 in 100 on one OpenCV thread, sometimes several in a row). It runs on one
+    OpenCV thread (the caller's thread count is restored), and an all-zero field for two images that differ is
+    computed again, up to `RLOF_ATTEMPTS` times; then it raises instead of passing for "no motion"."""
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        for _ in range(RLOF_ATTEMPTS):
+            flow = _rlof_once(image0, image1, p)
+            if np.any(flow) or np.array_equal(image0, image1):
+                return flow
+    finally:
+        cv2.setNumThreads(threads)
+    raise RuntimeError(f"OpenCV's dense RLOF returned an all-zero flow {RLOF_ATTEMPTS} times for two different images; "
+                       "use another flow method (flow.method)")
+
+
+def _rlof_once(image0, image1, p: RLOFParams):
     rp = cv2.optflow.RLOFOpticalFlowParameter_create()
     rp.setSolverType(cv2.optflow.ST_BILINEAR if p.solver == "bilinear" else cv2.optflow.ST_STANDART)
     rp.setSupportRegionType(cv2.optflow.SR_CROSS if p.support_region == "cross" else cv2.optflow.SR_FIXED)

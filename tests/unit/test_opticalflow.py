@@ -537,3 +537,16 @@ def test_bench_prints_and_records(tmp_path, capsys):
     assert text.startswith("# Benchmarks\n\nintro\n")
     assert text.count(bench.MARK_START) == 1 and text.count("| `farneback` |") == 1
     assert bench.main(["--method", "dis:nope=1"]) == 2
+
+
+def test_rlof_is_repeatable():
+    """OpenCV's threaded dense RLOF returned an all-zero field on some calls; fgjax runs it on one thread (and
+    restores the caller's OpenCV thread count)."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    f0, f1 = _shifted_pair()
+    for _ in range(30):
+        med = np.median(of.estimate_flow(f0, f1, "rlof")[12:-12, 12:-12].reshape(-1, 2), axis=0)
+        np.testing.assert_allclose(med, [2.0, 1.0], atol=0.25)
+    assert cv2.getNumThreads() == before

@@ -92,6 +92,9 @@ def init_gaussians(cfg: Config, scene, key, log=print, cache_dir=None) -> tuple[
         c, r = 0.5 * (lo + hi), 0.5 * (hi - lo)
         inside = np.all(np.abs(pc["points"] - c) <= 2.0 * r, axis=-1)  # drop far-off mismatches
         n_flow = min(int(inside.sum()), int(round(want * (1.0 - cfg.model.init_random_fraction))))
+        if n_flow == 0:
+            log("model.init = flow: no point could be triangulated (the cameras barely move against the distance to "
+                "what they see, or no pixel matched); starting from random points in the scene box")
         sel = rng.choice(np.flatnonzero(inside), size=n_flow, replace=False) if n_flow else np.zeros(0, int)
         pts, cols = pc["points"][sel], pc["colors"][sel]
     rnd = random_points(rng, want - len(pts), lo, hi, scene)

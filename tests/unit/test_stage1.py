@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -537,3 +538,18 @@ def test_a_scene_whose_flow_shows_moving_parts_is_not_called_static(tmp_path):
     said = []
     res = stage1.train_stage1(cfg, scene, None, progress=False, log=said.append)
     assert res["static"] is False, said
+
+
+def test_flow_init_says_when_a_still_camera_gives_no_point():
+    """A still camera has no baseline: flow triangulation yields nothing, and stage 1 says it starts from random
+    points instead of silently doing so (family seeds 0 and 1)."""
+    scene = _tiny_scene(True)
+    still = dataclasses.replace(scene, viewmats=np.stack([scene.viewmats[0]] * scene.num_frames))
+    logs = []
+    g, alive = stage1.init_gaussians(_cfg("model.init=flow", "model.init_flow_gap=1"), still, jax.random.key(0),
+                                     log=logs.append)
+    assert any("no point could be triangulated" in m for m in logs), logs
+    assert int(np.sum(np.asarray(alive))) == _cfg().model.init_points
+    logs.clear()
+    stage1.init_gaussians(_cfg("model.init=flow", "model.init_flow_gap=1"), scene, jax.random.key(0), log=logs.append)
+    assert not any("no point could be triangulated" in m for m in logs)

@@ -10,10 +10,9 @@ here, never by the pipeline), prints:
   Gaussian within 0.05 scene units); the learned displacement L(t) = mean of their centres at t minus at t0, at each
   training time, against the true displacement D(t) of the part's centre from t0 (scene units). Measuring from t0
   rather than from the model's canonical Gaussians makes the numbers independent of where the deformation field puts
-  its canonical space. At the time t* of the
-  largest true displacement: the ratio |L(t*)| / |D(t*)| and the angle between L(t*) and D(t*). A part counts as
-  learned (issue 53's acceptance) when the ratio is within 20 % of 1 and the angle under 15 degrees. A ratio near 0
-  means stage 1 renders the part in one state at all times;
+  its canonical space. At the time t* of the largest true displacement: the ratio |L(t*)| / |D(t*)| and the angle
+  between L(t*) and D(t*). A part counts as learned (issue 53's acceptance) when the ratio is within 20 % of 1 and
+  the angle under 15 degrees. A ratio near 0 means stage 1 renders the part in one state at all times;
 - how many live Gaussians move more than 0.01, 0.05 and 0.1 scene units from where they are at t0, at any time;
 - with ``--flow``, the dynamic-flow diagnosis (DESIGN.md section 1, step 4), per part over the frame pairs in which
   it moves (median ground-truth object flow on its pixels above 0.5 px): on the part's pixels of frame t-1, the
@@ -41,9 +40,7 @@ from scipy.spatial import cKDTree
 from fgjax.config import ConfigError, load_config
 from fgjax.data.loaders import load_scene
 from fgjax.data.scene import Normalization
-from fgjax.flow import dynamic_gaussian_flow
-from fgjax.flow.motion import reprojection_flow
-from fgjax.geometry import se3_inverse
+from fgjax.flow import dynamic_gaussian_flow, maps_camera_flow
 from fgjax.io import atomic_write
 from fgjax.method.stage1 import (
     FlowBatch,
@@ -60,7 +57,7 @@ from fgjax.models.model import deformed_gaussians, render_params
 from fgjax.train.losses import photometric_loss
 
 __all__ = ["main", "motion_report", "part_gaussians", "learned_motion", "true_motion", "motion_scores",
-           "flow_diagnosis", "means_at"]
+           "flow_diagnosis", "means_at", "part_scores"]
 
 RATIO_TOL = 0.2
 ANGLE_TOL_DEG = 15.0
@@ -138,6 +135,14 @@ def motion_scores(learned: np.ndarray, true: np.ndarray) -> list[dict]:
     return res
 
 
+def part_scores(params, alive, spec, gt: Path, norm: Normalization, times: np.ndarray, true: np.ndarray):
+    """(parts, learned [K, T, 3], `motion_scores`) of a model at one moment: its Gaussians on each part at times[0]
+    (`part_gaussians`), their learned motion at ``times`` (`learned_motion`) against ``true`` (`true_motion`)."""
+    parts = part_gaussians(means_at(params, alive, spec, float(times[0])), np.asarray(alive), gt, norm)
+    learned = learned_motion(params, alive, spec, parts, times)
+    return parts, learned, motion_scores(learned, true)
+
+
 def flow_diagnosis(cfg, state, spec, data_dir: Path, norm: Normalization, flows: np.ndarray | None = None,
                    cache_dir: Path | None = None, max_frames: int = 8) -> list[dict]:
     """The ``--flow`` measurements (module docstring), per part: {"frames", "epe_gs_target", "ratio_gs_target",
@@ -179,9 +184,7 @@ def flow_diagnosis(cfg, state, spec, data_dir: Path, norm: Normalization, flows:
             m0, q0, s0, o0, _ = deformed_gaussians(p, alive, float(sc.times[j]), spec)
             m1 = deformed_gaussians(p, alive, float(sc.times[i]), spec)[0]
             maps = dynamic_gaussian_flow(m0, q0, s0, o0, m1, vm0, K, w, h)
-            inv = np.asarray(maps.inv_depth)
-            depth = np.where(inv > 1e-6, 1.0 / np.maximum(inv, 1e-6), 0.0)
-            u_cam, ok = reprojection_flow(jnp.asarray(depth, jnp.float32), K, se3_inverse(vm0), se3_inverse(vm1))
+            u_cam, ok = maps_camera_flow(maps, vm0, vm1, K)
             target = flows[i] - np.asarray(u_cam)
             sel = (oid[j] == lab) & np.asarray(ok) & np.all(np.isfinite(target), -1) & (np.asarray(maps.alpha) > 0.5)
             if sel.sum() < 10:
@@ -236,9 +239,7 @@ def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21, flow: bool
                    for t in np.linspace(0.0, 1.0, num_times)], axis=0)  # [N]
     res["moving_gaussians"] = {str(th): int(np.sum(alive & (disp > th))) for th in (0.01, 0.05, 0.1)}
     res["live_gaussians"] = int(alive.sum())
-    parts = part_gaussians(ref, alive, gt, norm)
-    lm = learned_motion(state.params, state.densify.alive, use, parts, times)
-    scores = motion_scores(lm, true)
+    parts, lm, scores = part_scores(state.params, state.densify.alive, use, gt, norm, times, true)
     objects = json.loads((gt / "meta.json").read_text())["objects"]
     diag = flow_diagnosis(cfg, state, use, data_dir, norm, cache_dir=Path(run_dir) / "flow_cache") if flow else None
     res["objects"] = []
@@ -296,9 +297,7 @@ def _train(args, data_dir: Path, run_dir: Path) -> list[dict]:
         if state.static is None or state.static:
             return
         use = spec if step > cfg.train.warmup_steps else None
-        parts = part_gaussians(means_at(state.params, state.densify.alive, use, float(times[0])),
-                               np.asarray(state.densify.alive), gt, norm)
-        sc = motion_scores(learned_motion(state.params, state.densify.alive, use, parts, times), true)
+        sc = part_scores(state.params, state.densify.alive, use, gt, norm, times, true)[2]
         trace.append({"step": step, "ratios": [s["ratio"] for s in sc], "angles": [s["angle_deg"] for s in sc]})
 
     run_stage1(cfg, data_dir, run_dir, monitor=monitor)

@@ -34,6 +34,7 @@ from fgjax.flow.gaussian import flow_loss as flow_loss
 from fgjax.flow.gaussian import gaussian_flow_affine as gaussian_flow_affine
 from fgjax.flow.gaussian import gaussian_flow_loss as gaussian_flow_loss
 from fgjax.flow.gaussian import lemma1_residual as lemma1_residual
+from fgjax.flow.gaussian import maps_camera_flow as maps_camera_flow
 from fgjax.flow.gaussian import project_covariances as project_covariances
 from fgjax.flow.gaussian import sqrtm_2x2 as sqrtm_2x2
 from fgjax.flow.gaussian import warp_backward as warp_backward
@@ -64,5 +65,6 @@ __all__ = [
     "lemma1_residual",
     "flow_loss",
     "gaussian_flow_loss",
+    "maps_camera_flow",
     "warp_backward",
 ]

@@ -408,6 +408,21 @@ def flow_loss(
     return jnp.sum(w * err) / jnp.maximum(jnp.sum(w), 1.0)
 
 
+def maps_camera_flow(
+    maps: GaussianFlowMaps, viewmat0: Float[ArrayLike, "4 4"], viewmat1: Float[ArrayLike, "4 4"],
+    K: Float[ArrayLike, "3 3"],
+) -> tuple[Float[Array, "H W 2"], Bool[Array, "H W"]]:
+    """(u_cam [H, W, 2], ok [H, W]): the camera flow of a dynamic-flow pass's depth, the exact ``reprojection_flow``
+    of 1 / composited inverse depth (so Lemma 1's Delta vanishes) from camera t-1 (``viewmat0``, the pass's camera) to
+    camera t (``viewmat1``). The depth is held fixed (stop-gradient); pixels with inverse depth <= 1e-6 have none and
+    are not ok."""
+    inv_d = jax.lax.stop_gradient(maps.inv_depth)
+    has = inv_d > 1e-6
+    depth = jnp.where(has, 1.0 / jnp.where(has, inv_d, 1.0), 0.0)  # [H, W]
+    c2w0, c2w1 = geometry.se3_inverse(as_float(viewmat0)), geometry.se3_inverse(as_float(viewmat1))
+    return reprojection_flow(depth, K, c2w0, c2w1)
+
+
 def gaussian_flow_loss(
     means0: Float[ArrayLike, "N 3"],
     quats0: Float[ArrayLike, "N 4"],
@@ -437,11 +452,7 @@ def gaussian_flow_loss(
     """
     maps = dynamic_gaussian_flow(means0, quats0, scales0, opacities, means1, viewmat0, K, width, height,
                                  capacity=capacity, tile_size=tile_size)
-    inv_d = jax.lax.stop_gradient(maps.inv_depth)
-    ok = inv_d > 1e-6
-    depth = jnp.where(ok, 1.0 / jnp.where(ok, inv_d, 1.0), 0.0)  # [H, W]
-    u_cam, cam_ok = reprojection_flow(depth, K, geometry.se3_inverse(as_float(viewmat0)),
-                                      geometry.se3_inverse(as_float(viewmat1)))
+    u_cam, cam_ok = maps_camera_flow(maps, viewmat0, viewmat1, K)
     u_obs = as_float(flow)
     known = jnp.all(jnp.isfinite(u_obs), axis=-1)
     valid = cam_ok & known & (jax.lax.stop_gradient(maps.alpha) > min_alpha)

@@ -113,8 +113,8 @@ def deform_spec_from_config(cfg: Config, aabb, times=None) -> DeformSpec:
         if times is None or len(times) == 0:
             raise ValueError("deform.anchor = 'first' needs the training times")
         anchor = float(np.min(times))
-    return DeformSpec(anchor=anchor, 
-        kind=d.kind, depth=d.depth, width=d.width, x_freqs=d.x_freqs, t_freqs=d.t_freqs, skip=d.skip,
+    return DeformSpec(
+        anchor=anchor, kind=d.kind, depth=d.depth, width=d.width, x_freqs=d.x_freqs, t_freqs=d.t_freqs, skip=d.skip,
         hash_levels=d.hash_levels, hash_log2_table=d.hash_log2_table, hash_features=d.hash_features,
         hash_base_res=d.hash_base_res, hash_max_res=d.hash_max_res, x_freqs_hash=d.x_freqs_hash,
         aabb=tuple(float(x) for x in aabb),
@@ -442,7 +442,7 @@ def train_stage1(
             predecessor's grid (NaN = unknown), for the flow loss (flow.enabled and flow.weight > 0);
             None: estimated with ``flow.method`` (cached under out_dir/flow_cache).
         monitor: called as monitor(step, state, spec) every ``train.log_every`` steps and at the end (after the
-            losses are synced); it must not modify the state (`fgjax bench motion --trace` records the learned
+            losses are synced); it must not modify the state (`fgjax bench motion --train` records the learned
             motion with it).
     """
     validate_stage1(cfg)  # a Config built in code has not been through load_config's checks

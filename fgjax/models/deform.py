@@ -133,9 +133,8 @@ def deform_apply(
 
     Add dX to the means, dq to the raw quaternions and ds to the log-scales. With ``spec.anchor`` = t_a the
     network's output at t_a is subtracted (one more evaluation), so the field is exactly zero at t_a. X is not
-    detached
-    (Deformable-3DGS detaches it only through the canonical optimiser step, which we do too by
-    giving both the same gradient).
+    detached (Deformable-3DGS detaches it only through the canonical optimiser step, which we do too by giving both
+    the same gradient).
     """
     x = jnp.asarray(x)
     out = _network(spec, params, x, t)  # [N, 10]

@@ -123,6 +123,9 @@ class TrainConfig:
     distances keep their canonical length; 0: off)."""
     rigid_scale_weight: float = 0.0
     """Weight of ``fgjax.train.losses.scale_change_loss`` (deformed Gaussians keep their sizes; 0: off)."""
+    motion_weight: float = 0.0
+    """Weight of ``fgjax.train.losses.displacement_loss`` (mean L1 displacement of the deformed Gaussians from their
+    canonical centres: most of a scene does not move; 0: off)."""
     rigid_cap: float = 0.0
     """Saturation of one neighbour pair's relative stretch in that regulariser (cap tanh(stretch / cap)), so
     that pairs spanning a moving part's boundary break instead of holding the part in place (0: linear)."""
@@ -185,7 +188,13 @@ class FlowConfig:
     """beta."""
     method: str = "dis_deepflow"
     threshold: float = 0.5
-    """Flow-target magnitude threshold (pixels) below which motion counts as static (0: off)."""
+    """"pair": flow-target magnitude threshold (pixels) below which motion counts as static; "track": residuals under
+    this many pixels cost nothing (0: off)."""
+    loss: str = "pair"
+    """Which flow loss: "pair" is L_uGS of consecutive frames (the paper; `fgjax.flow.gaussian_flow_loss`); "track"
+    is the first frame's pixels tracked by chaining the optical flow through the video (forward-backward checked)
+    against the rendered correspondence of the Gaussians that paint them there (`fgjax.flow.track`): positions
+    instead of velocities, no camera flow in the target."""
     photo_motion: float = 1.0
     """While the flow loss is on, the factor on the photometric loss's gradient into the deformation field's
     displacements dx (the flow loss's reaches them in full). 1: both losses train the motion (the paper); 0: the
@@ -613,13 +622,14 @@ def validate_stage1(cfg: Config) -> None:
     need(_finite(fl.threshold) and fl.threshold >= 0, "flow.threshold", ">= 0", fl.threshold)
     need(fl.start >= 0, "flow.start", ">= 0", fl.start)
     need(f.anchor in ("none", "first"), "deform.anchor", "'none' or 'first'", f.anchor)
+    need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(_finite(fl.photo_motion) and 0 <= fl.photo_motion <= 1, "flow.photo_motion", "in [0, 1]", fl.photo_motion)
     for k in ("lr", "lr_final"):
         v = getattr(cfg.pose, k)
         need(_finite(v) and v > 0, f"pose.{k}", "a finite number > 0", v)
     need(0.0 < t.time_window_start <= 1.0, "train.time_window_start", "in (0, 1]", t.time_window_start)
     need(0.0 <= t.error_sampling <= 1.0, "train.error_sampling", "in [0, 1]", t.error_sampling)
-    for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "coarse_to_fine",
+    for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "motion_weight", "coarse_to_fine",
               "field_only_steps"):
         need(getattr(t, k) >= 0, f"train.{k}", ">= 0", getattr(t, k))
     if cfg.pose.bundle and not cfg.pose.enabled:

@@ -21,6 +21,14 @@ here, never by the pipeline), prints:
   the target's own error against the true object flow, and the gradient norms that L_uGS (unweighted) and the
   photometric loss send to the deformation field's displacement head at that frame.
 
+``--oracle STEPS`` asks whether the deformation field can learn the motion at all when everything else is right: the
+run's field architecture (a fresh one, the identity at t0: `fgjax.models.deform.DeformSpec.anchor`) on the scene's
+true canonical Gaussians (gt/canonical.npz, the state at t0), fitted alone for STEPS Adam steps on L_uGS of frame
+pairs drawn uniformly (`--oracle-flow true`: the true optical flow instead of the run's estimated one, ``none``: no
+flow loss; ``--oracle-loss track``: the first frame's tracks, `fgjax.flow.track`, instead of L_uGS; with
+``--oracle-photo W`` plus W times the photometric loss of frame t), learning rate ``train.lr_deform`` (hash tables
+x ``train.lr_hash_factor``) unless ``--oracle-lr``. It prints L(t*) / D(t*) and the angle per part every 100 steps.
+
 ``--train CONFIG`` trains the run first (into ``--run``, with ``--set`` overrides) and records L(t*) / D(t*) per part
 every ``train.log_every`` steps (the trace: learned against true displacement over training).
 """
@@ -28,36 +36,44 @@ every ``train.log_every`` steps (the trace: learned against true displacement ov
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
+import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 from scipy.spatial import cKDTree
 
 from fgjax.config import ConfigError, load_config
 from fgjax.data.loaders import load_scene
+from fgjax.data.opticalflow import chained_tracks
 from fgjax.data.scene import Normalization
 from fgjax.flow import dynamic_gaussian_flow, maps_camera_flow
+from fgjax.gaussians import Gaussians, num_sh_coeffs, rgb_to_sh0
 from fgjax.io import atomic_write
 from fgjax.method.stage1 import (
     FlowBatch,
     StepSpec,
+    compute_capacity,
     estimate_training_flows,
     flow_term,
     load_run,
     prepare_run_folder,
     previous_frames,
     render_frame,
+    training_tracks,
 )
 from fgjax.method.stage1 import run as run_stage1
+from fgjax.models.deform import deform_init
 from fgjax.models.model import deformed_gaussians, render_params
 from fgjax.train.losses import photometric_loss
 
 __all__ = ["main", "motion_report", "part_gaussians", "learned_motion", "true_motion", "motion_scores",
-           "flow_diagnosis", "means_at", "part_scores"]
+           "flow_diagnosis", "means_at", "part_scores", "true_gaussians", "oracle_fit"]
 
 RATIO_TOL = 0.2
 ANGLE_TOL_DEG = 15.0
@@ -255,6 +271,128 @@ def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21, flow: bool
     return res
 
 
+def true_gaussians(gt: Path, norm: Normalization, sh_degree: int) -> Gaussians:
+    """The synthetic scene's true Gaussians in their canonical state (gt/canonical.npz: world means, scales,
+    wxyz quaternions, opacities in (0, 1), RGB colours) as raw model parameters in the normalised scene (``norm``):
+    log-scales, opacity logits and SH coefficients of ``sh_degree`` (degree 0 from the colour, the rest zero)."""
+    c = np.load(gt / "canonical.npz")
+    n = len(c["means"])
+    sh = np.zeros((n, num_sh_coeffs(sh_degree), 3), np.float32)
+    sh[:, 0] = np.asarray(rgb_to_sh0(np.asarray(c["colors"], np.float32)))
+    op = np.clip(np.asarray(c["opacities"], np.float64), 1e-4, 1.0 - 1e-4)
+    return Gaussians(jnp.asarray(norm.points_to_scene(c["means"]), jnp.float32),
+                     jnp.asarray(np.log(norm.lengths_to_scene(np.asarray(c["scales"], np.float64))), jnp.float32),
+                     jnp.asarray(c["quats"], jnp.float32), jnp.asarray(np.log(op / (1.0 - op)), jnp.float32),
+                     jnp.asarray(sh))
+
+
+def oracle_fit(run_dir: Path, data_dir: Path, steps: int, *, flow: str = "estimated", loss: str = "pair",
+               photo: float = 0.0,
+               lr: float | None = None, log_every: int = 100, seed: int = 0, log=print) -> dict:
+    """``--oracle`` (module docstring): {"trace": [{"step", "loss", "ratios", "angles"}], "objects": final
+    `motion_scores` per part with "name", "parts_learned", "wall_s"}."""
+    if steps < 1:
+        raise ValueError(f"--oracle needs a number of steps >= 1; got {steps}")
+    if photo < 0:
+        raise ValueError(f"--oracle-photo must be >= 0; got {photo}")
+    if flow not in ("estimated", "true", "none"):
+        raise ValueError(f"--oracle-flow must be estimated, true or none; got {flow!r}")
+    if loss not in ("pair", "track"):
+        raise ValueError(f"--oracle-loss must be pair or track; got {loss!r}")
+    if flow == "none" and photo == 0:
+        raise ValueError("--oracle-flow none needs --oracle-photo > 0 (nothing to fit)")
+    gt = _check_gt(data_dir)
+    cfg, _, spec, meta = load_run(run_dir)
+    if spec is None:
+        raise ValueError(f"{run_dir} has no deformation field (deform disabled)")
+    norm = Normalization.from_dict(meta["normalization"])
+    sc = load_scene(data_dir, "train", normalize=norm, downscale=cfg.data.downscale)
+    prev = previous_frames(sc.times)
+    if flow == "true":
+        f = np.load(gt / "train" / "flow.npy")  # [T-1, H, W, 2], frame i -> i+1 in file order
+        if f.shape[1:3] != (sc.height, sc.width) or np.any(np.diff(sc.times) <= 0):
+            raise ValueError(f"{gt / 'train/flow.npy'} pairs consecutive frames at {f.shape[1:3]}; the run trains "
+                             f"{(sc.height, sc.width)} frames (data.downscale?) or not in time order")
+        if loss == "track":  # chained from frame 0, stopping at the true occlusions
+            flows = chained_tracks(f, ~np.load(gt / "train" / "flow_occluded.npy"))
+            prev = np.where(np.arange(sc.num_frames) == 0, -1, 0)
+        else:
+            flows = np.concatenate([np.zeros_like(f[:1]), f])  # flows[i]: frame i-1 -> i
+    elif flow == "none":
+        flows = np.zeros((sc.num_frames, sc.height, sc.width, 2), np.float32)
+    elif loss == "track":
+        prev, flows = training_tracks(sc, cfg.flow.method, cache_dir=Path(run_dir) / "flow_cache",
+                                      log=lambda *a: None)
+    else:
+        flows = estimate_training_flows(sc, cfg.flow.method, cache_dir=Path(run_dir) / "flow_cache",
+                                        log=lambda *a: None)
+    times, true = true_motion(gt, norm)
+    spec = dataclasses.replace(spec, anchor=float(times[0]))
+    g = true_gaussians(gt, norm, cfg.model.sh_degree)
+    alive = jnp.ones(g.means.shape[0], bool)
+    params = {"gaussians": g, "deform": deform_init(jax.random.PRNGKey(seed), spec)}
+    parts = part_gaussians(np.asarray(g.means), np.ones(g.means.shape[0], bool), gt, norm)
+    rate = cfg.train.lr_deform if lr is None else lr
+    groups = {k: jax.tree_util.tree_map(lambda _, k=k: "hash" if k == "grid" else "mlp", v)
+              for k, v in params["deform"].items()}
+    opt = optax.multi_transform({"mlp": optax.adam(rate), "hash": optax.adam(rate * cfg.train.lr_hash_factor)},
+                                groups)
+    # the tile-intersection buffer of the true Gaussians, with the training margin (a step that overflows it is
+    # dropped and counted, as in stage 1)
+    capacity = compute_capacity(params, alive, sc.viewmats, sc.Ks, sc.width, sc.height, cfg.train.tile_size,
+                                cfg.train.capacity_margin)
+    ss = StepSpec(spec, cfg.model.sh_degree, sc.width, sc.height, capacity, cfg.train.tile_size,
+                  cfg.train.lambda_dssim, 0.0, 0.0, False, 1.0, cfg.flow.threshold, flow_loss=loss)
+    bg = jnp.asarray(cfg.model.background, jnp.float32)
+
+    @jax.jit
+    def step(d, ostate, vm0, vm1, K, t0, t1, uv, image):
+        def loss(d):
+            p = {**params, "deform": d}
+            val, over = 0.0, jnp.zeros((), bool)
+            if flow != "none":
+                val, over = flow_term(ss, p, alive, vm1, K, t1, FlowBatch(uv, vm0, t0, jnp.int32(0), jnp.float32(1.0)))
+            if photo > 0:
+                img, _, info, _ = render_params(p, alive, vm1, K, t1, spec=spec, sh_degree=cfg.model.sh_degree,
+                                                width=sc.width, height=sc.height, background=bg, capacity=capacity)
+                val = val + photo * photometric_loss(img, image, cfg.train.lambda_dssim)
+                over = over | info["overflow"]
+            return val, over
+
+        (val, over), grad = jax.value_and_grad(loss, has_aux=True)(d)
+        upd, ostate2 = opt.update(grad, ostate, d)
+        keep = ~over & jnp.isfinite(val)
+        d2 = jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), optax.apply_updates(d, upd), d)
+        ostate2 = jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), ostate2, ostate)
+        return d2, ostate2, val, over
+
+    pairs = np.flatnonzero(prev >= 0)
+    rng = np.random.default_rng(seed)
+    d, ostate = params["deform"], opt.init(params["deform"])
+    trace, losses, dropped, t_start = [], [], 0, time.perf_counter()
+    for k in range(1, steps + 1):
+        i = int(rng.choice(pairs))
+        j = int(prev[i])
+        d, ostate, val, over = step(d, ostate, *(jnp.asarray(a, jnp.float32) for a in (
+            sc.viewmats[j], sc.viewmats[i], sc.Ks[i], sc.times[j], sc.times[i], flows[i], sc.images[i])))
+        dropped += int(over)
+        losses.append(float(val))
+        if k % log_every == 0 or k == steps:
+            sco = motion_scores(learned_motion({**params, "deform": d}, alive, spec, parts, times), true)
+            trace.append({"step": k, "loss": float(np.mean(losses)), "ratios": [s["ratio"] for s in sco],
+                          "angles": [s["angle_deg"] for s in sco]})
+            losses = []
+            log(f"oracle step {k}/{steps}: loss {trace[-1]['loss']:.4f}; L/D, angle per part: "
+                + ", ".join(f"{r:.2f} {a:.0f} deg" for r, a in zip(trace[-1]["ratios"], trace[-1]["angles"]))
+                + f" ({time.perf_counter() - t_start:.0f} s)")
+    objects = json.loads((gt / "meta.json").read_text())["objects"]
+    sco = motion_scores(learned_motion({**params, "deform": d}, alive, spec, parts, times), true)
+    return {"trace": trace, "objects": [{"name": o["name"], "gaussians": int(len(idx)), **s}
+                                        for o, idx, s in zip(objects, parts, sco)],
+            "parts_learned": int(sum(s["ok"] for s in sco)), "dropped_steps": dropped,
+            "wall_s": time.perf_counter() - t_start}
+
+
 def _print(r: dict) -> None:
     print(f"test views at training times: PSNR object pixels {r['psnr_object_pixels']:.2f}, "
           f"static pixels {r['psnr_static_pixels']:.2f}")
@@ -313,8 +451,32 @@ def main(argv: list[str] | None = None) -> int:
                    help="train the run first with this config (the trace of learned motion over training)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override (with --train)")
     p.add_argument("--overwrite", action="store_true", help="with --train: replace a run in --run")
+    p.add_argument("--oracle", type=int, default=0, metavar="STEPS",
+                   help="fit a fresh field alone on the true canonical Gaussians for STEPS steps (module docstring)")
+    p.add_argument("--oracle-flow", choices=("estimated", "true", "none"), default="estimated",
+                   help="with --oracle: L_uGS on the run's estimated optical flow, on the true one, or no L_uGS")
+    p.add_argument("--oracle-loss", choices=("pair", "track"), default="pair",
+                   help="with --oracle: L_uGS of frame pairs or the first frame's tracks (flow.loss)")
+    p.add_argument("--oracle-photo", type=float, default=0.0, metavar="W",
+                   help="with --oracle: add W x the photometric loss (default 0: L_uGS alone)")
+    p.add_argument("--oracle-lr", type=float, default=None, help="with --oracle: Adam rate (default train.lr_deform)")
     p.add_argument("--json", default=None, help="also write the report to this file")
     args = p.parse_args(argv)
+    if args.oracle:
+        try:
+            r = oracle_fit(Path(args.run), Path(args.data), args.oracle, flow=args.oracle_flow, loss=args.oracle_loss,
+                           photo=args.oracle_photo, lr=args.oracle_lr)
+        except (FileNotFoundError, ValueError, ConfigError) as e:
+            print(f"fgjax bench motion: {e}", file=sys.stderr)
+            return 2
+        for o in r["objects"]:
+            print(f"{o['name']:<12} {o['gaussians']:>6} Gaussians  true {o['true']:.3f}  learned {o['learned']:.3f}  "
+                  f"ratio {o['ratio']:.2f}  angle {o['angle_deg']:.1f}  {'yes' if o['ok'] else 'no'}")
+        print(f"parts learned from the true canonical Gaussians: {r['parts_learned']} of {len(r['objects'])} "
+              f"({r['wall_s']:.0f} s; {r['dropped_steps']} step(s) dropped: tile buffer overflow)")
+        if args.json:
+            atomic_write(Path(args.json), lambda f: f.write(json.dumps(r, indent=1).encode()))
+        return 0
     try:
         trace = _train(args, Path(args.data), Path(args.run)) if args.train else None
         r = motion_report(Path(args.run), Path(args.data), flow=args.flow)

@@ -70,6 +70,7 @@ __all__ = [
     "DEFAULT_METHOD",
     "METHODS",
     "DISDeepFlowParams",
+    "chained_tracks",
     "DISParams",
     "DeepFlowParams",
     "FarnebackParams",
@@ -278,3 +279,43 @@ def forward_backward_mask(
     residual, magnitude, inside = forward_backward_error(flow_fw, flow_bw)
     with np.errstate(invalid="ignore"):
         return inside & (residual < alpha * magnitude + beta)
+
+
+def chained_tracks(
+    flows: Float[np.ndarray, "S H W 2"], consistent: Bool[np.ndarray, "S H W"] | None = None
+) -> Float32[np.ndarray, "S+1 H W 2"]:
+    """Tracks of every pixel of the first frame of a sequence, by chaining its optical flow.
+
+    ``flows[k]`` is the flow from frame k to frame k+1 on frame k's grid; ``consistent[k]`` (optional) the pixels of
+    frame k whose flow to use (e.g. `forward_backward_mask`: occlusions and flow errors come out False). A track
+    starts at each pixel centre p of frame 0, p_0 = p, and moves by the flow sampled bilinearly where it lies:
+    p_{k+1} = p_k + flows[k](p_k). It is lost (NaN from then on) when p_k leaves the image, lands on a pixel that
+    ``consistent[k]`` rejects (nearest pixel) or where the flow is not finite.
+
+    Returns [S+1, H, W, 2] float32: p_k - p on frame 0's grid (row 0 all zeros), NaN where lost.
+    """
+    flows = np.asarray(flows, np.float32)
+    if flows.ndim != 4 or flows.shape[-1] != 2:
+        raise ValueError(f"chained_tracks: flows must have shape [S, H, W, 2]; got {list(flows.shape)}")
+    s, h, w = flows.shape[:3]
+    if consistent is not None and np.shape(consistent) != (s, h, w):
+        raise ValueError(f"chained_tracks: consistent must have shape {[s, h, w]}; got {list(np.shape(consistent))}")
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)  # array indices = pixel coordinates - 0.5
+    x, y = xs.copy(), ys.copy()
+    alive = np.ones((h, w), bool)
+    out = np.full((s + 1, h, w, 2), np.nan, np.float32)
+    out[0] = 0.0
+    for k in range(s):
+        alive &= (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+        ix = np.clip(np.rint(x).astype(np.intp), 0, w - 1)
+        iy = np.clip(np.rint(y).astype(np.intp), 0, h - 1)
+        if consistent is not None:
+            alive &= np.asarray(consistent[k], bool)[iy, ix]
+        f = _bilinear(flows[k], x, y)
+        alive &= np.isfinite(f).all(-1)
+        x = np.where(alive, x + np.where(alive, f[..., 0], 0.0), x)  # a lost track stays put (finite), masked
+        y = np.where(alive, y + np.where(alive, f[..., 1], 0.0), y)
+        alive &= (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+        out[k + 1, ..., 0] = np.where(alive, x - xs, np.nan)
+        out[k + 1, ..., 1] = np.where(alive, y - ys, np.nan)
+    return out

@@ -31,12 +31,13 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from fgjax import metrics
 from fgjax.config import Config, ConfigError, load_config, to_toml, validate_stage1
 from fgjax.data.loaders import load_scene
-from fgjax.data.opticalflow import estimate_flow
 from fgjax.flow import gaussian_flow_loss
+from fgjax.flow.track import gaussian_track_loss
 from fgjax.gaussians import Gaussians, activate, init_from_points, knn_graph
 from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
+from fgjax.method.flows import estimate_training_flows, previous_frames, training_tracks
 from fgjax.method.init_points import first_view_colors, flow_point_cloud, random_points, scene_box
 from fgjax.method.poses import bundle_adjust
 from fgjax.method.static import detect_static
@@ -46,11 +47,17 @@ from fgjax.provenance import PROVENANCE_NAME, read_provenance, scene_fingerprint
 from fgjax.render.api import count_intersections, round_capacity
 from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
-from fgjax.train.losses import isometry_loss, photometric_loss, scale_change_loss, scale_regularizer
+from fgjax.train.losses import (
+    displacement_loss,
+    isometry_loss,
+    photometric_loss,
+    scale_change_loss,
+    scale_regularizer,
+)
 from fgjax.train.optim import OptimSpec, active_sh_degree, make_optimizer
 from fgjax.version import __version__
 
-__all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "FlowBatch", "flow_term",
+__all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "FlowBatch", "flow_term", "training_tracks",
            "estimate_training_flows", "previous_frames", "load_run", "render_frame", "evaluate", "template_state",
            "refined_viewmats", "load_test_views", "prepare_run_folder", "make_step", "compute_capacity", "active_sh_mask", "StepSpec"]
 
@@ -151,26 +158,38 @@ class StepSpec:
     freeze_gaussians: bool = False  # only the deformation (and poses) update: the canonical Gaussians stay
     vmap_cameras: bool = False  # vmap the batch's cameras (a data-parallel mesh splits them); else a loop
     photo_motion: float = 1.0  # scale of the photometric loss's gradient into the field's displacements
+    flow_loss: str = "pair"  # "pair": L_uGS of frames t-1, t; "track": the first frame's tracks (fgjax.flow.track)
+    motion_weight: float = 0.0  # weight of the L1 displacement prior (deformation only)
 
 
 class FlowBatch(NamedTuple):
-    """Per-camera inputs of the flow loss (leading axis: the cameras of the batch)."""
+    """Per-camera inputs of the flow loss (leading axis: the cameras of the batch). For the "track" loss, frame
+    t-1 is the reference frame r and ``flow`` the tracks from r to t on r's grid."""
 
     flow: Any  # [B, H, W, 2] observed optical flow frame t-1 -> t on frame t-1's grid (NaN = unknown)
     viewmat_prev: Any  # [B, 4, 4] world-to-camera of frame t-1
     t_prev: Any  # [B] time of frame t-1
     idx_prev: Any  # [B] int32 index of frame t-1 (pose deltas)
     weight: Any  # [B] 1 where frame t-1 exists, else 0
+    K_prev: Any = None  # [B, 3, 3] intrinsics of frame t-1 (None: frame t's)
 
 
 def flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
-    """L_uGS of one camera (``fgjax.flow.gaussian_flow_loss``): the model deformed to t-1 and t, both seen
-    by camera t-1. Returns (weighted loss, overflow flag)."""
+    """The flow loss of one camera. ``ss.flow_loss`` "pair": L_uGS (``fgjax.flow.gaussian_flow_loss``), the model
+    deformed to t-1 and t, both seen by camera t-1; "track": `fgjax.flow.track.gaussian_track_loss` of the
+    reference frame (``fl``'s frame t-1) and frame t, each seen by its own camera. Returns (weighted loss, overflow
+    flag)."""
     vm_prev = fl.viewmat_prev
     if ss.pose:
         vm_prev = matmul(se3_exp(params["pose"][fl.idx_prev]), vm_prev)
     m0, q0, s0, o0, _ = deformed_gaussians(params, alive, fl.t_prev, ss.spec)
     m1 = deformed_gaussians(params, alive, t, ss.spec)[0]
+    if ss.flow_loss == "track":
+        k_prev = K if fl.K_prev is None else fl.K_prev
+        loss, overflow = gaussian_track_loss(m0, q0, s0, o0, m1, vm_prev, k_prev, viewmat, K, fl.flow, ss.width,
+                                             ss.height, threshold=ss.flow_threshold, capacity=ss.capacity,
+                                             tile_size=ss.tile_size)
+        return fl.weight * loss, overflow
     loss, overflow = gaussian_flow_loss(m0, q0, s0, o0, m1, vm_prev, viewmat, K, fl.flow, ss.width, ss.height,
                                         threshold=ss.flow_threshold if ss.flow_threshold > 0 else None,
                                         capacity=ss.capacity, tile_size=ss.tile_size)
@@ -198,6 +217,8 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         if nbr is not None:  # rigidity: neighbour distances keep their canonical lengths
             iso = isometry_loss(geo["means"], params["gaussians"].means, *nbr, cap=ss.rigid_cap)
             loss = loss + ss.rigid_weight * iso
+        if ss.motion_weight > 0 and ss.spec is not None:  # most of the scene does not move
+            loss = loss + ss.motion_weight * displacement_loss(geo["means"], params["gaussians"].means, alive)
         if ss.rigid_scale_weight > 0 and ss.spec is not None:  # ... and Gaussian sizes their canonical values
             loss = loss + ss.rigid_scale_weight * scale_change_loss(geo["log_scales"], params["gaussians"].log_scales,
                                                                     alive)
@@ -268,38 +289,11 @@ def compute_capacity(params, alive, viewmats, Ks, width, height, tile_size, marg
     return round_capacity(int(worst * margin) + 1024)
 
 
-def previous_frames(times: np.ndarray) -> np.ndarray:
-    """Index of the previous frame in time order for each frame (-1 for the first)."""
-    order = np.argsort(np.asarray(times), kind="stable")
-    prev = np.full(len(order), -1, np.int64)
-    prev[order[1:]] = order[:-1]
-    return prev
-
-
-def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str | Path | None = None,
-                            log=print, backward: bool = False) -> np.ndarray:
-    """Observed optical flow into each training frame from its predecessor in time, on the predecessor's
-    grid: [T, H, W, 2] float32, NaN for the first frame (``fgjax.data.opticalflow.estimate_flow``, cached
-    on disk under `cache_dir`). ``backward``: the reverse, from each frame to its predecessor on the frame's
-    own grid (the round trip of ``pose.bundle_fb_px``)."""
-    prev = previous_frames(scene.times)
-    imgs = (np.clip(np.asarray(scene.images), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    out = np.full((scene.num_frames, scene.height, scene.width, 2), np.nan, np.float32)
-    t0 = time.time()
-    for i, j in enumerate(prev):
-        if j >= 0:
-            a, b = (i, j) if backward else (j, i)  # the flow from frame a to frame b, on a's grid
-            out[i] = estimate_flow(imgs[a], imgs[b], method, cache_dir=cache_dir)
-    log(f"optical flow ({method}{', backward' if backward else ''}): {int(np.sum(prev >= 0))} pairs in "
-        f"{time.time() - t0:.1f} s")
-    return out
-
-
-def _flow_batch(idx: np.ndarray, prev: np.ndarray, flows: np.ndarray, viewmats, times) -> FlowBatch:
+def _flow_batch(idx: np.ndarray, prev: np.ndarray, flows: np.ndarray, viewmats, times, Ks) -> FlowBatch:
     p = prev[idx]
     has = p >= 0
     pi = np.where(has, p, idx)
-    return FlowBatch(flows[idx], viewmats[pi], times[pi], pi.astype(np.int32), has.astype(np.float32))
+    return FlowBatch(flows[idx], viewmats[pi], times[pi], pi.astype(np.int32), has.astype(np.float32), Ks[pi])
 
 
 def _batch_indices(seed: int, step: int, num_frames: int, batch: int, window: np.ndarray | None = None,
@@ -479,7 +473,11 @@ def train_stage1(
     fc = cfg.flow
     use_flow = fc.enabled and fc.weight > 0
     prev = previous_frames(times)
-    if use_flow and flows is None:
+    if use_flow and fc.loss == "track":
+        if flows is not None:
+            raise ValueError("train_stage1(flows=...) is the pair loss's input; flow.loss = 'track' makes its own tracks")
+        prev, flows = training_tracks(scene, fc.method, None if out is None else out / "flow_cache", log=log)
+    elif use_flow and flows is None:
         flows = estimate_training_flows(scene, fc.method, None if out is None else out / "flow_cache", log=log)
     if use_flow:
         flows = np.asarray(flows, np.float32)
@@ -504,7 +502,7 @@ def train_stage1(
                       fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
-                      fc.photo_motion if flow_on else 1.0)
+                      fc.photo_motion if flow_on else 1.0, fc.loss, t.motion_weight if use_deform else 0.0)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
@@ -552,7 +550,7 @@ def train_stage1(
         batch = ((images_lo if lo else images)[idx], viewmats[idx], (Ks_lo if lo else Ks)[idx], times[idx],
                  idx.astype(np.int32))
         if flow_on:
-            batch = (*batch, _flow_batch(idx, prev, flows, viewmats, times))
+            batch = (*batch, _flow_batch(idx, prev, flows, viewmats, times, Ks))
         if batch_sh is not None:
             batch = jax.device_put(batch, batch_sh)
         nbr = None

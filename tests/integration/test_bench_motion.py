@@ -88,3 +88,49 @@ def test_bench_motion_trains_traces_and_diagnoses_the_flow(tiny, tmp_path, capsy
         if f["frames"]:
             assert f["grad_flow"] > 0 and np.isfinite(f["epe_gs_target"]) and np.isfinite(f["grad_photo"])
     assert any(o["flow"]["frames"] for o in r["objects"])  # the tiny scene's parts move
+
+
+def test_true_gaussians_render_the_first_frame(tiny):
+    """The oracle's canonical Gaussians, converted to model parameters in the run's normalisation, render the
+    first training frame as `fgjax synth` rendered it (every part is in its canonical state at t0)."""
+    import jax.numpy as jnp
+
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+    from fgjax.method.stage1 import load_run
+    from fgjax.models.model import render_params
+
+    run_dir, data = tiny
+    cfg, _, _, meta = load_run(run_dir)
+    norm = Normalization.from_dict(meta["normalization"])
+    sc = load_scene(data, "train", normalize=norm)
+    g = motion.true_gaussians(data / "gt", norm, cfg.model.sh_degree)
+    i = int(np.argmin(sc.times))
+    img = render_params({"gaussians": g}, jnp.ones(g.means.shape[0], bool), jnp.asarray(sc.viewmats[i], jnp.float32),
+                        jnp.asarray(sc.Ks[i], jnp.float32), 0.0, spec=None, sh_degree=cfg.model.sh_degree,
+                        width=sc.width, height=sc.height, background=jnp.asarray(cfg.model.background, jnp.float32),
+                        capacity=None)[0]
+    mse = float(np.mean((np.asarray(img) - sc.images[i]) ** 2))
+    assert -10 * np.log10(mse) > 35.0  # 8-bit rounding of the written image, nothing more
+
+
+def test_oracle_fits_a_fresh_field_on_the_true_canonical(tiny, tmp_path, capsys):
+    run_dir, data = tiny
+    r = motion.oracle_fit(run_dir, data, 4, flow="true", photo=1.0, log_every=2, log=lambda *a: None)
+    assert [row["step"] for row in r["trace"]] == [2, 4] and r["dropped_steps"] == 0
+    assert all(np.isfinite(row["loss"]) for row in r["trace"])
+    meta = json.loads((data / "gt" / "meta.json").read_text())
+    assert [o["name"] for o in r["objects"]] == [o["name"] for o in meta["objects"]]
+    assert all(o["gaussians"] > 0 and o["true"] > 0 for o in r["objects"])  # every part's own true Gaussians
+    out = tmp_path / "o.json"
+    assert motion.main(["--run", str(run_dir), "--data", str(data), "--oracle", "2", "--oracle-flow", "none",
+                        "--oracle-photo", "1", "--json", str(out)]) == 0
+    assert "parts learned from the true canonical Gaussians" in capsys.readouterr().out
+    assert json.loads(out.read_text())["trace"]
+    assert motion.main(["--run", str(run_dir), "--data", str(data), "--oracle", "2", "--oracle-loss", "track"]) == 0
+    assert motion.main(["--run", str(run_dir), "--data", str(data), "--oracle", "2", "--oracle-loss", "track",
+                        "--oracle-flow", "true"]) == 0
+    capsys.readouterr()
+    for bad in (["--oracle", "-3"], ["--oracle", "2", "--oracle-flow", "none"], ["--oracle", "2", "--oracle-photo", "-1"]):
+        assert motion.main(["--run", str(run_dir), "--data", str(data)] + bad) == 2
+        assert "fgjax bench motion: --oracle" in capsys.readouterr().err

@@ -75,3 +75,11 @@ def test_overrides_parse_numbers_and_otsu_and_are_validated():
 def test_named_configurations_load_and_name_their_variant(name, variant):
     cfg = load_config(REPO / "experiments" / f"{name}.toml")
     assert cfg.stage2.variant == variant
+
+
+@pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"), ("flow.photo_motion=1.5", "flow.photo_motion"),
+                                          ("deform.anchor=last", "deform.anchor")])
+def test_stage1_flow_options_are_validated(override, key):
+    with pytest.raises(ConfigError, match=rf"^config key '{key}' must be "):
+        load_config(None, overrides=[override])  # "config key 'KEY' must be ..."
+    assert load_config(None, overrides=["flow.loss=track"]).flow.loss == "track"

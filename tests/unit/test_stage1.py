@@ -223,7 +223,7 @@ def _flow_inputs(scene, cfg, frame=3):
     flows = np.full((scene.num_frames, scene.height, scene.width, 2), np.nan, np.float32)
     flows[1:] = np.array([1.5, -0.5], np.float32)  # a constant observed flow: the target is not zero
     f32 = lambda x: np.asarray(x, np.float32)
-    fb = stage1._flow_batch(np.array([frame]), prev, flows, f32(scene.viewmats), f32(scene.times))
+    fb = stage1._flow_batch(np.array([frame]), prev, flows, f32(scene.viewmats), f32(scene.times), f32(scene.Ks))
     fb = stage1.FlowBatch(*(jnp.asarray(x)[0] for x in fb))
     return state, spec, fb
 
@@ -263,6 +263,25 @@ def test_training_step_with_flow_loss_runs():
     assert np.abs(np.asarray(res["state"].params["deform"]["head"]["w"])).max() > 0  # the field was updated
     with pytest.raises(ValueError, match="flows must have shape"):
         stage1.train_stage1(cfg, scene, None, stop_at=1, progress=False, log=lambda *_: None, flows=flows[1:])
+
+
+def test_training_with_the_track_loss_runs_and_tracks_from_the_first_frame(tmp_path):
+    """flow.loss = "track": the first frame's tracks from OpenCV flow (both directions, cached), the reference of
+    every other frame, and a few steps that update the field."""
+    scene = _tiny_scene(True, frames=4, w=48, h=32)
+    ref, tracks = stage1.training_tracks(scene, "dis", tmp_path / "c", log=lambda *_: None)
+    first = int(np.argmin(scene.times))
+    assert ref[first] == -1 and np.all(np.delete(ref, first) == first)
+    assert tracks.shape == (4, 32, 48, 2) and np.all(tracks[first] == 0)
+    assert np.isfinite(tracks).mean() > 0.3  # most of the first frame is tracked
+    cfg = _cfg("flow.enabled=true", "flow.loss=track", "flow.weight=0.1", "flow.start=0", "flow.method=dis",
+               "train.warmup_steps=0", "static.force=dynamic", "densify.enabled=false")
+    res = stage1.train_stage1(cfg, scene, tmp_path / "run", stop_at=3, progress=False, log=lambda *_: None)
+    assert len(res["losses"]) == 3 and np.all(np.isfinite(res["losses"]))
+    assert np.abs(np.asarray(res["state"].params["deform"]["head"]["w"])).max() > 0
+    with pytest.raises(ValueError, match="makes its own tracks"):
+        stage1.train_stage1(cfg, scene, None, stop_at=1, progress=False, log=lambda *_: None,
+                            flows=np.zeros((4, 32, 48, 2), np.float32))
 
 
 def test_training_flows_from_opencv_are_cached(tmp_path):

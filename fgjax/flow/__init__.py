@@ -22,7 +22,8 @@ maps render through ``fgjax.render.api.rasterization`` and are not jitted themse
 the rasterizer can size its intersection buffer exactly; they are jit-able with a ``capacity``.
 
 Modules: `fgjax.flow.motion` (camera velocity, motion field, reprojection flow, Gaussian image velocity) and
-`fgjax.flow.gaussian` (2D covariances, affine flow, rendered Gaussian flow, Lemma 1, losses, warping).
+`fgjax.flow.gaussian` (2D covariances, affine flow, rendered Gaussian flow, Lemma 1, losses, warping) and
+`fgjax.flow.track` (the rendered correspondence from a reference frame and the long-range track loss).
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ from fgjax.flow.motion import motion_field_inv_depth as motion_field_inv_depth
 from fgjax.flow.motion import motion_field_matrices as motion_field_matrices
 from fgjax.flow.motion import pixel_centers as pixel_centers
 from fgjax.flow.motion import reprojection_flow as reprojection_flow
+from fgjax.flow.track import gaussian_track_loss as gaussian_track_loss
+from fgjax.flow.track import rendered_correspondence as rendered_correspondence
 
 __all__ = [
     "pixel_centers",
@@ -67,4 +70,6 @@ __all__ = [
     "gaussian_flow_loss",
     "maps_camera_flow",
     "warp_backward",
+    "rendered_correspondence",
+    "gaussian_track_loss",
 ]

@@ -158,3 +158,25 @@ def test_project_centres_matches_the_pinhole_model_and_stays_finite_behind_the_c
     assert np.all(np.isfinite(uv))
     g = jax.grad(lambda m: jnp.sum(project_centres(m, vm, K)))(pts)
     assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_track_loss_is_finite_on_degenerate_input():
+    """Nothing visible (all behind the camera, or transparent), NaN tracks everywhere, coincident centres: the loss
+    is 0 or finite and so is its gradient."""
+    K = jnp.asarray([[50.0, 0, 16], [0, 50.0, 12], [0, 0, 1]])
+    vm = jnp.eye(4)
+    n = 5
+    q = jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (n, 1))
+    s = jnp.full((n, 3), 0.05)
+    track = jnp.zeros((24, 32, 2))
+    cases = [
+        (jnp.tile(jnp.asarray([0.0, 0.0, -1.0]), (n, 1)), jnp.full((n,), 0.9), track),  # behind the camera
+        (jnp.tile(jnp.asarray([0.0, 0.0, 2.0]), (n, 1)), jnp.zeros((n,)), track),  # transparent
+        (jnp.tile(jnp.asarray([0.0, 0.0, 2.0]), (n, 1)), jnp.full((n,), 0.9), jnp.full((24, 32, 2), jnp.nan)),  # lost
+        (jnp.tile(jnp.asarray([0.0, 0.0, 2.0]), (n, 1)), jnp.full((n,), 0.9), track),  # all at one point
+    ]
+    for means, o, tr in cases:
+        f = lambda m1, means=means, o=o, tr=tr: gaussian_track_loss(means, q, s, o, m1, vm, K, vm, K, tr, 32, 24,
+                                                                    threshold=0.5)[0]
+        val, g = jax.value_and_grad(f)(means + 0.01)
+        assert np.isfinite(float(val)) and np.all(np.isfinite(np.asarray(g)))

@@ -42,6 +42,9 @@ def main(argv: list[str] | None = None) -> int:
     shares = c.get("object_pixel_share", {})
     print(f"run: {args.out} ({time.perf_counter() - t0:.0f} s)")
     print(f"stage-1 test views: PSNR {res.get('psnr', float('nan')):.2f} dB, SSIM {res.get('ssim', float('nan')):.4f}")
+    if "view_psnr_controlled" in c:
+        print(f"controlled scene on the test views (each object replaying its trajectory): PSNR "
+              f"{c['view_psnr_controlled']:.2f} dB, SSIM {c['view_ssim_controlled']:.4f}")
     print(f"objects found: {c.get('num_objects_found')}"
           + (" (" + ", ".join(f"object {k} on {100 * v:.1f}% of the frame" for k, v in shares.items()) + ")"
              if shares else ""))

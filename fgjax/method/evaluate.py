@@ -10,6 +10,9 @@ atomically, other entries kept). A scene without gt/meta.json (a real capture, `
   held-out test views, the stage-1 model's object ids at each view's time (`fgjax.method.result.render_clusters`),
   averaged over the views}; ``views``: how many.
 - ``view_psnr_stage1``, ``view_ssim_stage1``: stage 1 on the held-out test views at their times.
+- ``view_psnr_controlled``, ``view_ssim_controlled``: the controlled scene on the same views, each object moved to
+  its trajectory vector at the view's time (v_c(t, k), `fgjax.method.result.cluster_vectors_at`: stage 2 replaying
+  the motion it learned); with no object found, the controlled scene at rest.
 - ``depth_error_static`` (where the test views have depth, e.g. LiDAR): over the pixels with depth that the
   stage-1 model covers (alpha >= 0.5) and labels static (id 0), the median and mean of |rendered depth - measured
   depth| in world units (metres for a Record3D capture), the median relative error |d - d*| / d*, and the number of
@@ -618,9 +621,13 @@ def evaluate_measurable(run, data_dir: Path, log=print, min_alpha: float = 0.5) 
     m = evaluate_stage1(run.state, run.spec, run.cfg, test)
     res.update(view_psnr_stage1=m["psnr"], view_ssim_stage1=m["ssim"], views=test.num_frames)
     shares = np.zeros(k)
-    errs, rel = [], []
+    errs, rel, ps_c, ss_c = [], [], [], []
     for i in range(test.num_frames):
         args = (test.viewmats[i], test.Ks[i])
+        vec = result.cluster_vectors_at(run.s2, float(test.times[i])) if k else np.zeros((0, 3))
+        img = result.render_controlled(run, vec, *args, test.width, test.height)
+        ps_c.append(float(metrics.psnr(img, test.images[i])))
+        ss_c.append(float(metrics.ssim(img, test.images[i])))
         ids = result.render_clusters(run, *args, test.width, test.height, t=float(test.times[i]))
         shares += np.array([np.mean(ids == c + 1) for c in range(k)]) / test.num_frames
         if test.depths is not None:
@@ -630,6 +637,7 @@ def evaluate_measurable(run, data_dir: Path, log=print, min_alpha: float = 0.5) 
             errs.append(norm.lengths_to_world(np.abs(d[ok] - ref[ok])))
             rel.append(np.abs(d[ok] - ref[ok]) / ref[ok])
     res["object_pixel_share"] = {str(c + 1): float(shares[c]) for c in range(k)}
+    res["view_psnr_controlled"], res["view_ssim_controlled"] = float(np.mean(ps_c)), float(np.mean(ss_c))
     if errs and sum(len(e) for e in errs):
         e, r = np.concatenate(errs), np.concatenate(rel)
         res["depth_error_static"] = {"median": float(np.median(e)), "mean": float(np.mean(e)),

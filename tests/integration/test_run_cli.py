@@ -53,6 +53,9 @@ def test_run_writes_metrics_and_pictures(made):
     assert np.isfinite(c["view_psnr_stage1"]) and abs(c["view_psnr_stage1"] - m["psnr"]) < 1e-3
     assert set(c["object_pixel_share"]) == {str(k + 1) for k in range(c["num_objects_found"])}
     assert all(0.0 <= v <= 1.0 for v in c["object_pixel_share"].values())
+    # the controlled scene replaying stage 2's trajectories renders the held-out views about as stage 1 does
+    assert 0.0 < c["view_ssim_controlled"] <= 1.0
+    assert c["view_psnr_controlled"] > c["view_psnr_stage1"] - 6.0, (c["view_psnr_controlled"], c["view_psnr_stage1"])
     assert set(m["pipeline"]["time_s"]) == {"flow", "stages", "pictures", "eval", "total"}
     for name in ("test_views.png", "objects.png", "control_sheet.png"):
         img = iio.imread(run / name)

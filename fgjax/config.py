@@ -123,9 +123,6 @@ class TrainConfig:
     distances keep their canonical length; 0: off)."""
     rigid_scale_weight: float = 0.0
     """Weight of ``fgjax.train.losses.scale_change_loss`` (deformed Gaussians keep their sizes; 0: off)."""
-    motion_weight: float = 0.0
-    """Weight of ``fgjax.train.losses.displacement_loss`` (mean L1 displacement of the deformed Gaussians from their
-    canonical centres: most of a scene does not move; 0: off)."""
     rigid_cap: float = 0.0
     """Saturation of one neighbour pair's relative stretch in that regulariser (cap tanh(stretch / cap)), so
     that pairs spanning a moving part's boundary break instead of holding the part in place (0: linear)."""
@@ -629,7 +626,7 @@ def validate_stage1(cfg: Config) -> None:
         need(_finite(v) and v > 0, f"pose.{k}", "a finite number > 0", v)
     need(0.0 < t.time_window_start <= 1.0, "train.time_window_start", "in (0, 1]", t.time_window_start)
     need(0.0 <= t.error_sampling <= 1.0, "train.error_sampling", "in [0, 1]", t.error_sampling)
-    for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "motion_weight", "coarse_to_fine",
+    for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "coarse_to_fine",
               "field_only_steps"):
         need(getattr(t, k) >= 0, f"train.{k}", ">= 0", getattr(t, k))
     if cfg.pose.bundle and not cfg.pose.enabled:

@@ -48,7 +48,6 @@ from fgjax.render.api import count_intersections, round_capacity
 from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
 from fgjax.train.losses import (
-    displacement_loss,
     isometry_loss,
     photometric_loss,
     scale_change_loss,
@@ -159,7 +158,6 @@ class StepSpec:
     vmap_cameras: bool = False  # vmap the batch's cameras (a data-parallel mesh splits them); else a loop
     photo_motion: float = 1.0  # scale of the photometric loss's gradient into the field's displacements
     flow_loss: str = "pair"  # "pair": L_uGS of frames t-1, t; "track": the first frame's tracks (fgjax.flow.track)
-    motion_weight: float = 0.0  # weight of the L1 displacement prior (deformation only)
 
 
 class FlowBatch(NamedTuple):
@@ -217,8 +215,6 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         if nbr is not None:  # rigidity: neighbour distances keep their canonical lengths
             iso = isometry_loss(geo["means"], params["gaussians"].means, *nbr, cap=ss.rigid_cap)
             loss = loss + ss.rigid_weight * iso
-        if ss.motion_weight > 0 and ss.spec is not None:  # most of the scene does not move
-            loss = loss + ss.motion_weight * displacement_loss(geo["means"], params["gaussians"].means, alive)
         if ss.rigid_scale_weight > 0 and ss.spec is not None:  # ... and Gaussian sizes their canonical values
             loss = loss + ss.rigid_scale_weight * scale_change_loss(geo["log_scales"], params["gaussians"].log_scales,
                                                                     alive)
@@ -502,7 +498,7 @@ def train_stage1(
                       fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
-                      fc.photo_motion if flow_on else 1.0, fc.loss, t.motion_weight if use_deform else 0.0)
+                      fc.photo_motion if flow_on else 1.0, fc.loss)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]

@@ -10,7 +10,7 @@ from jaxtyping import Array, ArrayLike, Float
 from fgjax.geometry import abs0
 from fgjax.metrics import ssim
 
-__all__ = ["l1", "photometric_loss", "scale_regularizer", "isometry_loss", "scale_change_loss", "displacement_loss"]
+__all__ = ["l1", "photometric_loss", "scale_regularizer", "isometry_loss", "scale_change_loss"]
 
 
 def l1(a: Float[ArrayLike, "H W C"], b: Float[ArrayLike, "H W C"]) -> Float[Array, ""]:
@@ -68,18 +68,6 @@ def isometry_loss(
     if cap > 0:
         err = cap * err**2 / (err**2 + cap**2)
     return jnp.sum(w * err) / jnp.maximum(jnp.sum(w), 1.0)
-
-
-def displacement_loss(
-    means_t: Float[ArrayLike, "N 3"], means_c: Float[ArrayLike, "N 3"], weights: Float[ArrayLike, " N"]
-) -> Float[Array, ""]:
-    """mean_i w_i |x_i(t) - x_i|_1 (scene units): the sparsity prior on motion, most of a scene does not move. Along a
-    camera's viewing ray a Gaussian's motion changes neither its pixel nor (to first order) its colour, so a field
-    trained on images and flow alone lets whole regions drift along the rays; the L1 norm keeps every Gaussian
-    the data do not move where it is, and moves the others by the least displacement that explains them."""
-    d = jnp.sum(abs0(jnp.asarray(means_t) - jnp.asarray(means_c)), axis=-1)  # x_t = x + f(x, t): x cancels, so only
-    w = jnp.asarray(weights).astype(d.dtype)                                 # the field receives a gradient
-    return jnp.sum(w * d) / jnp.maximum(jnp.sum(w), 1.0)
 
 
 def scale_change_loss(

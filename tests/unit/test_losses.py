@@ -128,18 +128,3 @@ def test_l1_terms_push_nothing_at_a_zero_residual():
     g2 = jax.grad(lambda m: isometry_loss(m, x, idx, jnp.ones((6, 2))))(x.at[0].add(0.3))
     assert float(jnp.abs(g2).max()) > 0.0
 
-
-def test_displacement_loss_value_and_gradients():
-    """mean_i w_i |x_i(t) - x_i|_1 over the live Gaussians; with x_i(t) = x_i + d_i the canonical centres get no
-    gradient (they cancel) and the displacements get w_i sign(d_i) / sum(w); none at zero displacement."""
-    from fgjax.train.losses import displacement_loss
-
-    x = jnp.asarray([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0], [5.0, 5.0, 5.0]])
-    d = jnp.asarray([[0.1, -0.2, 0.0], [0.0, 0.0, 0.0], [3.0, 3.0, 3.0]])
-    w = jnp.asarray([1.0, 1.0, 0.0])  # the third is a dead slot
-    f = lambda x, d: displacement_loss(x + d, x, w)
-    assert float(f(x, d)) == pytest.approx(0.3 / 2)
-    gx, gd = jax.grad(f, argnums=(0, 1))(x, d)
-    assert np.allclose(np.asarray(gx), 0.0)
-    assert np.allclose(np.asarray(gd), [[0.5, -0.5, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    assert float(displacement_loss(x, x, jnp.zeros(3))) == 0.0

@@ -454,11 +454,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--oracle", type=int, default=0, metavar="STEPS",
                    help="fit a fresh field alone on the true canonical Gaussians for STEPS steps (module docstring)")
     p.add_argument("--oracle-flow", choices=("estimated", "true", "none"), default="estimated",
-                   help="with --oracle: L_uGS on the run's estimated optical flow, on the true one, or no L_uGS")
+                   help="with --oracle: the flow loss on the run's estimated optical flow, on the true one, or none")
     p.add_argument("--oracle-loss", choices=("pair", "track"), default="pair",
                    help="with --oracle: L_uGS of frame pairs or the first frame's tracks (flow.loss)")
     p.add_argument("--oracle-photo", type=float, default=0.0, metavar="W",
-                   help="with --oracle: add W x the photometric loss (default 0: L_uGS alone)")
+                   help="with --oracle: add W x the photometric loss (default 0: the flow loss alone)")
     p.add_argument("--oracle-lr", type=float, default=None, help="with --oracle: Adam rate (default train.lr_deform)")
     p.add_argument("--json", default=None, help="also write the report to this file")
     args = p.parse_args(argv)

@@ -71,6 +71,7 @@ from fgjax.method.stage1 import run as run_stage1
 from fgjax.models.deform import deform_init
 from fgjax.models.model import deformed_gaussians, render_params
 from fgjax.train.losses import photometric_loss
+from fgjax.train.optim import guarded_step
 
 __all__ = ["main", "motion_report", "part_gaussians", "learned_motion", "true_motion", "motion_scores",
            "flow_diagnosis", "means_at", "part_scores", "true_gaussians", "oracle_fit"]
@@ -337,34 +338,27 @@ def oracle_fit(run_dir: Path, data_dir: Path, steps: int, *, flow: str = "estima
               for k, v in params["deform"].items()}
     opt = optax.multi_transform({"mlp": optax.adam(rate), "hash": optax.adam(rate * cfg.train.lr_hash_factor)},
                                 groups)
-    # the tile-intersection buffer of the true Gaussians, with the training margin (a step that overflows it is
-    # dropped and counted, as in stage 1)
+    # the tile-intersection buffer of the true Gaussians, with the training margin (as in stage 1)
     capacity = compute_capacity(params, alive, sc.viewmats, sc.Ks, sc.width, sc.height, cfg.train.tile_size,
                                 cfg.train.capacity_margin)
     ss = StepSpec(spec, cfg.model.sh_degree, sc.width, sc.height, capacity, cfg.train.tile_size,
                   cfg.train.lambda_dssim, 0.0, 0.0, False, 1.0, cfg.flow.threshold, flow_loss=loss)
     bg = jnp.asarray(cfg.model.background, jnp.float32)
 
-    @jax.jit
-    def step(d, ostate, vm0, vm1, K, t0, t1, uv, image):
-        def loss(d):
-            p = {**params, "deform": d}
-            val, over = 0.0, jnp.zeros((), bool)
-            if flow != "none":
-                val, over = flow_term(ss, p, alive, vm1, K, t1, FlowBatch(uv, vm0, t0, jnp.int32(0), jnp.float32(1.0)))
-            if photo > 0:
-                img, _, info, _ = render_params(p, alive, vm1, K, t1, spec=spec, sh_degree=cfg.model.sh_degree,
-                                                width=sc.width, height=sc.height, background=bg, capacity=capacity)
-                val = val + photo * photometric_loss(img, image, cfg.train.lambda_dssim)
-                over = over | info["overflow"]
-            return val, over
+    def objective(d, batch):
+        vm0, vm1, K, t0, t1, uv, image = batch
+        p = {**params, "deform": d}
+        val, over = 0.0, jnp.zeros((), bool)
+        if flow != "none":
+            val, over = flow_term(ss, p, alive, vm1, K, t1, FlowBatch(uv, vm0, t0, jnp.int32(0), jnp.float32(1.0)))
+        if photo > 0:
+            img, _, info, _ = render_params(p, alive, vm1, K, t1, spec=spec, sh_degree=cfg.model.sh_degree,
+                                            width=sc.width, height=sc.height, background=bg, capacity=capacity)
+            val = val + photo * photometric_loss(img, image, cfg.train.lambda_dssim)
+            over = over | info["overflow"]
+        return val, over
 
-        (val, over), grad = jax.value_and_grad(loss, has_aux=True)(d)
-        upd, ostate2 = opt.update(grad, ostate, d)
-        keep = ~over & jnp.isfinite(val)
-        d2 = jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), optax.apply_updates(d, upd), d)
-        ostate2 = jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), ostate2, ostate)
-        return d2, ostate2, val, over
+    step = guarded_step(objective, opt)  # a step whose render overflows or whose loss is not finite is dropped
 
     pairs = np.flatnonzero(prev >= 0)
     rng = np.random.default_rng(seed)
@@ -373,9 +367,9 @@ def oracle_fit(run_dir: Path, data_dir: Path, steps: int, *, flow: str = "estima
     for k in range(1, steps + 1):
         i = int(rng.choice(pairs))
         j = int(prev[i])
-        d, ostate, val, over = step(d, ostate, *(jnp.asarray(a, jnp.float32) for a in (
+        d, ostate, val, bad = step(d, ostate, tuple(jnp.asarray(a, jnp.float32) for a in (
             sc.viewmats[j], sc.viewmats[i], sc.Ks[i], sc.times[j], sc.times[i], flows[i], sc.images[i])))
-        dropped += int(over)
+        dropped += int(bad)
         losses.append(float(val))
         if k % log_every == 0 or k == steps:
             sco = motion_scores(learned_motion({**params, "deform": d}, alive, spec, parts, times), true)
@@ -473,7 +467,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{o['name']:<12} {o['gaussians']:>6} Gaussians  true {o['true']:.3f}  learned {o['learned']:.3f}  "
                   f"ratio {o['ratio']:.2f}  angle {o['angle_deg']:.1f}  {'yes' if o['ok'] else 'no'}")
         print(f"parts learned from the true canonical Gaussians: {r['parts_learned']} of {len(r['objects'])} "
-              f"({r['wall_s']:.0f} s; {r['dropped_steps']} step(s) dropped: tile buffer overflow)")
+              f"({r['wall_s']:.0f} s; {r['dropped_steps']} step(s) dropped: tile buffer overflow or a non-finite loss)")
         if args.json:
             atomic_write(Path(args.json), lambda f: f.write(json.dumps(r, indent=1).encode()))
         return 0

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from fgjax.geometry import abs0, as_float
+from fgjax.geometry import abs0, as_float, project_points
 from fgjax.render.api import rasterization
 
 __all__ = ["project_centres", "rendered_correspondence", "gaussian_track_loss"]
@@ -41,11 +41,11 @@ __all__ = ["project_centres", "rendered_correspondence", "gaussian_track_loss"]
 def project_centres(means: Float[ArrayLike, "N 3"], viewmat: Float[ArrayLike, "4 4"], K: Float[ArrayLike, "3 3"],
                     near: float = 1e-2) -> Float[Array, "N 2"]:
     """Pixel coordinates (x, y) of world points under an OpenCV camera (world-to-camera ``viewmat``, pixel centres
-    at +0.5 as in the rasterizer), depth clamped at ``near`` so that points behind the camera stay finite."""
-    means, viewmat, K = as_float(means), as_float(viewmat), as_float(K)
+    at +0.5 as in the rasterizer): `fgjax.geometry.project_points` with the camera depth clamped at ``near``, so
+    that points behind the camera stay finite and push nothing through their depth."""
+    means, viewmat = as_float(means), as_float(viewmat)
     pc = means @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = jnp.maximum(pc[:, 2:3], near)
-    return pc[:, :2] / z * jnp.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
+    return project_points(jnp.concatenate([pc[:, :2], jnp.maximum(pc[:, 2:3], near)], axis=-1), K)
 
 
 def rendered_correspondence(

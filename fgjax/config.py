@@ -192,6 +192,14 @@ class FlowConfig:
     is the first frame's pixels tracked by chaining the optical flow through the video (forward-backward checked)
     against the rendered correspondence of the Gaussians that paint them there (`fgjax.flow.track`): positions
     instead of velocities, no camera flow in the target."""
+    gaussian_flow: str = "isotropic"
+    """The rendered dynamic Gaussian flow of the "pair" loss: "isotropic" composites each Gaussian's centre
+    displacement (the paper's form); "anisotropic" GaussianFlow's affine flow of each Gaussian's 2D shape
+    (`fgjax.flow.dynamic_gaussian_flow`)."""
+    camera_depth: str = "composited"
+    """The depth the "pair" loss's camera flow u_cam is computed from: "composited" is 1 / sum_i w_i / Z_i, for which
+    Lemma 1's residual vanishes (DESIGN.md section 1, step 4); "expected" is sum_i w_i Z_i / alpha, which leaves the
+    residual in the target (`fgjax.flow.maps_camera_flow`)."""
     photo_motion: float = 1.0
     """While the flow loss is on, the factor on the photometric loss's gradient into the deformation field's
     displacements dx (the flow loss's reaches them in full). 1: both losses train the motion (the paper); 0: the
@@ -620,6 +628,10 @@ def validate_stage1(cfg: Config) -> None:
     need(fl.start >= 0, "flow.start", ">= 0", fl.start)
     need(f.anchor in ("none", "first"), "deform.anchor", "'none' or 'first'", f.anchor)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
+    need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
+         fl.gaussian_flow)
+    need(fl.camera_depth in ("composited", "expected"), "flow.camera_depth", "'composited' or 'expected'",
+         fl.camera_depth)
     need(_finite(fl.photo_motion) and 0 <= fl.photo_motion <= 1, "flow.photo_motion", "in [0, 1]", fl.photo_motion)
     for k in ("lr", "lr_final"):
         v = getattr(cfg.pose, k)

@@ -150,6 +150,8 @@ class GaussianFlowMaps(NamedTuple):
     overflow: Bool[Array, ""]
     """The rasterizer ran out of intersection slots (only possible under jit with a too small
     ``capacity``); the maps must not be used then."""
+    depth: Float[Array, "H W"]
+    """Expected depth sum_i T_i alpha_i Z_i / alpha (0 where alpha = 0), the rasterizer's ``info["depth"]``."""
 
 
 def _rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, **kw):
@@ -205,7 +207,7 @@ def dynamic_gaussian_flow(
         near_plane, tile_size, capacity: passed to the rasterizer.
 
     Returns:
-        ``GaussianFlowMaps(flow [H, W, 2], alpha [H, W], inv_depth [H, W], overflow [])``.
+        ``GaussianFlowMaps(flow [H, W, 2], alpha [H, W], inv_depth [H, W], overflow [], depth [H, W])``.
 
     Outside ``jax.jit`` with ``capacity=None`` the rasterizer sizes its intersection buffer exactly; under
     jit pass a ``capacity`` (or check ``overflow``).
@@ -229,12 +231,12 @@ def dynamic_gaussian_flow(
     if not anisotropic:
         colors = _iso_colors(means0, means1, viewmat, K)  # [N, 3]
         image, alpha, info = _rasterize(means0, quats0, scales0, opacities, colors, viewmat, K, width, height, **kw)
-        return GaussianFlowMaps(image[..., :2], alpha, image[..., 2], jnp.asarray(info["overflow"]))
+        return GaussianFlowMaps(image[..., :2], alpha, image[..., 2], jnp.asarray(info["overflow"]), info["depth"])
     quats1 = quats0 if quats1 is None else as_float(quats1)
     scales1 = scales0 if scales1 is None else as_float(scales1)
     colors = _aniso_colors(means0, quats0, scales0, means1, quats1, scales1, viewmat, K, width, height)  # [N, 7]
     image, alpha, info = _rasterize(means0, quats0, scales0, opacities, colors, viewmat, K, width, height, **kw)
-    return GaussianFlowMaps(_aniso_flow(image), alpha, image[..., 6], jnp.asarray(info["overflow"]))
+    return GaussianFlowMaps(_aniso_flow(image), alpha, image[..., 6], jnp.asarray(info["overflow"]), info["depth"])
 
 
 @jax.jit
@@ -410,15 +412,26 @@ def flow_loss(
 
 def maps_camera_flow(
     maps: GaussianFlowMaps, viewmat0: Float[ArrayLike, "4 4"], viewmat1: Float[ArrayLike, "4 4"],
-    K: Float[ArrayLike, "3 3"],
+    K: Float[ArrayLike, "3 3"], camera_depth: str = "composited",
 ) -> tuple[Float[Array, "H W 2"], Bool[Array, "H W"]]:
     """(u_cam [H, W, 2], ok [H, W]): the camera flow of a dynamic-flow pass's depth, the exact ``reprojection_flow``
-    of 1 / composited inverse depth (so Lemma 1's Delta vanishes) from camera t-1 (``viewmat0``, the pass's camera) to
-    camera t (``viewmat1``). The depth is held fixed (stop-gradient); pixels with inverse depth <= 1e-6 have none and
+    from camera t-1 (``viewmat0``, the pass's camera) to camera t (``viewmat1``) of
+
+    - ``camera_depth="composited"``: 1 / composited inverse depth, so that Lemma 1's Delta vanishes (the default);
+    - ``camera_depth="expected"``: the expected depth sum_i T_i alpha_i Z_i / alpha, with which Delta
+      (``lemma1_residual``) stays in u - u_cam wherever the Gaussians of a pixel lie at different depths.
+
+    The depth is held fixed (stop-gradient); pixels with inverse depth <= 1e-6 (or no expected depth) have none and
     are not ok."""
-    inv_d = jax.lax.stop_gradient(maps.inv_depth)
-    has = inv_d > 1e-6
-    depth = jnp.where(has, 1.0 / jnp.where(has, inv_d, 1.0), 0.0)  # [H, W]
+    if camera_depth == "composited":
+        inv_d = jax.lax.stop_gradient(maps.inv_depth)
+        has = inv_d > 1e-6
+        depth = jnp.where(has, 1.0 / jnp.where(has, inv_d, 1.0), 0.0)  # [H, W]
+    elif camera_depth == "expected":
+        depth = jax.lax.stop_gradient(maps.depth)
+        depth = jnp.where(depth > 1e-6, depth, 0.0)
+    else:
+        raise ValueError(f"maps_camera_flow: camera_depth must be 'composited' or 'expected', got {camera_depth!r}")
     c2w0, c2w1 = geometry.se3_inverse(as_float(viewmat0)), geometry.se3_inverse(as_float(viewmat1))
     return reprojection_flow(depth, K, c2w0, c2w1)
 
@@ -440,6 +453,10 @@ def gaussian_flow_loss(
     min_alpha: float = 0.5,
     capacity: int | None = None,
     tile_size: int = 8,
+    anisotropic: bool = False,
+    quats1: Float[ArrayLike, "N 4"] | None = None,
+    scales1: Float[ArrayLike, "N 3"] | None = None,
+    camera_depth: str = "composited",
 ) -> tuple[Float[Array, ""], Bool[Array, ""]]:
     """L_uGS of one frame pair from Gaussians (DESIGN section 1, step 4): (loss, overflow flag).
 
@@ -449,10 +466,15 @@ def gaussian_flow_loss(
     vanishes) from camera t-1 to camera t (``viewmat1``), held fixed (stop-gradient), as are the alpha
     and depth maps. Valid pixels: rendered alpha > ``min_alpha``, a finite observed ``flow`` (NaN =
     unknown) and a reprojection in front of camera t. Gradients reach the Gaussians through u~_GS.
+
+    Variants (the paper's ablation, its Table 8): ``anisotropic`` renders u~_GS in GaussianFlow's affine form with the
+    frame t rotations and scales ``quats1, scales1`` (`dynamic_gaussian_flow`); ``camera_depth="expected"`` takes
+    u_cam from the expected depth, leaving Lemma 1's residual in the target (`maps_camera_flow`).
     """
     maps = dynamic_gaussian_flow(means0, quats0, scales0, opacities, means1, viewmat0, K, width, height,
-                                 capacity=capacity, tile_size=tile_size)
-    u_cam, cam_ok = maps_camera_flow(maps, viewmat0, viewmat1, K)
+                                 anisotropic=anisotropic, quats1=quats1, scales1=scales1, capacity=capacity,
+                                 tile_size=tile_size)
+    u_cam, cam_ok = maps_camera_flow(maps, viewmat0, viewmat1, K, camera_depth)
     u_obs = as_float(flow)
     known = jnp.all(jnp.isfinite(u_obs), axis=-1)
     valid = cam_ok & known & (jax.lax.stop_gradient(maps.alpha) > min_alpha)

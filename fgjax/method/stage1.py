@@ -158,6 +158,8 @@ class StepSpec:
     vmap_cameras: bool = False  # vmap the batch's cameras (a data-parallel mesh splits them); else a loop
     photo_motion: float = 1.0  # scale of the photometric loss's gradient into the field's displacements
     flow_loss: str = "pair"  # "pair": L_uGS of frames t-1, t; "track": the first frame's tracks (fgjax.flow.track)
+    gaussian_flow: str = "isotropic"  # "pair": u~_GS isotropic (the paper) or anisotropic (GaussianFlow)
+    camera_depth: str = "composited"  # "pair": u_cam from the composited ("composited") or expected depth
 
 
 class FlowBatch(NamedTuple):
@@ -181,7 +183,7 @@ def flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
     if ss.pose:
         vm_prev = matmul(se3_exp(params["pose"][fl.idx_prev]), vm_prev)
     m0, q0, s0, o0, _ = deformed_gaussians(params, alive, fl.t_prev, ss.spec)
-    m1 = deformed_gaussians(params, alive, t, ss.spec)[0]
+    m1, q1, s1 = deformed_gaussians(params, alive, t, ss.spec)[:3]
     if ss.flow_loss == "track":
         k_prev = K if fl.K_prev is None else fl.K_prev
         loss, overflow = gaussian_track_loss(m0, q0, s0, o0, m1, vm_prev, k_prev, viewmat, K, fl.flow, ss.width,
@@ -190,7 +192,9 @@ def flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
         return fl.weight * loss, overflow
     loss, overflow = gaussian_flow_loss(m0, q0, s0, o0, m1, vm_prev, viewmat, K, fl.flow, ss.width, ss.height,
                                         threshold=ss.flow_threshold if ss.flow_threshold > 0 else None,
-                                        capacity=ss.capacity, tile_size=ss.tile_size)
+                                        capacity=ss.capacity, tile_size=ss.tile_size,
+                                        anisotropic=ss.gaussian_flow == "anisotropic", quats1=q1, scales1=s1,
+                                        camera_depth=ss.camera_depth)
     return fl.weight * loss, overflow
 
 
@@ -498,7 +502,7 @@ def train_stage1(
                       fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
-                      fc.photo_motion if flow_on else 1.0, fc.loss)
+                      fc.photo_motion if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]

@@ -11,7 +11,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fgjax.flow import dynamic_gaussian_flow, gaussian_flow_loss
+from fgjax.flow import (
+    camera_velocity,
+    dynamic_gaussian_flow,
+    gaussian_flow_loss,
+    lemma1_residual,
+    maps_camera_flow,
+    pixel_centers,
+)
+from fgjax.render.api import rasterization
 from fgjax.synth import SynthConfig, make_scene
 from fgjax.synth.parts import rigid_inv
 from fgjax.synth.render import render_sequence, sequence_flow
@@ -31,10 +39,10 @@ def door_pair():
     st = states[i:i + 2]
     gt = sequence_flow(scene, st, vm, render_sequence(scene, vm, st))
     m0, q0 = deform(scene, st[0])
-    m1, _ = deform(scene, st[1])
+    m1, q1 = deform(scene, st[1])
     flow = np.where(gt["flow_valid"][0, ..., None], gt["flow"][0], np.nan).astype(np.float32)
     f32 = lambda a: jnp.asarray(a, jnp.float32)
-    return {"m0": f32(m0), "q0": f32(q0), "s": f32(scene.scales), "o": f32(scene.opacities), "m1": f32(m1),
+    return {"m0": f32(m0), "q0": f32(q0), "s": f32(scene.scales), "o": f32(scene.opacities), "m1": f32(m1), "q1": f32(q1),
             "vm0": f32(vm[0]), "vm1": f32(vm[1]), "K": f32(scene.K), "flow": jnp.asarray(flow),
             "object_flow": gt["object_flow"][0], "door": (gt["object_flow"][0] != 0).any(-1),
             "labels": scene.labels}
@@ -78,3 +86,45 @@ def test_gradient_at_rest_points_along_the_true_motion(door_pair):
     # static Gaussians get (almost) nothing: their pixels' target is zero and so is their flow at rest
     still = ~door
     assert np.abs(g[still]).sum() < 0.1 * np.abs(g[door]).sum()
+
+
+@pytest.mark.parametrize("anisotropic,camera_depth", [(True, "composited"), (False, "expected"), (True, "expected")])
+def test_ablation_variants_are_verified_too(door_pair, anisotropic, camera_depth):
+    """The ablation's variants of L_uGS (GaussianFlow's anisotropic u~_GS; u_cam from the expected depth) pass the
+    same check: near zero at the true motion, large at rest."""
+    p = door_pair
+
+    def loss(m1, q1):
+        out, overflow = gaussian_flow_loss(p["m0"], p["q0"], p["s"], p["o"], m1, p["vm0"], p["vm1"], p["K"],
+                                           p["flow"], W, H, anisotropic=anisotropic, quats1=q1, scales1=p["s"],
+                                           camera_depth=camera_depth)
+        assert not bool(overflow)
+        return float(out)
+
+    true, rest = loss(p["m1"], p["q1"]), loss(p["m0"], p["q0"])
+    assert np.isfinite(true) and np.isfinite(rest)
+    assert true < 0.5 * rest, (true, rest)
+
+
+def test_expected_depth_leaves_lemma1_residual(door_pair):
+    """u_cam from the expected depth minus u_cam from the composited depth is Lemma 1's residual Delta (to first
+    order in the camera motion: ``lemma1_residual`` is the linear motion field, the camera flows exact
+    reprojections), and the pass's expected depth is the rasterizer's own (an independent render)."""
+    p = door_pair
+    maps = dynamic_gaussian_flow(p["m0"], p["q0"], p["s"], p["o"], p["m0"], p["vm0"], p["K"], W, H)
+    _, _, info = rasterization(p["m0"], p["q0"], p["s"], p["o"], jnp.zeros((p["m0"].shape[0], 1)), p["vm0"],
+                               p["K"], W, H, render_depth=True)
+    np.testing.assert_allclose(np.asarray(maps.depth), np.asarray(info["depth"]), rtol=1e-3, atol=1e-4)
+    u_c, ok_c = maps_camera_flow(maps, p["vm0"], p["vm1"], p["K"], "composited")
+    u_e, ok_e = maps_camera_flow(maps, p["vm0"], p["vm1"], p["K"], "expected")
+    c2w0, c2w1 = np.linalg.inv(np.asarray(p["vm0"], np.float64)), np.linalg.inv(np.asarray(p["vm1"], np.float64))
+    v, _ = camera_velocity(c2w0, c2w1)
+    delta = np.asarray(lemma1_residual(pixel_centers(H, W), p["K"], v, maps.inv_depth, maps.depth))
+    ok = np.asarray(ok_c & ok_e) & (np.asarray(maps.alpha) > 0.99)
+    diff = np.asarray(u_c - u_e)[ok]
+    big = np.linalg.norm(delta[ok], axis=-1) > 0.05  # pixels whose Gaussians lie at different depths
+    assert big.sum() > 20, big.sum()
+    err = np.linalg.norm(diff[big] - delta[ok][big], axis=-1) / np.linalg.norm(delta[ok][big], axis=-1)
+    assert np.median(err) < 0.2, np.median(err)
+    with pytest.raises(ValueError, match="camera_depth"):
+        maps_camera_flow(maps, p["vm0"], p["vm1"], p["K"], "median")

@@ -228,11 +228,15 @@ def _flow_inputs(scene, cfg, frame=3):
     return state, spec, fb
 
 
-def test_flow_loss_is_finite_and_reaches_the_deformation():
+@pytest.mark.parametrize("gaussian_flow,camera_depth", [("isotropic", "composited"), ("anisotropic", "expected")])
+def test_flow_loss_is_finite_and_reaches_the_deformation(gaussian_flow, camera_depth):
+    """The paper's L_uGS and the ablation's other end (GaussianFlow's anisotropic u~_GS, u_cam from the expected
+    depth) inside the stage-1 step."""
     scene = _tiny_scene(True)
     cfg = _cfg("flow.enabled=true", "flow.weight=0.5")
     state, spec, fb = _flow_inputs(scene, cfg)
-    ss = stage1.StepSpec(spec, 1, scene.width, scene.height, 16384, 8, 0.2, 0.0, 0.05, False, 0.5, 0.0)
+    ss = stage1.StepSpec(spec, 1, scene.width, scene.height, 16384, 8, 0.2, 0.0, 0.05, False, 0.5, 0.0,
+                         gaussian_flow=gaussian_flow, camera_depth=camera_depth)
     params = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), state.params)
     vm = jnp.asarray(scene.viewmats[3], jnp.float32)
     K = jnp.asarray(scene.Ks[3], jnp.float32)

@@ -416,16 +416,32 @@ def placed_object(label: int, kind: str, kin: dict[str, Any], place: Float[np.nd
         radius=float(kin.get("radius", 0.0)), key_times=key_times, key_states=key_states, parent=int(parent))
 
 
+LAYER_JITTER = 0.5
+"""Each Gaussian of the room sits behind its surface (against the normal, which points into the room) by a uniform
+draw in [0, 1] x this x the room's spacing (`gaussians_of_parts`)."""
+
+
 def gaussians_of_parts(parts: list[tuple[Part, int, int]]) -> tuple[np.ndarray, ...]:
     """The Gaussians of surface groups `parts` [(part, label, owner)] (world frame), as `SynthScene` stores them:
     (means [N, 3], quats [N, 4] taking local z to each normal, scales [N, 3] = (0.6, 0.6, 0.12) x the group's
-    spacing, opacities [N] = 0.97, colors [N, 3], labels [N] int32, owner [N] int32)."""
+    spacing, opacities [N] = 0.97, colors [N, 3], labels [N] int32, owner [N] int32).
+
+    The rasterizer composites a pixel's Gaussians in the order of their centres' depth. On a flat grid of
+    overlapping splats that order is set by the view direction alone, and it reverses for the whole grid at once when
+    the camera looks square onto the surface: the texture then jumps by up to half a spacing between two frames while
+    the poses (and so the ground-truth flow) move smoothly. Moving each centre of the room (owner 0: the walls and the
+    floor) behind its surface, against its normal, by `LAYER_JITTER` x spacing x a uniform draw in [0, 1] (seeded by the number of Gaussians, so the same scene is the
+    same bit for bit) makes each pair of neighbours swap at its own view angle instead, and the texture stays where
+    the geometry puts it. Nothing moves into the room, where the objects stand on the floor, and the objects' bodies and
+    parts keep their exact surfaces (their gaps and hinges are part of the ground truth)."""
     means = np.concatenate([p.points for p, _, _ in parts])
     normals = np.concatenate([p.normals for p, _, _ in parts])
     colors = np.concatenate([p.colors for p, _, _ in parts])
     labels = np.concatenate([np.full(len(p.points), lab, dtype=np.int32) for p, lab, _ in parts])
     owner = np.concatenate([np.full(len(p.points), own, dtype=np.int32) for p, _, own in parts])
     sig = np.concatenate([np.full(len(p.points), p.spacing) for p, _, _ in parts])
+    off = np.random.default_rng(np.random.SeedSequence([0x1A7E5, len(means)])).uniform(0.0, 1.0, len(means))
+    means = means - normals * (LAYER_JITTER * sig * off * (owner == 0))[:, None]
     scales = np.stack([0.6 * sig, 0.6 * sig, 0.12 * sig], axis=-1)
     return means, quat_from_z(normals), scales, np.full(len(means), 0.97), colors, labels, owner
 

@@ -155,8 +155,9 @@ class GaussianFlowMaps(NamedTuple):
 
 
 def _rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, **kw):
+    """The flow pass: no background, and the expected depth (``info["depth"]``, `GaussianFlowMaps.depth`)."""
     return rasterization(
-        means, quats, scales, opacities, colors, viewmat, K, width, height, background=None, **kw
+        means, quats, scales, opacities, colors, viewmat, K, width, height, background=None, render_depth=True, **kw
     )
 
 

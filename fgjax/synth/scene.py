@@ -429,11 +429,12 @@ def gaussians_of_parts(parts: list[tuple[Part, int, int]]) -> tuple[np.ndarray, 
     The rasterizer composites a pixel's Gaussians in the order of their centres' depth. On a flat grid of
     overlapping splats that order is set by the view direction alone, and it reverses for the whole grid at once when
     the camera looks square onto the surface: the texture then jumps by up to half a spacing between two frames while
-    the poses (and so the ground-truth flow) move smoothly. Moving each centre of the room (owner 0: the walls and the
-    floor) behind its surface, against its normal, by `LAYER_JITTER` x spacing x a uniform draw in [0, 1] (seeded by the number of Gaussians, so the same scene is the
-    same bit for bit) makes each pair of neighbours swap at its own view angle instead, and the texture stays where
-    the geometry puts it. Nothing moves into the room, where the objects stand on the floor, and the objects' bodies and
-    parts keep their exact surfaces (their gaps and hinges are part of the ground truth)."""
+    the poses (and so the ground-truth flow) move smoothly. Each centre of the room (owner 0: the walls and the floor)
+    therefore sits behind its surface, against its normal, by `LAYER_JITTER` x spacing x a uniform draw in [0, 1]
+    (seeded by the number of Gaussians, so the same scene is the same bit for bit): each pair of neighbours swaps at
+    its own view angle instead, and the texture stays where the geometry puts it. Nothing moves into the room, where
+    the objects stand on the floor, and the objects' bodies and parts keep their exact surfaces (their gaps and hinges
+    are part of the ground truth)."""
     means = np.concatenate([p.points for p, _, _ in parts])
     normals = np.concatenate([p.normals for p, _, _ in parts])
     colors = np.concatenate([p.colors for p, _, _ in parts])

@@ -469,6 +469,10 @@ class ArticulateConfig:
     """The articulated variant (`fgjax.articulate`): parts tracked as rigid bodies on revolute or prismatic joints,
     the scene re-fitted under their motion, labels refined. docs/architecture.md describes each step."""
 
+    link_min_corr: float = -1.0
+    """DBSCAN links two dynamic Gaussians within eps only when their activity profiles over the pairs correlate by
+    at least this much (`fgjax.cluster.cluster_by_motion`); -1: every pair within eps (position alone, the
+    paper's step 6)."""
     merge_eps: float = 0.05
     """Join DBSCAN clusters whose closest members are within this distance and whose motion profiles correlate
     (`fgjax.cluster.merge_fragments`); 0: off."""
@@ -516,6 +520,9 @@ class ArticulateConfig:
     (`fgjax.articulate.articulation.camera_tilt`) and the hinge is not far off its part; 0: off."""
     hinge_trial: int = 150
     """Re-fit steps of each candidate of the hinge trial (`fgjax.articulate.trial.hinge_trial`); 0: off."""
+    hinge_trial_race: float = 0.2
+    """Share of the hinge trial's steps that every candidate gets; then only the given poses, the best slide and the
+    best edge go on for the rest (successive halving); 1: every candidate gets all of them."""
     hinge_trial_margin: float = 0.02
     """An edge replaces the given poses only when its re-fitted loss is below (1 - margin) times theirs; a slide
     when it is at most (1 + margin) times theirs."""
@@ -731,8 +738,12 @@ def validate_articulate(cfg: ArticulateConfig) -> None:
         raise bad("track_rounds", "an integer >= 1")
     if cfg.track_subset_margin < -1:
         raise bad("track_subset_margin", "an integer >= -1 (-1: every Gaussian)")
+    if not (_finite(cfg.link_min_corr) and -1.0 <= cfg.link_min_corr <= 1.0):
+        raise bad("link_min_corr", "a number in [-1, 1] (-1: position alone)")
     if not 0 <= cfg.hinge_up_deg < 90:
         raise bad("hinge_up_deg", "a number in [0, 90) (0: off)")
+    if not (_finite(cfg.hinge_trial_race) and 0 < cfg.hinge_trial_race <= 1):
+        raise bad("hinge_trial_race", "in (0, 1] (1: every candidate gets every step)")
     if not 0 <= cfg.hinge_trial_margin < 1:
         raise bad("hinge_trial_margin", "in [0, 1)")
     if not 0 <= cfg.hinge_trial_edges <= 4:

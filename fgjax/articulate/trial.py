@@ -105,13 +105,16 @@ def hinge_trial(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref:
     1e-6) takes that one's loss. The trial's labels are ``labels`` with the outlines relabelled
     by colour on `ref` (`refine_by_colour`, with ``colour_radius`` > 0), so that Gaussians of the
     surroundings that joined the part (a lid's box rims) do not hold its hinge back. They serve the trial only; the labels returned by the round are unchanged.
-    The scene is re-fitted from `ref` under each candidate (`refit_gaussians`, ``hinge_trial`` steps on the frames
-    in which some candidate displaces the part, the same seed), and scored by the mean photometric loss of those
-    frames rendered from its re-fit; `trial_choice` picks by those scores (an edge must beat the given poses by
-    ``hinge_trial_margin``; the better slide wins ties within it).
+    The scene is re-fitted from `ref` under each candidate (`refit_gaussians` on the frames in which some candidate
+    displaces the part, the same seed), and scored by the mean photometric loss of those frames rendered from its
+    re-fit; `trial_choice` picks by those scores (an edge must beat the given poses by ``hinge_trial_margin``; the
+    better slide wins ties within it). The ``hinge_trial`` steps are raced (successive halving, Jamieson and
+    Talwalkar 2016): every candidate gets ``hinge_trial_race`` of them, then only the three that `trial_choice`
+    compares (the given poses, the best slide, the best edge) go on from their re-fits for the rest.
 
     Returns (poses [K, T, 4, 4], {object: {"candidates": [{"hypothesis", "kind", "axis", "pivot", "loss"}, ...]
-    (the given poses as hypothesis -1, the slides as -2 and -3, the searched slides as -4 and -5, the edges as 0-3),
+    (the given poses as hypothesis -1, the slides as -2 and -3, the searched slides as -4 and -5, the edges as 0-3;
+    "steps": the re-fit steps its loss is after),
     "given_loss", "replaced", "kind" (the chosen joint's, None where kept), "axis", "offset" (None for a slide),
     "frames", "seconds"}}).
     """
@@ -169,28 +172,55 @@ def hinge_trial(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref:
         frames = np.flatnonzero(disp)
         if len(frames) == 0:
             continue
-        losses = []
-        for n, (h, kind, ax, pv, pk) in enumerate(cands):
+        steps = int(cfg.hinge_trial)
+        first = steps if cfg.hinge_trial_race >= 1.0 else max(1, int(round(cfg.hinge_trial_race * steps)))
+
+        def refit(pk, init, n_steps):
+            trial = poses.copy()
+            trial[k] = pk
+            gs, _ = refit_gaussians(run, scene, order, tl, trial, n_steps, seed=seed, init=init,
+                                    lr_scale=cfg.refit_lr_scale, frames=frames, log=lambda *a: None)
+            return gs, float(np.mean(posed_losses(run, scene, order, gs, tl, trial, frames)))
+
+        losses, fits, same_as = [], [], []
+        for n, (h, kind, ax, pv, pk) in enumerate(cands):  # round 1: every candidate, `first` steps
             same = next((m for m in range(n) if np.allclose(cands[m][4], pk, rtol=0.0, atol=1e-6)), None)
+            same_as.append(same)
             if same is not None:  # e.g. a slide whose search kept every amount: the same re-fit
                 losses.append(losses[same])
+                fits.append(None)
                 log(f"hinge trial: object {k + 1}: {trial_name(h, ax)}: the poses of the "
                     f"{trial_name(cands[same][0], cands[same][2])}; loss {losses[-1]:.5f}")
                 continue
-            trial = poses.copy()
-            trial[k] = pk
-            gs, _ = refit_gaussians(run, scene, order, tl, trial, int(cfg.hinge_trial), seed=seed, init=ref,
-                                    lr_scale=cfg.refit_lr_scale, frames=frames, log=lambda *a: None)
-            losses.append(float(np.mean(posed_losses(run, scene, order, gs, tl, trial, frames))))
-            log(f"hinge trial: object {k + 1}: {trial_name(h, ax)}: loss {losses[-1]:.5f} after a "
-                f"{cfg.hinge_trial}-step re-fit on its {len(frames)} displaced frames")
-        best = trial_choice([c[0] for c in cands], losses, cfg.hinge_trial_margin)
+            gs, loss = refit(pk, ref, first)
+            losses.append(loss)
+            fits.append(gs)
+            log(f"hinge trial: object {k + 1}: {trial_name(h, ax)}: loss {loss:.5f} after a "
+                f"{first}-step re-fit on its {len(frames)} displaced frames")
+        hyps_k = [c[0] for c in cands]
+        final = list(range(len(cands)))
+        if first < steps:  # round 2: only the candidates `trial_choice` compares go on
+            slides_i = [i for i, h in enumerate(hyps_k) if h < -1]
+            edges_i = [i for i, h in enumerate(hyps_k) if h >= 0]
+            final = [0] + [min(g, key=lambda i: losses[i]) for g in (slides_i, edges_i) if g]
+            for i in final:
+                src = i if same_as[i] is None else same_as[i]
+                if fits[src] is None or src != i and src in final:
+                    continue
+                fits[src], losses[src] = refit(cands[i][4], fits[src], steps - first)
+                log(f"hinge trial: object {k + 1}: {trial_name(cands[i][0], cands[i][2])}: loss {losses[src]:.5f} "
+                    f"after {steps - first} more steps")
+            for i in final:
+                if same_as[i] is not None:
+                    losses[i] = losses[same_as[i]]
+        best = final[trial_choice([hyps_k[i] for i in final], [losses[i] for i in final], cfg.hinge_trial_margin)]
         replaced = best > 0
         h, kind, ax, pv, pk = cands[best]
         rec = {"candidates": [{"hypothesis": int(c[0]), "kind": c[1],
                                "axis": None if c[2] is None else [float(x) for x in c[2]],
-                               "pivot": None if c[3] is None else [float(x) for x in c[3]], "loss": l}
-                              for c, l in zip(cands, losses)],
+                               "pivot": None if c[3] is None else [float(x) for x in c[3]], "loss": l,
+                               "steps": steps if i in final else first}
+                              for i, (c, l) in enumerate(zip(cands, losses))],
                "given_loss": losses[0], "replaced": bool(replaced), "kind": kind if replaced else None,
                "frames": int(len(frames)), "axis": None, "offset": None, "seconds": 0.0}
         if replaced:

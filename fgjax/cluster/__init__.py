@@ -9,7 +9,7 @@ Every function takes and returns plain numpy arrays. Label conventions: cluster 
 0..K-1, ordered by decreasing cluster size (ties: by first occurrence), and -1 is noise.
 
 Modules: `fgjax.cluster.dbscan` (selection, clustering, reports, trajectories, snapping),
-`fgjax.cluster.motion` (per-frame motion of clusters), `fgjax.cluster.regions` (spatial label passes).
+`fgjax.cluster.motion` (clustering by motion, per-frame motion of clusters), `fgjax.cluster.regions` (spatial label passes).
 """
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ from fgjax.cluster.dbscan import size_cut as size_cut
 from fgjax.cluster.dbscan import snap_to_trajectory as snap_to_trajectory
 from fgjax.cluster.dbscan import trajectories as trajectories
 from fgjax.cluster.motion import Localized as Localized
+from fgjax.cluster.motion import activity_correlation as activity_correlation
+from fgjax.cluster.motion import cluster_by_motion as cluster_by_motion
 from fgjax.cluster.motion import localize_clusters as localize_clusters
 from fgjax.cluster.motion import merge_fragments as merge_fragments
 from fgjax.cluster.motion import moving_frames as moving_frames
@@ -41,7 +43,7 @@ from fgjax.cluster.regions import refine_by_colour as refine_by_colour
 
 __all__ = [
     "fill_hulls", "hinge_axes", "fill_hinges", "drop_isolated", "refine_by_colour", "near_swept",
-    "localize_clusters", "split_by_motion", "merge_fragments", "true_runs", "moving_frames", "Localized",
+    "cluster_by_motion", "activity_correlation", "localize_clusters", "split_by_motion", "merge_fragments", "true_runs", "moving_frames", "Localized",
     "otsu_threshold", "select_dynamic", "k_distances", "auto_eps", "cluster_dynamic", "relabel_by_size", "size_cut",
     "ClusterReport", "cluster_report", "trajectories", "Snap", "snap_to_trajectory",
 ]

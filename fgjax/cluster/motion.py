@@ -1,5 +1,6 @@
-"""Per-frame motion of clusters: moving frames, splitting clusters that move at different times, merging
-fragments that move together, and the second selection pass in each cluster's own moving frames."""
+"""Per-frame motion of clusters: clustering by position and motion together, moving frames, splitting clusters
+that move at different times, merging fragments that move together, and the second selection pass in each
+cluster's own moving frames."""
 
 from __future__ import annotations
 
@@ -7,7 +8,10 @@ from typing import NamedTuple
 
 import numpy as np
 from jaxtyping import Bool, Float, Int
+from scipy import sparse
 from scipy.spatial import cKDTree
+from sklearn.cluster import DBSCAN
+from sklearn.neighbors import NearestNeighbors
 
 from fgjax.cluster.dbscan import as_points, relabel_by_size
 
@@ -73,6 +77,82 @@ def _activity_inputs(name: str, points, labels, moving_t, total_t):
         raise ValueError(f"{name}: labels [{len(pts)}] and moving_t, total_t [T, {len(pts)}] expected, got "
                          f"{list(lab.shape)}, {list(mv.shape)}, {list(tt.shape)}")
     return pts, lab, mv, tt
+
+
+def activity_correlation(
+    moving_t: Float[np.ndarray, "T M"], total_t: Float[np.ndarray, "T M"], *, eps: float = 0.1
+) -> Float[np.ndarray, "T M"]:
+    """Each point's activity profile, centred and scaled to unit norm: [T, M].
+
+    a_it = moving_it / (total_it + eps) is the share of what point i paints in frame t that lies on moving pixels
+    (``eps`` in pixel-equivalents damps frames where it is barely seen); z_i = (a_i - mean_t a_i) / ||a_i -
+    mean_t a_i||, so that z_i . z_j is the Pearson correlation of the two profiles. A constant profile (no evidence
+    of when the point moves) gives z_i = 0, i.e. correlation 0 with every other point.
+    """
+    mv = np.asarray(moving_t, np.float64)
+    tt = np.asarray(total_t, np.float64)
+    if mv.ndim != 2 or tt.shape != mv.shape:
+        raise ValueError(f"activity_correlation: moving_t and total_t must both have shape [T, M], got "
+                         f"{list(mv.shape)} and {list(tt.shape)}")
+    if not (np.all(np.isfinite(mv)) and np.all(np.isfinite(tt))):
+        raise ValueError("activity_correlation: moving_t and total_t must be finite")
+    a = mv / (tt + eps)
+    z = a - a.mean(0)
+    norm = np.linalg.norm(z, axis=0)
+    return np.where(norm > 1e-12, z / np.maximum(norm, 1e-12), 0.0)
+
+
+def cluster_by_motion(
+    points: Float[np.ndarray, "M D"],
+    moving_t: Float[np.ndarray, "T M"],
+    total_t: Float[np.ndarray, "T M"],
+    *,
+    eps: float,
+    min_samples: int = 5,
+    min_corr: float = 0.8,
+) -> Int[np.ndarray, " M"]:
+    """DBSCAN whose neighbours must also move together: points i, j are neighbours when ||x_i - x_j|| <= eps and
+    the Pearson correlation of their activity profiles (`activity_correlation`) is at least ``min_corr``.
+
+    Position alone chains parts that touch (a lid on a cabinet whose door swings) into one cluster through the
+    Gaussians along their seams; parts that move at different times have uncorrelated or anti-correlated
+    profiles, so the gated neighbourhood graph cuts those chains where the motion changes. With ``min_corr`` <= -1
+    every pair within eps is linked: plain DBSCAN. A part whose members are cut into pieces (its seam Gaussians
+    are partly occluded) is joined again by `merge_fragments`, whose cluster profiles are averages and much less
+    noisy than single points'.
+
+    Args:
+        points: [M, D] canonical centres.
+        moving_t, total_t: [T, M] per-frame discovery terms of the points (`fgjax.method.discover.Scores`).
+        eps: neighbourhood radius (> 0).
+        min_samples: neighbours of a core point, itself included.
+        min_corr: the smallest profile correlation of two neighbours, in [-1, 1].
+
+    Returns:
+        [M] int64 labels, -1 = noise, 0..K-1 by decreasing size.
+    """
+    pts = as_points(points, "cluster_by_motion")
+    m = len(pts)
+    if not eps > 0:
+        raise ValueError(f"cluster_by_motion: eps must be > 0, got {eps}")
+    if min_samples < 1:
+        raise ValueError(f"cluster_by_motion: min_samples must be >= 1, got {min_samples}")
+    if not -1.0 <= min_corr <= 1.0:
+        raise ValueError(f"cluster_by_motion: min_corr must be in [-1, 1], got {min_corr}")
+    mv = np.asarray(moving_t, np.float64)
+    tt = np.asarray(total_t, np.float64)
+    if mv.ndim != 2 or mv.shape[1] != m or tt.shape != mv.shape:
+        raise ValueError(f"cluster_by_motion: moving_t and total_t must have shape [T, {m}], got "
+                         f"{list(mv.shape)} and {list(tt.shape)}")
+    if m < max(min_samples, 2):
+        return np.full(m, -1, np.int64)
+    z = activity_correlation(mv, tt)
+    g = NearestNeighbors(radius=eps).fit(pts).radius_neighbors_graph(pts, mode="distance").tocoo()
+    keep = (g.row == g.col) | (np.einsum("tk,tk->k", z[:, g.row], z[:, g.col]) >= min_corr - 1e-12)
+    # stored entries are the neighbours of a precomputed sparse graph (a zero distance is kept as an entry)
+    graph = sparse.csr_matrix((np.maximum(g.data[keep], 0.0), (g.row[keep], g.col[keep])), shape=(m, m))
+    raw = DBSCAN(eps=eps, min_samples=min_samples, metric="precomputed").fit_predict(graph)
+    return relabel_by_size(raw)
 
 
 def split_by_motion(

@@ -523,7 +523,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     monkeypatch.setattr(trial, "search_articulations", fake_search)
     monkeypatch.setattr(trial, "refit_gaussians", fake_refit)
     monkeypatch.setattr(trial, "posed_losses", fake_losses)
-    cfg = ArticulateConfig(hinge_trial=7, colour_radius=0.0, hinge_trial_search_slides=False, hinge_trial_edges=4)
+    cfg = ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0, hinge_trial_search_slides=False, hinge_trial_edges=4)
     far = np.array([hinge_offset(pts, [1.0, 0.0, 0.0], pts.mean(0) + [0.0, 0.0, 1.0])[1]])
     far[0] = 4.0
     logs = []
@@ -568,7 +568,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     # without ``hinge_trial_slide``: no slide is tried
     refits.clear()
     out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   ArticulateConfig(hinge_trial=7, colour_radius=0.0, hinge_trial_slide=False,
+                                   ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0, hinge_trial_slide=False,
                                                        hinge_trial_edges=4),
                                    np.ones(1, bool), log=logs.append)
     assert len(refits) == 5 and [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, 0, 1, 2, 3]
@@ -584,7 +584,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     loss_of.update({-4: 0.45, -5: 0.6, 1: 0.5})
     refits.clear()
     out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   ArticulateConfig(hinge_trial=7, colour_radius=0.0, hinge_trial_edges=2,
+                                   ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0, hinge_trial_edges=2,
                                                        hinge_trial_search_slides=True),
                                    np.ones(1, bool), log=logs.append)
     assert [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, -2, -3, -4, -5, 1, 3] and len(refits) == 7
@@ -602,7 +602,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     searched[-4] = chord
     refits.clear()
     out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   ArticulateConfig(hinge_trial=7, colour_radius=0.0, hinge_trial_edges=2,
+                                   ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0, hinge_trial_edges=2,
                                                        hinge_trial_search_slides=True),
                                    np.ones(1, bool), log=logs.append)
     assert len(refits) == 6 and rec[0]["candidates"][3]["loss"] == rec[0]["candidates"][1]["loss"]
@@ -633,13 +633,77 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
                         or (init, lab))
     loss_of.update({1: 0.5})
     trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                        ArticulateConfig(hinge_trial=7, hinge_trial_search_slides=False, hinge_trial_edges=4),
+                        ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, hinge_trial_search_slides=False,
+                                         hinge_trial_edges=4),
                         np.ones(1, bool), log=logs.append)
     assert len(coloured) == 1 and coloured[0] is ref and len(labels_seen) in (6, 7)  # the snapped slide may run
     assert all(lab is recoloured for lab in labels_seen)
     hyps = seen["search"]["hypotheses"][0]
     np.testing.assert_allclose(hyps[0][1], articulation.rect_hinges(
         np.asarray(ref.means)[(recoloured == 0) & np.asarray(run.state.densify.alive)])[0][1])
+
+
+def test_hinge_trial_races_its_candidates_and_chooses_by_the_finalists_full_refits(tiny, monkeypatch):
+    """``hinge_trial_race``: every candidate is re-fitted from the reference for that share of the steps; the given
+    poses, the best slide and the best edge then go on from their own re-fits for the rest, and the choice is made
+    on those finalists' losses (here the given poses overtake the edge that led the first round)."""
+    from fgjax.articulate import articulation
+
+    run, scene, order, ref, labels, given, cands, pts = _trial_setup(tiny)
+    t = given.shape[1]
+
+    def fake_search(gaussians, alive, labels_, k_, images, vms, Ks, poses, **kw):
+        return poses, [dict(candidates=cands, frames=t - 1, score_given=1.0, fitted_hypothesis=False,
+                            scores=dict(enumerate([0.5] * 4)))]
+
+    def which(poses):
+        for h, pk in [(-1, given[0])] + [(h, c[3]) for h, c in cands.items()]:
+            if np.array_equal(poses[0], pk):
+                return h
+        members = np.asarray(ref.means, np.float64)[(labels == 0) & np.asarray(run.state.densify.alive)]
+        for h, snap in ((-2, False), (-3, True)):
+            ax, am = articulation.slide_from_poses(members, given[0], snap=snap)
+            if np.allclose(poses[0][:, :3, 3], am[:, None] * ax, atol=1e-6):
+                return h
+        raise AssertionError("unknown poses")
+
+    refits = []
+
+    def fake_refit(run_, scene_, order_, labels_, poses, steps, *, init=None, frames=None, **kw):
+        h = which(poses)
+        before = 0 if init is ref else init["steps"]
+        assert init is ref or init["h"] == h  # round 2 goes on from the candidate's own re-fit
+        refits.append((h, steps, before))
+        return {"h": h, "steps": before + steps}, labels_
+
+    first = {-1: 1.0, -2: 1.1, -3: 1.15, 0: 0.9, 1: 0.5, 2: 0.7, 3: 0.8}  # after 3 steps
+    full = {-1: 0.3, -2: 0.9, 1: 0.45}  # after all 7: the given poses now render closest
+
+    def fake_losses(run_, scene_, order_, gs, labels_, poses, frames):
+        return np.full(len(frames), (first if gs["steps"] == 3 else full)[gs["h"]])
+
+    monkeypatch.setattr(trial, "search_articulations", fake_search)
+    monkeypatch.setattr(trial, "refit_gaussians", fake_refit)
+    monkeypatch.setattr(trial, "posed_losses", fake_losses)
+    cfg = ArticulateConfig(hinge_trial=7, hinge_trial_race=3 / 7, colour_radius=0.0, hinge_trial_search_slides=False,
+                           hinge_trial_edges=4)
+    out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"],
+                                 np.array([4.0]), cfg, np.ones(1, bool), log=lambda *a: None)
+    assert sorted(refits[:7]) == sorted((h, 3, 0) for h in (-1, -2, -3, 0, 1, 2, 3))
+    assert sorted(refits[7:]) == [(-2, 4, 3), (-1, 4, 3), (1, 4, 3)]  # the finalists, from their own re-fits
+    np.testing.assert_array_equal(out, given)  # kept: the full re-fits decide, not the first round
+    r = rec[0]
+    assert not r["replaced"] and r["given_loss"] == 0.3
+    steps = {c["hypothesis"]: c["steps"] for c in r["candidates"]}
+    assert steps == {-1: 7, -2: 7, -3: 3, 0: 3, 1: 7, 2: 3, 3: 3}
+    assert {c["hypothesis"]: c["loss"] for c in r["candidates"]} == pytest.approx(
+        {-1: 0.3, -2: 0.9, -3: 1.15, 0: 0.9, 1: 0.45, 2: 0.7, 3: 0.8})
+    # with the edge still ahead after all the steps, it replaces the far hinge
+    full[1], refits[:] = 0.1, []
+    out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], np.array([4.0]), cfg,
+                                 np.ones(1, bool), log=lambda *a: None)
+    np.testing.assert_array_equal(out[0], cands[1][3])
+    assert rec[0]["replaced"] and len(refits) == 10
 
 
 def test_trial_choice_takes_an_edge_by_the_margin_and_the_slide_within_it():
@@ -1256,6 +1320,38 @@ def test_size_cut_after_the_second_pass_keeps_a_part_that_moves_in_few_frames():
         run_articulated("nowhere", "nowhere", Stage2Config(), ArticulateConfig(local_min_fraction=-0.1))
     with pytest.raises(ValueError, match="local_floor"):
         run_articulated("nowhere", "nowhere", Stage2Config(), ArticulateConfig(local_floor=1.0))
+
+
+def test_select_parts_links_only_gaussians_that_move_together_with_link_min_corr():
+    """A door (200 Gaussians on a grid) opening in frames 2-8 and a lid (30) touching it, opening right after (9-14):
+    position alone (the default, -1) makes one cluster, and with no resting frame between the two the split by
+    moving times cannot cut it; ``link_min_corr`` = 0.8 gives DBSCAN only the links between Gaussians that move
+    together, and the door and the lid come out as two objects."""
+    from fgjax.method.discover import Discovery, Scores
+
+    rng = np.random.default_rng(0)
+    gx, gy = np.meshgrid(np.arange(20), np.arange(10), indexing="ij")
+    lx, ly = np.meshgrid(np.arange(6), np.arange(5), indexing="ij")
+    pts = np.concatenate([np.c_[gx.ravel() * 0.01, gy.ravel() * 0.01, np.zeros(200)],
+                          np.c_[0.2 + lx.ravel() * 0.01, ly.ravel() * 0.01, np.zeros(30)]])
+    pts += rng.normal(0, 1e-3, pts.shape)
+    t, n = 24, len(pts)
+    total_t = np.full((t, n), 10.0)
+    moving_t = rng.uniform(0.0, 1.0, (t, n))  # false-positive pixels everywhere
+    moving_t[2:9, :200] += 8.0
+    moving_t[9:15, 200:] += 8.0
+    seam = np.flatnonzero(np.isclose(pts[:, 0], 0.19, atol=3e-3))
+    moving_t[9:15, seam] += 4.0  # the door's last column paints the lid too
+    scores = Scores(moving_t.sum(0) / total_t.sum(0), moving_t.sum(0), total_t.sum(0), moving_t, total_t)
+    disc = Discovery(np.ones(n, bool), scores, np.zeros((t, 2, 2), bool), 0.1)
+    cfg = Stage2Config(eps=0.015, min_samples=5)
+    quiet = lambda *_: None  # noqa: E731
+    none = np.zeros(n, bool)
+    labels, _, report = AP.select_parts(pts, disc, cfg, ArticulateConfig(), none, log=quiet)
+    assert report.n_clusters == 1
+    labels, _, report = AP.select_parts(pts, disc, cfg, ArticulateConfig(link_min_corr=0.8), none, log=quiet)
+    assert report.n_clusters == 2, list(report.sizes)
+    assert np.all(labels[200:] == 1) and np.mean(labels[:200] == 0) > 0.9 and not np.any(labels[:200] == 1)
 
 
 def test_fade_ghosts_caps_the_opacity_of_the_alive_static_gaussians_near_the_swept_volume():

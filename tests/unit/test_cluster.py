@@ -401,6 +401,58 @@ def test_split_by_motion_separates_parts_that_move_at_different_times():
         C.split_by_motion(pts, labels[:5], moving, total)
 
 
+def _door_and_lid(seed=0):
+    """A door (a 20 x 10 grid, spacing 0.01) and a small lid (6 x 5) touching it along one edge, whose seam column
+    paints both: points [230, 3], truth [230] (0 door, 1 lid), moving and total [24, 230] with noise."""
+    rng = np.random.default_rng(seed)
+    gx, gy = np.meshgrid(np.arange(20), np.arange(10), indexing="ij")
+    door = np.c_[gx.ravel() * 0.01, gy.ravel() * 0.01, np.zeros(200)]
+    lx, ly = np.meshgrid(np.arange(6), np.arange(5), indexing="ij")
+    lid = np.c_[0.2 + lx.ravel() * 0.01, ly.ravel() * 0.01, np.zeros(30)]
+    pts = np.concatenate([door, lid]) + rng.normal(0, 1e-3, (230, 3))
+    truth = np.r_[np.zeros(200, int), np.ones(30, int)]
+    spans = {i: range(2, 9) for i in range(200)} | {200 + i: range(15, 21) for i in range(30)}
+    moving, total = _activity(24, 230, spans)
+    seam = np.flatnonzero(np.isclose(pts[:, 0], 0.19, atol=3e-3))  # the door's last column paints the lid too
+    moving[15:21, seam] = 4.0
+    moving += rng.uniform(0.0, 1.0, moving.shape)  # false-positive pixels everywhere
+    return pts, truth, moving, total
+
+
+def test_cluster_by_motion_cuts_the_seam_between_parts_that_move_at_different_times():
+    pts, truth, moving, total = _door_and_lid()
+    plain = C.cluster_by_motion(pts, moving, total, eps=0.015, min_samples=5, min_corr=-1.0)
+    from sklearn.cluster import DBSCAN  # reference: min_corr = -1 is plain DBSCAN
+
+    np.testing.assert_array_equal(plain, C.relabel_by_size(DBSCAN(eps=0.015, min_samples=5).fit_predict(pts)))
+    assert len(set(plain)) == 1  # position alone: one cluster through the seam
+    lab = C.cluster_by_motion(pts, moving, total, eps=0.015, min_samples=5, min_corr=0.8)
+    ok = lab >= 0
+    assert ok.mean() > 0.9 and len(set(lab[ok])) == 2
+    assert adjusted_rand_score(truth[ok], lab[ok]) == 1.0
+    assert np.all(lab[200:] == 1)  # the whole lid, smaller: label 1
+
+
+def test_cluster_by_motion_edge_cases():
+    pts, _, moving, total = _door_and_lid()
+    # a constant profile (no evidence of when a point moves) correlates with nothing
+    z = C.activity_correlation(np.ones((5, 3)), np.full((5, 3), 2.0))
+    assert z.shape == (5, 3) and np.all(z == 0.0)
+    flat = C.cluster_by_motion(pts, np.zeros_like(moving), total, eps=0.015, min_corr=0.5)
+    assert np.all(flat == -1)
+    assert C.cluster_by_motion(pts[:3], moving[:, :3], total[:, :3], eps=0.015, min_samples=5).tolist() == [-1] * 3
+    for kw, msg in (({"eps": 0.0}, "eps"), ({"eps": 0.1, "min_corr": 1.5}, "min_corr"),
+                    ({"eps": 0.1, "min_samples": 0}, "min_samples")):
+        with pytest.raises(ValueError, match=msg):
+            C.cluster_by_motion(pts, moving, total, **kw)
+    with pytest.raises(ValueError, match=r"\[T, 230\]"):
+        C.cluster_by_motion(pts, moving[:, :10], total[:, :10], eps=0.015)
+    bad = moving.copy()
+    bad[3, 7] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        C.cluster_by_motion(pts, bad, total, eps=0.015)
+
+
 def _turn(axis, pivot, deg, slide=0.0):
     """x -> R (x - p) + p + slide * a, R the turn by `deg` about unit `axis` (scipy's rotation vector, not the
     module under test): [4, 4]."""

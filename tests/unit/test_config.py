@@ -49,6 +49,8 @@ def test_a_bool_is_not_a_number(section, cls, validate):
     ("stage2", "distill_steps", -1), ("stage2", "camera_correction", "maybe"), ("stage2", "cluster_method", "kmeans"),
     ("stage2", "control_encoding", "fourier"),
     ("articulate", "track_rounds", 0), ("articulate", "hinge_up_deg", 90.0), ("articulate", "ghost_opacity", 1.0),
+    ("articulate", "link_min_corr", 1.5), ("articulate", "link_min_corr", float("nan")),
+    ("articulate", "hinge_trial_race", 0.0), ("articulate", "hinge_trial_race", 1.5),
     ("articulate", "isolated_factor", 0.5), ("articulate", "hinge_trial_edges", 5), ("articulate", "local_floor", 1.0),
     ("articulate", "track_joints", "sometimes"), ("articulate", "refit_lr_scale", 0.0),
     ("articulate", "merge_eps", float("nan")), ("articulate", "track_subset_margin", -2),

@@ -62,10 +62,10 @@ def select_parts(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stag
                  candidates: Bool[np.ndarray, " N"], *, log=print, t_start: float | None = None):
     """Step 6 with motion: DBSCAN (or HDBSCAN) on the canonical centres [N, 3] of D (DBSCAN's neighbours gated by
     the correlation of their activity profiles, ``acfg.link_min_corr``, `fgjax.cluster.cluster_by_motion`),
-    fragments whose motion profiles correlate merged (``acfg.merge_eps``), clusters whose members move at different times split
-    (``acfg.split_motion``), a second selection pass in each cluster's own moving frames (``acfg.local_radius``;
-    ``candidates`` [N] bool: the Gaussians it may join), and the size cut (after that pass with
-    ``acfg.cut_after_local``). Returns (labels [N] in -1..K-1, largest first; `disc` with D widened by the joined
+    fragments whose motion profiles correlate merged (``acfg.merge_eps``), clusters whose members move at different
+    times split (``acfg.split_motion``), a second selection pass in each cluster's own moving frames
+    (``acfg.local_radius``; ``candidates`` [N] bool: the Gaussians it may join), and the size cut (after that pass
+    with ``acfg.cut_after_local``). Returns (labels [N] in -1..K-1, largest first; `disc` with D widened by the joined
     Gaussians; `fgjax.cluster.cluster_report` of D's labels)."""
     t_start = time.perf_counter() if t_start is None else t_start
     n_dyn = int(disc.dynamic.sum())

@@ -182,7 +182,7 @@ def hinge_trial(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref:
                                     lr_scale=cfg.refit_lr_scale, frames=frames, log=lambda *a: None)
             return gs, float(np.mean(posed_losses(run, scene, order, gs, tl, trial, frames)))
 
-        losses, fits, same_as = [], [], []
+        losses, fits, same_as, done = [], [], [], [first] * len(cands)  # done: the steps each loss is after
         for n, (h, kind, ax, pv, pk) in enumerate(cands):  # round 1: every candidate, `first` steps
             same = next((m for m in range(n) if np.allclose(cands[m][4], pk, rtol=0.0, atol=1e-6)), None)
             same_as.append(same)
@@ -208,19 +208,20 @@ def hinge_trial(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref:
                 if fits[src] is None or src != i and src in final:
                     continue
                 fits[src], losses[src] = refit(cands[i][4], fits[src], steps - first)
+                done[src] = steps
                 log(f"hinge trial: object {k + 1}: {trial_name(cands[i][0], cands[i][2])}: loss {losses[src]:.5f} "
                     f"after {steps - first} more steps")
             for i in final:
                 if same_as[i] is not None:
-                    losses[i] = losses[same_as[i]]
+                    losses[i], done[i] = losses[same_as[i]], done[same_as[i]]
         best = final[trial_choice([hyps_k[i] for i in final], [losses[i] for i in final], cfg.hinge_trial_margin)]
         replaced = best > 0
         h, kind, ax, pv, pk = cands[best]
         rec = {"candidates": [{"hypothesis": int(c[0]), "kind": c[1],
                                "axis": None if c[2] is None else [float(x) for x in c[2]],
                                "pivot": None if c[3] is None else [float(x) for x in c[3]], "loss": l,
-                               "steps": steps if i in final else first}
-                              for i, (c, l) in enumerate(zip(cands, losses))],
+                               "steps": n}
+                              for c, l, n in zip(cands, losses, done, strict=True)],
                "given_loss": losses[0], "replaced": bool(replaced), "kind": kind if replaced else None,
                "frames": int(len(frames)), "axis": None, "offset": None, "seconds": 0.0}
         if replaced:

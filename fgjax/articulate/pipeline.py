@@ -71,18 +71,13 @@ def select_parts(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stag
     n_dyn = int(disc.dynamic.sum())
     idx = np.flatnonzero(disc.dynamic)
     merge = acfg.merge_eps > 0 and disc.scores.moving_t is not None
+    kw = dict(eps=cfg.eps, min_samples=cfg.min_samples, min_fraction=0.0 if merge else cfg.min_fraction,
+              auto_eps=cfg.auto_eps)
     if acfg.link_min_corr > -1 and disc.scores.moving_t is not None and cfg.cluster_method == "dbscan":
-        pts = canonical[idx]
-        eps = cluster.auto_eps(pts, max(cfg.min_samples - 1, 1)) if cfg.auto_eps and len(pts) > cfg.min_samples \
-            else cfg.eps
-        lab_d = cluster.cluster_by_motion(pts, disc.scores.moving_t[:, idx], disc.scores.total_t[:, idx], eps=eps,
-                                          min_samples=cfg.min_samples, min_corr=acfg.link_min_corr)
-        lab_d = cluster.relabel_by_size(lab_d, min_size=cluster.size_cut(0.0 if merge else cfg.min_fraction,
-                                                                          len(idx)))
+        lab_d = cluster.cluster_by_motion(canonical[idx], disc.scores.moving_t[:, idx], disc.scores.total_t[:, idx],
+                                          min_corr=acfg.link_min_corr, **kw)
     else:
-        lab_d = cluster.cluster_dynamic(canonical[idx], cfg.cluster_method, eps=cfg.eps,
-                                        min_samples=cfg.min_samples, min_fraction=0.0 if merge else cfg.min_fraction,
-                                        auto_eps=cfg.auto_eps)
+        lab_d = cluster.cluster_dynamic(canonical[idx], cfg.cluster_method, **kw)
     cut_late = merge and acfg.cut_after_local and acfg.local_radius > 0
     if merge:  # fragments of one part first, then the size cut (late: only the floor now)
         lab_d = cluster.merge_fragments(canonical[idx], lab_d, disc.scores.moving_t[:, idx],

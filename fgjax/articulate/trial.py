@@ -46,6 +46,14 @@ def trial_name(h: int, axis) -> str:
     return f"{what}, axis {np.round(np.asarray(axis), 3).tolist()}"
 
 
+def trial_finalists(hyps, losses) -> tuple[int | None, int | None]:
+    """The indices of the best slide (``hyps`` below -1) and the best edge (``hyps`` >= 0) by ``losses`` (None
+    where there is none): with the given poses, the only candidates `trial_choice` compares."""
+    slides = [i for i, h in enumerate(hyps) if h < -1]
+    edges = [i for i, h in enumerate(hyps) if h >= 0]
+    return tuple(min(g, key=lambda i: losses[i]) if g else None for g in (slides, edges))
+
+
 def trial_choice(hyps, losses, margin: float) -> int:
     """The index of `hinge_trial`'s choice among its candidates (``hyps``: -1 the given poses, first; below -1 a
     slide; else an edge) by their re-fitted ``losses``: the best edge when it is below (1 - ``margin``) times the
@@ -56,11 +64,8 @@ def trial_choice(hyps, losses, margin: float) -> int:
     if hyps[0] != -1 or not np.all(np.isfinite(losses) | (losses == np.inf)):
         raise ValueError(f"trial_choice: the given poses come first and the losses are not NaN; got {hyps}, "
                          f"{losses.tolist()}")
-    slides = [i for i, h in enumerate(hyps) if h < -1]
-    slide = min(slides, key=lambda i: losses[i]) if slides else None
-    edges = [i for i, h in enumerate(hyps) if h >= 0]
-    if edges:
-        e = min(edges, key=lambda i: losses[i])
+    slide, e = trial_finalists(hyps, losses)
+    if e is not None:
         if losses[e] < (1.0 - margin) * losses[0] and (slide is None or losses[e] <= losses[slide]):
             return e
     if slide is not None and losses[slide] <= (1.0 + margin) * losses[0]:
@@ -200,17 +205,12 @@ def hinge_trial(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref:
         hyps_k = [c[0] for c in cands]
         final = list(range(len(cands)))
         if first < steps:  # round 2: only the candidates `trial_choice` compares go on
-            slides_i = [i for i, h in enumerate(hyps_k) if h < -1]
-            edges_i = [i for i, h in enumerate(hyps_k) if h >= 0]
-            final = [0] + [min(g, key=lambda i: losses[i]) for g in (slides_i, edges_i) if g]
-            for i in final:
-                src = i if same_as[i] is None else same_as[i]
-                if fits[src] is None or src != i and src in final:
-                    continue
-                fits[src], losses[src] = refit(cands[i][4], fits[src], steps - first)
+            final = [0] + [i for i in trial_finalists(hyps_k, losses) if i is not None]
+            for src in dict.fromkeys(i if same_as[i] is None else same_as[i] for i in final):  # each re-fit once
+                fits[src], losses[src] = refit(cands[src][4], fits[src], steps - first)
                 done[src] = steps
-                log(f"hinge trial: object {k + 1}: {trial_name(cands[i][0], cands[i][2])}: loss {losses[src]:.5f} "
-                    f"after {steps - first} more steps")
+                log(f"hinge trial: object {k + 1}: {trial_name(cands[src][0], cands[src][2])}: loss "
+                    f"{losses[src]:.5f} after {steps - first} more steps")
             for i in final:
                 if same_as[i] is not None:
                     losses[i], done[i] = losses[same_as[i]], done[same_as[i]]

@@ -9,7 +9,8 @@ Every function takes and returns plain numpy arrays. Label conventions: cluster 
 0..K-1, ordered by decreasing cluster size (ties: by first occurrence), and -1 is noise.
 
 Modules: `fgjax.cluster.dbscan` (selection, clustering, reports, trajectories, snapping),
-`fgjax.cluster.motion` (clustering by motion, per-frame motion of clusters), `fgjax.cluster.regions` (spatial label passes).
+`fgjax.cluster.motion` (clustering by motion, per-frame motion of clusters), `fgjax.cluster.regions` (spatial
+label passes).
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ from fgjax.cluster.regions import refine_by_colour as refine_by_colour
 
 __all__ = [
     "fill_hulls", "hinge_axes", "fill_hinges", "drop_isolated", "refine_by_colour", "near_swept",
-    "cluster_by_motion", "activity_correlation", "localize_clusters", "split_by_motion", "merge_fragments", "true_runs", "moving_frames", "Localized",
+    "cluster_by_motion", "activity_correlation", "localize_clusters", "split_by_motion", "merge_fragments",
+    "true_runs", "moving_frames", "Localized",
     "otsu_threshold", "select_dynamic", "k_distances", "auto_eps", "cluster_dynamic", "relabel_by_size", "size_cut",
     "ClusterReport", "cluster_report", "trajectories", "Snap", "snap_to_trajectory",
 ]

@@ -13,7 +13,8 @@ from scipy.spatial import cKDTree
 from sklearn.cluster import DBSCAN
 from sklearn.neighbors import NearestNeighbors
 
-from fgjax.cluster.dbscan import as_points, relabel_by_size
+from fgjax.cluster.dbscan import as_points, relabel_by_size, size_cut
+from fgjax.cluster.dbscan import auto_eps as _auto_eps
 
 
 def _motion_profile(mv: np.ndarray, tt: np.ndarray, mem: np.ndarray) -> np.ndarray:
@@ -110,6 +111,8 @@ def cluster_by_motion(
     eps: float,
     min_samples: int = 5,
     min_corr: float = 0.8,
+    min_fraction: float = 0.0,
+    auto_eps: bool = False,
 ) -> Int[np.ndarray, " M"]:
     """DBSCAN whose neighbours must also move together: points i, j are neighbours when ||x_i - x_j|| <= eps and
     the Pearson correlation of their activity profiles (`activity_correlation`) is at least ``min_corr``.
@@ -127,6 +130,7 @@ def cluster_by_motion(
         eps: neighbourhood radius (> 0).
         min_samples: neighbours of a core point, itself included.
         min_corr: the smallest profile correlation of two neighbours, in [-1, 1].
+        min_fraction, auto_eps: as in `fgjax.cluster.cluster_dynamic` (the size cut; eps from the k-distance knee).
 
     Returns:
         [M] int64 labels, -1 = noise, 0..K-1 by decreasing size.
@@ -144,15 +148,19 @@ def cluster_by_motion(
     if mv.ndim != 2 or mv.shape[1] != m or tt.shape != mv.shape:
         raise ValueError(f"cluster_by_motion: moving_t and total_t must have shape [T, {m}], got "
                          f"{list(mv.shape)} and {list(tt.shape)}")
+    if not 0.0 <= min_fraction < 1.0:
+        raise ValueError(f"cluster_by_motion: min_fraction must be in [0, 1), got {min_fraction}")
     if m < max(min_samples, 2):
         return np.full(m, -1, np.int64)
+    if auto_eps:
+        eps = _auto_eps(pts, max(min_samples - 1, 1))
     z = activity_correlation(mv, tt)
     g = NearestNeighbors(radius=eps).fit(pts).radius_neighbors_graph(pts, mode="distance").tocoo()
     keep = (g.row == g.col) | (np.einsum("tk,tk->k", z[:, g.row], z[:, g.col]) >= min_corr - 1e-12)
     # stored entries are the neighbours of a precomputed sparse graph (a zero distance is kept as an entry)
     graph = sparse.csr_matrix((np.maximum(g.data[keep], 0.0), (g.row[keep], g.col[keep])), shape=(m, m))
     raw = DBSCAN(eps=eps, min_samples=min_samples, metric="precomputed").fit_predict(graph)
-    return relabel_by_size(raw)
+    return relabel_by_size(raw, min_size=size_cut(min_fraction, m))
 
 
 def split_by_motion(

@@ -441,8 +441,13 @@ def test_cluster_by_motion_edge_cases():
     flat = C.cluster_by_motion(pts, np.zeros_like(moving), total, eps=0.015, min_corr=0.5)
     assert np.all(flat == -1)
     assert C.cluster_by_motion(pts[:3], moving[:, :3], total[:, :3], eps=0.015, min_samples=5).tolist() == [-1] * 3
+    # auto_eps and the size cut as in cluster_dynamic
+    auto = C.cluster_by_motion(pts, moving, total, eps=1.0, min_corr=0.8, auto_eps=True)
+    np.testing.assert_array_equal(auto, C.cluster_by_motion(pts, moving, total, eps=C.auto_eps(pts, 4), min_corr=0.8))
+    cut = C.cluster_by_motion(pts, moving, total, eps=0.015, min_corr=0.8, min_fraction=0.5)
+    assert set(cut) <= {-1, 0} and np.sum(cut == 0) >= 115
     for kw, msg in (({"eps": 0.0}, "eps"), ({"eps": 0.1, "min_corr": 1.5}, "min_corr"),
-                    ({"eps": 0.1, "min_samples": 0}, "min_samples")):
+                    ({"eps": 0.1, "min_samples": 0}, "min_samples"), ({"eps": 0.1, "min_fraction": 1.0}, "min_fraction")):
         with pytest.raises(ValueError, match=msg):
             C.cluster_by_motion(pts, moving, total, **kw)
     with pytest.raises(ValueError, match=r"\[T, 230\]"):

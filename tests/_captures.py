@@ -151,10 +151,10 @@ def write_record3d(folder: Path, c2w_cv: np.ndarray, K: np.ndarray, images: list
     for i, img in enumerate(images):
         iio.imwrite(folder / "rgbd" / f"{i}.jpg", img, quality=95)
     if depths is not None:
-        import liblzfse
+        import lzfse
 
         for i, d in enumerate(depths):
-            (folder / "rgbd" / f"{i}.depth").write_bytes(liblzfse.compress(d.astype(np.float32).tobytes()))
+            (folder / "rgbd" / f"{i}.depth").write_bytes(lzfse.compress(d.astype(np.float32).tobytes()))
             if conf is not None:
-                (folder / "rgbd" / f"{i}.conf").write_bytes(liblzfse.compress(conf[i].astype(np.uint8).tobytes()))
+                (folder / "rgbd" / f"{i}.conf").write_bytes(lzfse.compress(conf[i].astype(np.uint8).tobytes()))
     return folder

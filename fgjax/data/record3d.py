@@ -11,7 +11,8 @@ Layout of the export folder:
 - ``rgbd/<i>.depth`` (optional): LiDAR z-depth in metres, lzfse-compressed float32, ``dh`` x ``dw`` (when the
   metadata does not give the size, the one with the RGB's aspect ratio and that many values); ``rgbd/<i>.conf``
   (optional): ARKit's confidence, lzfse-compressed uint8 at the same size (0 low, 1 medium, 2 high).
-  Decompressing needs the optional ``pyliblzfse`` package (``pip install 'fgjax[video]'``).
+  Decompressing needs the optional ``lzfse`` package (``pip install 'fgjax[video]'``; binary wheels of the LZFSE
+  reference decoder); ``pyliblzfse`` (the same decoder, built from source) is used where it is installed instead.
 
 OpenCV camera-to-world = [R(q) | t] @ diag(1, -1, -1, 1) (`fgjax.geometry.opengl_to_opencv_c2w`).
 """
@@ -33,13 +34,16 @@ from scipy.spatial.transform import Rotation
 from fgjax.geometry import opengl_to_opencv_c2w
 
 try:  # optional: fgjax[video]
-    import liblzfse
+    import lzfse as _lzfse
 except ImportError:  # pragma: no cover - depends on the environment
-    liblzfse = None
+    try:
+        import liblzfse as _lzfse  # pyliblzfse: the same reference decoder, an sdist only
+    except ImportError:
+        _lzfse = None
 
 __all__ = ["Record3DCapture", "LZFSE_MISSING", "read_record3d", "record3d_K", "record3d_c2w", "decode_depth"]
 
-LZFSE_MISSING = "pyliblzfse is not installed, so the LiDAR depth is skipped (pip install 'fgjax[video]')"
+LZFSE_MISSING = "lzfse is not installed, so the LiDAR depth is skipped (pip install 'fgjax[video]')"
 REQUIRED = ("w", "h", "K", "poses")
 
 
@@ -94,8 +98,8 @@ def decode_depth(path: Path, dtype, shape: tuple[int, int] | None, aspect: float
     that holds that many values. ValueError naming the file when it does not decode or does not fit."""
     data = path.read_bytes()
     try:
-        raw = np.frombuffer(liblzfse.decompress(data), dtype)
-    except Exception as e:  # liblzfse raises its own error type
+        raw = np.frombuffer(_lzfse.decompress(data), dtype)
+    except Exception as e:  # the decoder raises its own error type
         raise ValueError(f"{path}: not an lzfse-compressed map ({e})") from e
     if shape is None:
         dw = round(math.sqrt(raw.size * aspect))
@@ -163,9 +167,9 @@ def read_record3d(folder: str | os.PathLike, *, max_side: int = 320, stride: int
     note = "none in the export"
     if has_depth and not depth:
         has_depth, note = False, "not read (--no-depth)"
-    elif has_depth and liblzfse is None:
+    elif has_depth and _lzfse is None:
         log(f"record3d: {LZFSE_MISSING}")
-        has_depth, note = False, "skipped: pyliblzfse is not installed"
+        has_depth, note = False, "skipped: lzfse is not installed"
     s = min(1.0, max_side / max(w, h))
     w2, h2 = max(1, round(w * s)), max(1, round(h * s))
     K = np.diag([w2 / w, h2 / h, 1.0]) @ k_full

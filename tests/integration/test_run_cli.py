@@ -4,7 +4,6 @@ truth allows, and bad input is one line before any work."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -29,14 +28,14 @@ TINY = ["--config", REPO / "experiments" / "quick.toml", "--set", "train.steps=8
 @pytest.fixture(scope="module")
 def made(tmp_path_factory):
     """(scene, run): 10 Record3D frames (48x36, the camera sliding past the cube while it moves; with depth where
-    pyliblzfse is installed) prepared and run."""
+    lzfse, a test dependency) prepared and run."""
     base = tmp_path_factory.mktemp("run")
     K = pinhole(48, 36, 40.0)
     c2w = np.stack([look_at_c2w((0.05 * i, -1.6, 1.0), (0.0, 0.0, 0.4)) for i in range(10)])
     room = TexturedRoom(seed=3)
     shots = [room.render(m, K, 48, 36, cube_offset=(0.0, 0.03 * i, 0.0), supersample=1, depth=True)
              for i, m in enumerate(c2w)]
-    depths = [s[1] for s in shots] if importlib.util.find_spec("liblzfse") else None
+    depths = [s[1] for s in shots]
     folder = write_record3d(base / "r3d", c2w, K, [s[0] for s in shots], depths)
     scene, run = base / "scene", base / "run"
     assert cli.main(["prepare", "--record3d", str(folder), "--out", str(scene), "--test-every", "5"]) == 0
@@ -67,7 +66,6 @@ def test_run_writes_metrics_and_pictures(made):
 def test_eval_without_ground_truth_measures_depth_on_static_pixels(made, capsys):
     """The stage-1 model of 8 steps covers the frame thinly (alpha ~0.15), so the depth error is measured here with
     every covered pixel counted (min_alpha 0); `fgjax eval` itself counts alpha >= 0.5."""
-    pytest.importorskip("liblzfse")
     scene, run = made
     res = evaluate_measurable(load_stage2(run), scene, log=lambda m: None, min_alpha=0.0)
     d = res["depth_error_static"]

@@ -179,7 +179,6 @@ def test_record3d_reader_reprojects_a_known_point(tmp_path):
     """A point of the room seen by two Record3D frames projects to the same pixels after reading (K column-major,
     ARKit axes flipped to OpenCV), resizing and the content normalisation; the LiDAR depth (at its own 48x64 size,
     low-confidence pixels dropped) comes back in metres through the 16-bit millimetre PNGs."""
-    pytest.importorskip("liblzfse")
     w, h = 192, 256  # portrait, like a phone
     K = pinhole(w, h, 180.0)
     K[0, 2], K[1, 2] = 95.0, 130.0  # off-centre: catches a transposed (row-major) K
@@ -210,6 +209,34 @@ def test_record3d_reader_reprojects_a_known_point(tmp_path):
     doc = json.loads((scene / "transforms_train.json").read_text())
     assert doc["depth_scale"] == 0.001 and doc["depth_format"].startswith("16-bit PNG, millimetres")
     assert doc["frames"][0]["depth_file_path"].endswith(".png")
+
+
+def test_record3d_real_export_depth_decodes_to_metres():
+    """The Record3D iPhone export in ../shared/data (LiDAR 192x256, lzfse-compressed float32 metres, ARKit
+    confidence): three frames decode to depths of a person and a room 1.5-4 m away, most pixels confident."""
+    from conftest import shared_data
+
+    rec = read_record3d(shared_data("real/record3d_dance"), last=3, log=lambda m: None)
+    assert rec.images.shape == (3, 320, 240, 3) and rec.depths.shape == (3, 320, 240)
+    known = rec.depths > 0
+    assert 0.5 < known.mean() < 1.0, known.mean()  # low-confidence pixels are 0
+    lo, mid, hi = np.percentile(rec.depths[known], [1, 50, 99])
+    assert 1.5 < lo < mid < hi < 4.0, (lo, mid, hi)
+    assert "LiDAR 192x256" in rec.depth_note
+
+
+def test_record3d_without_the_lzfse_decoder_reads_the_frames_and_says_why_no_depth(tmp_path, monkeypatch):
+    from fgjax.data import record3d
+
+    K = pinhole(32, 32, 30.0)
+    c2w = np.stack([look_at_c2w((0.1 * i, -1.6, 1.0), (0.0, 0.0, 0.4)) for i in range(3)])
+    folder = write_record3d(tmp_path / "r3d", c2w, K, [np.full((32, 32, 3), 128, np.uint8)] * 3,
+                            [np.ones((16, 16), np.float32)] * 3)
+    monkeypatch.setattr(record3d, "_lzfse", None)
+    said = []
+    rec = read_record3d(folder, log=said.append)
+    assert rec.depths is None and rec.images.shape == (3, 32, 32, 3)
+    assert "lzfse is not installed" in rec.depth_note and record3d.LZFSE_MISSING in " ".join(said)
 
 
 def test_record3d_missing_field_and_missing_frame_name_the_file(tmp_path):

@@ -12,7 +12,10 @@ here, never by the pipeline), prints:
   rather than from the model's canonical Gaussians makes the numbers independent of where the deformation field puts
   its canonical space. At the time t* of the largest true displacement: the ratio |L(t*)| / |D(t*)| and the angle
   between L(t*) and D(t*). A part counts as learned (issue 53's acceptance) when the ratio is within 20 % of 1 and
-  the angle under 15 degrees. A ratio near 0 means stage 1 renders the part in one state at all times;
+  the angle under 15 degrees. A ratio near 0 means stage 1 renders the part in one state at all times. Beside it,
+  what a monocular video can pin (`motion_observability`): the angle "in image" (L(t*) and D(t*) projected on the
+  plane normal to the viewing ray at t*), D(t*)'s angle to that ray, and the widest angle between the rays to the
+  part over the frames it spends in its t* state, the only parallax that fixes its motion along the rays;
 - how many live Gaussians move more than 0.01, 0.05 and 0.1 scene units from where they are at t0, at any time;
 - with ``--flow``, the dynamic-flow diagnosis (DESIGN.md section 1, step 4), per part over the frame pairs in which
   it moves (median ground-truth object flow on its pixels above 0.5 px): on the part's pixels of frame t-1, the
@@ -74,10 +77,12 @@ from fgjax.train.losses import photometric_loss
 from fgjax.train.optim import guarded_step
 
 __all__ = ["main", "motion_report", "part_gaussians", "learned_motion", "true_motion", "motion_scores",
+           "motion_observability", "true_observability",
            "flow_diagnosis", "means_at", "part_scores", "true_gaussians", "oracle_fit"]
 
 RATIO_TOL = 0.2
 ANGLE_TOL_DEG = 15.0
+STATE_TOL = 0.02  # a part is in its t* state while its centre is within this share of |D(t*)| of it
 ON_SURFACE = 0.05  # scene units: a model Gaussian this close to a true canonical Gaussian lies on its surface
 MOVING_PX = 0.5
 
@@ -87,7 +92,7 @@ def _pooled_psnr(err2: np.ndarray) -> float:
 
 
 def _check_gt(data_dir: Path, files=("meta.json", "canonical.npz", "train/centres.npy", "train/times.npy",
-                                       "test/object_id.npy", "test/kind.npy")) -> Path:
+                                       "train/viewmats_true.npy", "test/object_id.npy", "test/kind.npy")) -> Path:
     gt = Path(data_dir) / "gt"
     for f in files:
         if not (gt / f).exists():
@@ -135,11 +140,42 @@ def true_motion(gt: Path, norm: Normalization) -> tuple[np.ndarray, np.ndarray]:
     return np.load(gt / "train" / "times.npy"), np.transpose(centres - centres[:1], (1, 0, 2))
 
 
-def motion_scores(learned: np.ndarray, true: np.ndarray) -> list[dict]:
+def motion_observability(centres: np.ndarray, cams: np.ndarray, tol: float = STATE_TOL) -> list[dict]:
+    """How well a monocular video pins each part's motion along the viewing rays, from the true part centres
+    ``centres`` [K, T, 3] and camera centres ``cams`` [T, 3] (scene units) at the training times. Per part, with t*
+    the time of its largest displacement D(t*) from the first time:
+
+    - "view_dir": the unit ray from the camera at t* to the part's centre [3];
+    - "along_ray_deg": the angle between D(t*) and that ray (0: the motion is along the ray, and the image at t*
+      sees it only as a change of scale);
+    - "ray_spread_deg": the widest angle between the rays to the part's centre over the frames in which it is in its
+      t* state (centre within ``tol`` |D(t*)| of it): the triangulation angle of that state. The component of D(t*)
+      along the rays is pinned only by this parallax: 0 for a still camera, where a track or a photometric loss
+      sees the motion only in the image plane.
+    """
+    out = []
+    for c in np.asarray(centres, np.float64):
+        disp = np.linalg.norm(c - c[0], axis=-1)
+        ts = int(np.argmax(disp))
+        rays = c - np.asarray(cams, np.float64)
+        rays /= np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-12)
+        held = np.linalg.norm(c - c[ts], axis=-1) <= tol * max(float(disp[ts]), 1e-12)
+        r = rays[held]
+        spread = float(np.degrees(np.arccos(np.clip(np.min(r @ r.T), -1.0, 1.0))))
+        d = c[ts] - c[0]
+        along = float(np.degrees(np.arccos(np.clip(abs(d @ rays[ts]) / max(float(disp[ts]), 1e-12), 0.0, 1.0))))
+        out.append({"view_dir": rays[ts], "along_ray_deg": along if disp[ts] > 0 else float("nan"),
+                    "ray_spread_deg": spread})
+    return out
+
+
+def motion_scores(learned: np.ndarray, true: np.ndarray, view_dirs: np.ndarray | None = None) -> list[dict]:
     """Per part, at the time t* of its largest true displacement: true and learned |D(t*)|, |L(t*)|, their ratio,
-    the angle between them (degrees), and ``ok``: ratio within `RATIO_TOL` of 1 and angle under `ANGLE_TOL_DEG`."""
+    the angle between them (degrees), and ``ok``: ratio within `RATIO_TOL` of 1 and angle under `ANGLE_TOL_DEG`.
+    With ``view_dirs`` [K, 3] (`motion_observability`'s rays at t*), also "image_ratio" and "image_angle_deg": the
+    ratio and angle of L(t*) and D(t*) projected on the plane normal to the ray, what the image at t* sees of them."""
     res = []
-    for lk, dk in zip(learned, true):
+    for k, (lk, dk) in enumerate(zip(learned, true)):
         mags = np.linalg.norm(dk, axis=-1)
         ts = int(np.argmax(mags))
         d, lv = dk[ts], lk[ts]
@@ -149,15 +185,32 @@ def motion_scores(learned: np.ndarray, true: np.ndarray) -> list[dict]:
         ang = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))) if np.isfinite(cos) else float("nan")
         res.append({"true": float(mags[ts]), "learned": nl, "ratio": ratio, "angle_deg": ang,
                     "ok": bool(abs(ratio - 1.0) <= RATIO_TOL and ang <= ANGLE_TOL_DEG)})
+        if view_dirs is not None:
+            r = np.asarray(view_dirs[k], np.float64)
+            dp, lp = d - (d @ r) * r, lv - (lv @ r) * r
+            den = float(np.linalg.norm(dp) * np.linalg.norm(lp))
+            res[-1]["image_angle_deg"] = (float(np.degrees(np.arccos(np.clip(dp @ lp / den, -1.0, 1.0))))
+                                          if np.isfinite(den) and den > 1e-24 else float("nan"))
+            res[-1]["image_ratio"] = float(np.linalg.norm(lp) / max(float(np.linalg.norm(dp)), 1e-12))
     return res
 
 
-def part_scores(params, alive, spec, gt: Path, norm: Normalization, times: np.ndarray, true: np.ndarray):
+def true_observability(gt: Path, norm: Normalization) -> list[dict]:
+    """`motion_observability` of a ``fgjax synth`` dataset's parts, from gt/train/centres.npy and the true cameras
+    gt/train/viewmats_true.npy (OpenCV world-to-camera), in the run's scene units."""
+    centres = norm.points_to_scene(np.load(gt / "train" / "centres.npy"))  # [T, K, 3]
+    vm = np.load(gt / "train" / "viewmats_true.npy").astype(np.float64)  # [T, 4, 4]
+    cams = norm.points_to_scene(-np.einsum("tji,tj->ti", vm[:, :3, :3], vm[:, :3, 3]))
+    return motion_observability(np.transpose(centres, (1, 0, 2)), cams)
+
+
+def part_scores(params, alive, spec, gt: Path, norm: Normalization, times: np.ndarray, true: np.ndarray,
+                view_dirs: np.ndarray | None = None):
     """(parts, learned [K, T, 3], `motion_scores`) of a model at one moment: its Gaussians on each part at times[0]
     (`part_gaussians`), their learned motion at ``times`` (`learned_motion`) against ``true`` (`true_motion`)."""
     parts = part_gaussians(means_at(params, alive, spec, float(times[0])), np.asarray(alive), gt, norm)
     learned = learned_motion(params, alive, spec, parts, times)
-    return parts, learned, motion_scores(learned, true)
+    return parts, learned, motion_scores(learned, true, view_dirs)
 
 
 def flow_diagnosis(cfg, state, spec, data_dir: Path, norm: Normalization, flows: np.ndarray | None = None,
@@ -256,7 +309,9 @@ def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21, flow: bool
                    for t in np.linspace(0.0, 1.0, num_times)], axis=0)  # [N]
     res["moving_gaussians"] = {str(th): int(np.sum(alive & (disp > th))) for th in (0.01, 0.05, 0.1)}
     res["live_gaussians"] = int(alive.sum())
-    parts, lm, scores = part_scores(state.params, state.densify.alive, use, gt, norm, times, true)
+    obs = true_observability(gt, norm)
+    parts, lm, scores = part_scores(state.params, state.densify.alive, use, gt, norm, times, true,
+                                    np.stack([o["view_dir"] for o in obs]))
     objects = json.loads((gt / "meta.json").read_text())["objects"]
     diag = flow_diagnosis(cfg, state, use, data_dir, norm, cache_dir=Path(run_dir) / "flow_cache") if flow else None
     res["objects"] = []
@@ -264,7 +319,8 @@ def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21, flow: bool
         learned_max = float(np.max(np.linalg.norm(lm[k], axis=-1))) if len(idx) else float("nan")
         row = {"name": o["name"], "gaussians": int(len(idx)),
                "true_max_displacement": float(np.max(np.linalg.norm(true[k], axis=-1))),
-               "learned_max_displacement": learned_max, **{f"at_tmax_{n}": v for n, v in sc.items()}}
+               "learned_max_displacement": learned_max, **{f"at_tmax_{n}": v for n, v in sc.items()},
+               "along_ray_deg": obs[k]["along_ray_deg"], "ray_spread_deg": obs[k]["ray_spread_deg"]}
         if diag is not None:
             row["flow"] = diag[k]
         res["objects"].append(row)
@@ -328,6 +384,8 @@ def oracle_fit(run_dir: Path, data_dir: Path, steps: int, *, flow: str = "estima
         flows = estimate_training_flows(sc, cfg.flow.method, cache_dir=Path(run_dir) / "flow_cache",
                                         log=lambda *a: None)
     times, true = true_motion(gt, norm)
+    obs = true_observability(gt, norm)
+    dirs = np.stack([o["view_dir"] for o in obs])
     spec = dataclasses.replace(spec, anchor=float(times[0]))
     g = true_gaussians(gt, norm, cfg.model.sh_degree)
     alive = jnp.ones(g.means.shape[0], bool)
@@ -372,7 +430,7 @@ def oracle_fit(run_dir: Path, data_dir: Path, steps: int, *, flow: str = "estima
         dropped += int(bad)
         losses.append(float(val))
         if k % log_every == 0 or k == steps:
-            sco = motion_scores(learned_motion({**params, "deform": d}, alive, spec, parts, times), true)
+            sco = motion_scores(learned_motion({**params, "deform": d}, alive, spec, parts, times), true, dirs)
             trace.append({"step": k, "loss": float(np.mean(losses)), "ratios": [s["ratio"] for s in sco],
                           "angles": [s["angle_deg"] for s in sco]})
             losses = []
@@ -380,9 +438,10 @@ def oracle_fit(run_dir: Path, data_dir: Path, steps: int, *, flow: str = "estima
                 + ", ".join(f"{r:.2f} {a:.0f} deg" for r, a in zip(trace[-1]["ratios"], trace[-1]["angles"]))
                 + f" ({time.perf_counter() - t_start:.0f} s)")
     objects = json.loads((gt / "meta.json").read_text())["objects"]
-    sco = motion_scores(learned_motion({**params, "deform": d}, alive, spec, parts, times), true)
-    return {"trace": trace, "objects": [{"name": o["name"], "gaussians": int(len(idx)), **s}
-                                        for o, idx, s in zip(objects, parts, sco)],
+    sco = motion_scores(learned_motion({**params, "deform": d}, alive, spec, parts, times), true, dirs)
+    return {"trace": trace, "objects": [{"name": o["name"], "gaussians": int(len(idx)), **s,
+                                         "along_ray_deg": ob["along_ray_deg"], "ray_spread_deg": ob["ray_spread_deg"]}
+                                        for o, idx, s, ob in zip(objects, parts, sco, obs)],
             "parts_learned": int(sum(s["ok"] for s in sco)), "dropped_steps": dropped,
             "wall_s": time.perf_counter() - t_start}
 
@@ -390,10 +449,16 @@ def oracle_fit(run_dir: Path, data_dir: Path, steps: int, *, flow: str = "estima
 def _print(r: dict) -> None:
     print(f"test views at training times: PSNR object pixels {r['psnr_object_pixels']:.2f}, "
           f"static pixels {r['psnr_static_pixels']:.2f}")
-    print(f"{'part':<12} {'gaussians':>9} {'true_disp':>9} {'learned':>9} {'ratio':>6} {'angle':>6}  ok")
+    print(f"{'part':<12} {'gaussians':>9} {'true_disp':>9} {'learned':>9} {'ratio':>6} {'angle':>6} "
+          f"{'in image':>13}  ok   {'D to ray':>8} {'rays':>5}")
     for o in r["objects"]:
         print(f"{o['name']:<12} {o['gaussians']:>9} {o['at_tmax_true']:>9.3f} {o['at_tmax_learned']:>9.3f} "
-              f"{o['at_tmax_ratio']:>6.2f} {o['at_tmax_angle_deg']:>6.1f}  {'yes' if o['at_tmax_ok'] else 'no'}")
+              f"{o['at_tmax_ratio']:>6.2f} {o['at_tmax_angle_deg']:>6.1f} {o['at_tmax_image_ratio']:>6.2f} "
+              f"{o['at_tmax_image_angle_deg']:>6.1f}  "
+              f"{'yes' if o['at_tmax_ok'] else 'no ':<3} {o['along_ray_deg']:>8.1f} {o['ray_spread_deg']:>5.1f}")
+    print("(angle: learned against true displacement at t*; in image: ratio and angle of the two projected on the plane normal to the "
+          "ray at t*; D to ray: the true displacement's angle to that ray; rays: the widest angle between the rays to "
+          "the part over the frames it spends in its t* state, the parallax that pins its motion along the rays)")
     print(f"parts learned (ratio within {RATIO_TOL:.0%} of 1, angle under {ANGLE_TOL_DEG:.0f} deg): "
           f"{r['parts_learned']} of {len(r['objects'])}")
     mv = r["moving_gaussians"]
@@ -465,7 +530,10 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         for o in r["objects"]:
             print(f"{o['name']:<12} {o['gaussians']:>6} Gaussians  true {o['true']:.3f}  learned {o['learned']:.3f}  "
-                  f"ratio {o['ratio']:.2f}  angle {o['angle_deg']:.1f}  {'yes' if o['ok'] else 'no'}")
+                  f"ratio {o['ratio']:.2f}  angle {o['angle_deg']:.1f} (in image {o['image_ratio']:.2f}, "
+                  f"{o['image_angle_deg']:.1f})  "
+                  f"{'yes' if o['ok'] else 'no'}  (D {o['along_ray_deg']:.0f} deg to the ray, rays "
+                  f"{o['ray_spread_deg']:.1f} deg apart in its t* state)")
         print(f"parts learned from the true canonical Gaussians: {r['parts_learned']} of {len(r['objects'])} "
               f"({r['wall_s']:.0f} s; {r['dropped_steps']} step(s) dropped: tile buffer overflow or a non-finite loss)")
         if args.json:

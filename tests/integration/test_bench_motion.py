@@ -68,6 +68,44 @@ def test_motion_scores_ratio_and_angle():
     assert not motion.motion_scores(np.full_like(true, np.nan), true)[0]["ok"]  # a part without Gaussians
 
 
+def test_motion_observability_measures_the_parallax_that_pins_motion_along_the_rays():
+    """A part at x = 1 slides along y from t = 2 on and stays there (its t* state: frames 2-4). Seen by a still
+    camera at the origin the rays of that state coincide (0 degrees); by cameras stepping along x at depth 0 they
+    spread by the angle the part's position subtends between the outermost ones, computed here directly."""
+    centres = np.zeros((1, 5, 3))
+    centres[0, :, 0] = 1.0
+    centres[0, 2:, 1] = 0.5  # [K, T, 3]: along y, toward a camera placed on the far side of y
+    still = np.tile([[1.0, -2.0, 0.0]], (5, 1))  # [T, 3]: on the y axis of the part, looking along +y
+    o = motion.motion_observability(centres, still)[0]
+    assert o["ray_spread_deg"] == pytest.approx(0.0, abs=1e-5)
+    assert o["along_ray_deg"] == pytest.approx(0.0, abs=1e-5)  # the slide goes straight away from the camera
+    assert np.allclose(o["view_dir"], [0.0, 1.0, 0.0])
+    moving = np.stack([[1.0 + 0.3 * i, -2.0, 0.0] for i in range(5)])
+    o = motion.motion_observability(centres, moving)[0]
+    ray = lambda c: (np.array([1.0, 0.5, 0.0]) - c) / np.linalg.norm(np.array([1.0, 0.5, 0.0]) - c)
+    want = np.degrees(np.arccos(ray(moving[2]) @ ray(moving[4])))
+    assert o["ray_spread_deg"] == pytest.approx(want, abs=1e-6) and want > 5.0
+    assert o["along_ray_deg"] == pytest.approx(np.degrees(np.arccos(abs(ray(moving[2])[1]))), abs=1e-6)
+
+
+def test_motion_scores_image_angle_ignores_the_error_along_the_ray():
+    """A learned displacement off the true one only along the viewing ray is right in the image (0 degrees) and
+    wrong in 3D; one turned within the image plane is wrong in both."""
+    true = np.zeros((1, 3, 3))
+    true[0, 2] = [0.2, 0.0, 0.0]
+    view = np.array([[0.0, 0.0, 1.0]])  # the ray at t*: along z
+    learned = true.copy()
+    learned[0, 2] = [0.2, 0.0, 0.15]  # extra motion along the ray
+    s = motion.motion_scores(learned, true, view)[0]
+    assert s["image_angle_deg"] == pytest.approx(0.0, abs=1e-5) and s["image_ratio"] == pytest.approx(1.0)
+    assert s["angle_deg"] == pytest.approx(np.degrees(np.arctan2(0.15, 0.2)), abs=1e-4) and not s["ok"]
+    learned[0, 2] = [0.0, 0.2, 0.0]  # turned by 90 degrees in the image plane
+    assert motion.motion_scores(learned, true, view)[0]["image_angle_deg"] == pytest.approx(90.0, abs=1e-5)
+    assert "image_angle_deg" not in motion.motion_scores(learned, true)[0]
+    learned[0, 2] = [0.0, 0.0, 0.3]  # all along the ray: nothing in the image to compare
+    assert np.isnan(motion.motion_scores(learned, true, view)[0]["image_angle_deg"])
+
+
 def test_bench_motion_trains_traces_and_diagnoses_the_flow(tiny, tmp_path, capsys):
     """--train records the learned motion over training; --flow measures the dynamic flow on each part's pixels."""
     _, data = tiny

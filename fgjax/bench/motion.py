@@ -152,6 +152,8 @@ def motion_observability(centres: np.ndarray, cams: np.ndarray, tol: float = STA
       t* state (centre within ``tol`` |D(t*)| of it): the triangulation angle of that state. The component of D(t*)
       along the rays is pinned only by this parallax: 0 for a still camera, where a track or a photometric loss
       sees the motion only in the image plane.
+
+    A part whose centre never moves (turning about it) has "along_ray_deg" NaN and its rays over every frame.
     """
     out = []
     for c in np.asarray(centres, np.float64):

@@ -193,7 +193,8 @@ def motion_scores(learned: np.ndarray, true: np.ndarray, view_dirs: np.ndarray |
             den = float(np.linalg.norm(dp) * np.linalg.norm(lp))
             res[-1]["image_angle_deg"] = (float(np.degrees(np.arccos(np.clip(dp @ lp / den, -1.0, 1.0))))
                                           if np.isfinite(den) and den > 1e-24 else float("nan"))
-            res[-1]["image_ratio"] = float(np.linalg.norm(lp) / max(float(np.linalg.norm(dp)), 1e-12))
+            ndp = float(np.linalg.norm(dp))
+            res[-1]["image_ratio"] = float(np.linalg.norm(lp)) / ndp if ndp > 1e-12 else float("nan")
     return res
 
 

@@ -104,6 +104,10 @@ def test_motion_scores_image_angle_ignores_the_error_along_the_ray():
     assert "image_angle_deg" not in motion.motion_scores(learned, true)[0]
     learned[0, 2] = [0.0, 0.0, 0.3]  # all along the ray: nothing in the image to compare
     assert np.isnan(motion.motion_scores(learned, true, view)[0]["image_angle_deg"])
+    along = np.zeros((1, 3, 3))
+    along[0, 2] = [0.0, 0.0, 0.2]  # a true motion along the ray has no image-plane part to scale against
+    s = motion.motion_scores(learned, along, view)[0]
+    assert np.isnan(s["image_ratio"]) and np.isnan(s["image_angle_deg"]) and s["ratio"] == pytest.approx(1.5)
 
 
 def test_bench_motion_trains_traces_and_diagnoses_the_flow(tiny, tmp_path, capsys):

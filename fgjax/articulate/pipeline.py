@@ -73,10 +73,15 @@ def select_parts(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stag
     merge = acfg.merge_eps > 0 and disc.scores.moving_t is not None
     kw = dict(eps=cfg.eps, min_samples=cfg.min_samples, min_fraction=0.0 if merge else cfg.min_fraction,
               auto_eps=cfg.auto_eps)
-    if acfg.link_min_corr > -1 and disc.scores.moving_t is not None and cfg.cluster_method == "dbscan":
+    by_motion = acfg.link_min_corr > -1 and disc.scores.moving_t is not None and cfg.cluster_method == "dbscan"
+    if by_motion:
         lab_d = cluster.cluster_by_motion(canonical[idx], disc.scores.moving_t[:, idx], disc.scores.total_t[:, idx],
                                           min_corr=acfg.link_min_corr, **kw)
     else:
+        if acfg.link_min_corr > -1:
+            log(f"stage 2: articulate.link_min_corr={acfg.link_min_corr:g} has no effect "
+                + ("with cluster_method='hdbscan'" if cfg.cluster_method != "dbscan" else
+                   "without per-frame discovery scores") + "; position alone")
         lab_d = cluster.cluster_dynamic(canonical[idx], cfg.cluster_method, **kw)
     cut_late = merge and acfg.cut_after_local and acfg.local_radius > 0
     if merge:  # fragments of one part first, then the size cut (late: only the floor now)

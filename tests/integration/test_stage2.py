@@ -1352,6 +1352,10 @@ def test_select_parts_links_only_gaussians_that_move_together_with_link_min_corr
     labels, _, report = AP.select_parts(pts, disc, cfg, ArticulateConfig(link_min_corr=0.8), none, log=quiet)
     assert report.n_clusters == 2, list(report.sizes)
     assert np.all(labels[200:] == 1) and np.mean(labels[:200] == 0) > 0.9 and not np.any(labels[:200] == 1)
+    said = []  # HDBSCAN has no gated neighbourhood graph: the option says it has no effect
+    AP.select_parts(pts, disc, Stage2Config(eps=0.015, min_samples=5, cluster_method="hdbscan"),
+                    ArticulateConfig(link_min_corr=0.8), none, log=said.append)
+    assert any("link_min_corr=0.8 has no effect with cluster_method='hdbscan'" in m for m in said), said
 
 
 def test_fade_ghosts_caps_the_opacity_of_the_alive_static_gaussians_near_the_swept_volume():

@@ -44,9 +44,12 @@ class ModelConfig:
     """Initial Gaussians (no SfM points needed; see `init`)."""
     init: str = "flow"
     """"flow": points triangulated from optical flow between posed frames (`fgjax.method.init_points`),
-    topped up with random points; "random": random points in the scene box that some camera sees."""
+    topped up with random points; "depth": the measured depth of the training frames back-projected
+    (`fgjax.method.init_points.depth_point_cloud`; an RGB-D capture), topped up the same way, and "flow" on a
+    scene without depth maps; "random": random points in the scene box that some camera sees."""
     init_random_fraction: float = 0.2
-    """With init = "flow": this fraction of the initial points is random (covers untextured regions)."""
+    """With init = "flow" or "depth": this fraction of the initial points is random (covers what the flow or the
+    sensor misses)."""
     init_flow_gap: int = 4
     """With init = "flow": frame offset of the triangulated pairs."""
     capacity: int = 60000
@@ -126,6 +129,10 @@ class TrainConfig:
     rigid_cap: float = 0.0
     """Saturation of one neighbour pair's relative stretch in that regulariser (cap tanh(stretch / cap)), so
     that pairs spanning a moving part's boundary break instead of holding the part in place (0: linear)."""
+    depth_weight: float = 0.0
+    """Weight of ``fgjax.train.losses.depth_loss`` (the rendered depth against the scene's measured depth, on the
+    pixels that have one) where the scene has depth maps (an RGB-D capture); ignored, with one log line, where it
+    has none (0: off)."""
     rigid_neighbours: int = 8
     """Neighbours per Gaussian in that regulariser (graph rebuilt after each densification)."""
     coarse_to_fine: int = 0
@@ -597,7 +604,7 @@ def validate_stage1(cfg: Config) -> None:
     need(d.downscale >= 1, "data.downscale", ">= 1", d.downscale)
     need(d.test_every_train >= 0, "data.test_every_train", ">= 0", d.test_every_train)
     need(0 <= m.sh_degree <= 3, "model.sh_degree", "in 0..3", m.sh_degree)
-    need(m.init in ("flow", "random"), "model.init", "'flow' or 'random'", m.init)
+    need(m.init in ("flow", "depth", "random"), "model.init", "'flow', 'depth' or 'random'", m.init)
     need(m.init_points >= 1, "model.init_points", ">= 1", m.init_points)
     need(m.capacity >= m.init_points, "model.capacity", f">= model.init_points ({m.init_points})", m.capacity)
     need(0.0 <= m.init_random_fraction <= 1.0, "model.init_random_fraction", "in [0, 1]", m.init_random_fraction)
@@ -644,6 +651,7 @@ def validate_stage1(cfg: Config) -> None:
         v = getattr(cfg.pose, k)
         need(_finite(v) and v > 0, f"pose.{k}", "a finite number > 0", v)
     need(0.0 < t.time_window_start <= 1.0, "train.time_window_start", "in (0, 1]", t.time_window_start)
+    need(_finite(t.depth_weight) and t.depth_weight >= 0, "train.depth_weight", "a finite number >= 0", t.depth_weight)
     need(0.0 <= t.error_sampling <= 1.0, "train.error_sampling", "in [0, 1]", t.error_sampling)
     for k in ("time_curriculum", "rigid_cap", "rigid_weight", "rigid_scale_weight", "coarse_to_fine",
               "field_only_steps"):

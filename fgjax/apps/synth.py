@@ -40,6 +40,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="test frames from other camera positions at training times")
     p.add_argument("--test-states", type=int, default=d.test_states,
                    help="test frames with object-state combinations unseen in training")
+    p.add_argument("--depth-maps", action="store_true",
+                   help="also write each frame's depth as a measured one (depth/<frame>.npy: an RGB-D scene)")
     p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return p
@@ -52,7 +54,7 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
         if (args.width is None) != (args.height is None):
             raise ValueError("--family: give both --width and --height, or neither (the seed's own size)")
         size = None if args.width is None else (args.width, args.height)
-        return family_config(args.family, size=size, frames=args.frames)
+        return family_config(args.family, size=size, frames=args.frames, depth_maps=args.depth_maps)
     objs = tuple(o.strip() for o in str(args.objects).split(",") if o.strip())
     return SynthConfig(
         objects=objs, width=d.width if args.width is None else args.width,
@@ -60,7 +62,7 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
         frames=d.frames if args.frames is None else args.frames, seed=args.seed,
         pose_noise_deg=args.pose_noise_deg, pose_noise_trans=args.pose_noise_trans,
         lighting_change=args.lighting_change, close_pair=args.close_pair, close_gap=args.close_gap,
-        test_views=args.test_views, test_states=args.test_states,
+        test_views=args.test_views, test_states=args.test_states, depth_maps=args.depth_maps,
     )
 
 

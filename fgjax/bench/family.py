@@ -51,10 +51,10 @@ DEFAULT_CONFIG = EXPERIMENTS / "family.toml"
 KEYS = ("ari", "parts_true", "parts_found", "state_psnr", "state_psnr_moving", "stage1_psnr", "wall_s")
 
 
-def _scene(seed: int, root: Path, size, frames, say) -> Path:
+def _scene(seed: int, root: Path, size, frames, say, depth_maps: bool = False) -> Path:
     """The seed's scene under ``root/scene``, generated unless it is there with the same configuration, objects
     and camera path."""
-    cfg = family_config(seed, size=size, frames=frames)
+    cfg = family_config(seed, size=size, frames=frames, depth_maps=depth_maps)
     out = root / "scene"
     meta = out / "gt" / "meta.json"
     if meta.is_file():
@@ -111,8 +111,10 @@ def _copy_stage1(src: Path, dst: Path) -> None:
 
 
 def run_seed(seed: int, out: Path, cfg: Config, *, size=None, frames=None, trace: bool = False, say=print,
-             stage1_from: Path | None = None) -> dict:
+             stage1_from: Path | None = None, depth_maps: bool = False) -> dict:
     """The pipeline on family seed `seed` in ``out/seed_NNN`` (see the module docstring); its row of family.json.
+    With `depth_maps` the scene carries each frame's depth as a measured one (an RGB-D scene: what
+    ``model.init = "depth"`` and ``train.depth_weight`` use).
     With `stage1_from` (an earlier benchmark's folder), that benchmark's scene and stage-1 run of the seed are used
     and only stage 2 and the evaluation run (``wall_s`` then counts stage 2 and the evaluation only)."""
     root = out / f"seed_{seed:03d}"
@@ -128,7 +130,7 @@ def run_seed(seed: int, out: Path, cfg: Config, *, size=None, frames=None, trace
         scene_dir = src / "scene"
         _copy_stage1(src / "run", run_dir)
     else:
-        scene_dir = _scene(seed, root, size, frames, say)
+        scene_dir = _scene(seed, root, size, frames, say, depth_maps)
         t0 = time.perf_counter()
         stage1.run(cfg, scene_dir, run_dir, log=quiet, overwrite=True)
         say(f"bench family: seed {seed}: stage 1 done ({time.perf_counter() - t0:.0f} s)")
@@ -171,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", default=None, metavar="WxH", help="render every scene at this size instead of its own")
     p.add_argument("--frames", type=int, default=None, help="training frames per scene instead of the seed's own")
     p.add_argument("--trace", action="store_true", help="also trace discovery per part (discovery_trace)")
+    p.add_argument("--depth-maps", action="store_true",
+                   help="the scenes carry each frame's true depth as a measured one (an ideal RGB-D sensor)")
     p.add_argument("--stage1-from", default=None, metavar="DIR",
                    help="reuse the scenes and stage-1 runs of an earlier benchmark in DIR; run stage 2 and the "
                         "evaluation only (to compare stage-2 configurations on the same stage 1)")
@@ -192,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'seed':>6} {'ARI':>6} {'parts':>10} {'state':>7} {'moving':>7} {'stage1':>7} {'wall_s':>7}", flush=True)
     for seed in seeds:
         row = run_seed(seed, out, cfg, size=size, frames=args.frames, trace=args.trace, say=say,
-                       stage1_from=None if args.stage1_from is None else Path(args.stage1_from))
+                       stage1_from=None if args.stage1_from is None else Path(args.stage1_from),
+                       depth_maps=args.depth_maps)
         rows.append(row)
         print(_fmt(row, seed), flush=True)
         summary = summarise(rows)

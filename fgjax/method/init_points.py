@@ -21,8 +21,8 @@ import numpy as np
 from fgjax.data.opticalflow import estimate_flow, forward_backward_mask
 from fgjax.geometry import look_at_point
 
-__all__ = ["triangulate_midpoint", "pixel_rays", "free_space_violations", "flow_point_cloud", "scene_box", "visible_any",
-           "random_points", "first_view_colors"]
+__all__ = ["triangulate_midpoint", "pixel_rays", "free_space_violations", "flow_point_cloud", "depth_point_cloud",
+           "scene_box", "visible_any", "random_points", "first_view_colors"]
 
 
 def pixel_rays(viewmat: np.ndarray, K: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -178,6 +178,51 @@ def flow_point_cloud(scene, *, gap: int = 4, stride: int = 2, method: str = "dis
         f"({100 * frac:.1f}% of pixels; {n_ghost} in earlier free space dropped) in {time.time() - t0:.1f} s")
     return {"points": points, "colors": colors, "times": ptimes, "frames": cat(src, (0,)).astype(np.int64),
             "pixels": cat(pxs, (0, 2)), "pairs": pairs, "kept_fraction": frac}
+
+
+def depth_point_cloud(scene, *, frames: int = 8, canonical: bool = True, log=print) -> dict[str, Any]:
+    """Back-project every pixel with a measured depth (``scene.depths`` > 0: an RGB-D sensor) of up to `frames`
+    training frames evenly spaced in time: X = c2w (D(m) K^-1 m~), m the pixel centre.
+
+    With ``canonical`` a point of a later frame is dropped where it lies in free space for an earlier one of these
+    frames (`free_space_violations` against their measured depth), as in `flow_point_cloud`: a part that moved
+    keeps its points of the earliest frame only, so the canonical space is the scene at the first time, without
+    ghosts. Returns the keys of `flow_point_cloud` ("pairs": []; "kept_fraction": kept points over the pixels
+    with a depth)."""
+    if scene.depths is None:
+        raise ValueError("depth_point_cloud: the scene has no depth maps")
+    order = np.argsort(np.asarray(scene.times), kind="stable")
+    pick = order[np.unique(np.round(np.linspace(0, len(order) - 1, max(1, min(int(frames), len(order))))).astype(int))]
+    h, w = scene.height, scene.width
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    pix = np.stack([xs + 0.5, ys + 0.5], -1)
+    depths = np.asarray(scene.depths, np.float64)
+    t0 = time.time()
+    pts, cols, tms, src, pxs = [], [], [], [], []
+    total = n_ghost = 0
+    for k, i in enumerate(pick):
+        d = depths[i]
+        ok = np.isfinite(d) & (d > 0)
+        total += int(ok.sum())
+        c, rays = pixel_rays(scene.viewmats[i], scene.Ks[i], pix[ok])
+        p = c + d[ok][:, None] * rays  # rays are scaled so that the parameter is the camera z-depth
+        keep = np.ones(len(p), bool)
+        if canonical and k > 0:
+            ref = pick[:k]
+            keep = ~free_space_violations(p, np.where(depths[ref] > 0, depths[ref], np.nan), scene.viewmats[ref],
+                                          scene.Ks[ref])
+            n_ghost += int((~keep).sum())
+        pts.append(p[keep])
+        cols.append(np.asarray(scene.images[i], np.float64)[ok][keep])
+        tms.append(np.full(int(keep.sum()), float(scene.times[i])))
+        src.append(np.full(int(keep.sum()), int(i), np.int64))
+        pxs.append(pix[ok][keep])
+    points = np.concatenate(pts)
+    log(f"depth point cloud: {len(pick)} frames, {len(points)} points ({n_ghost} in earlier free space dropped) in "
+        f"{time.time() - t0:.1f} s")
+    return {"points": points, "colors": np.concatenate(cols), "times": np.concatenate(tms),
+            "frames": np.concatenate(src), "pixels": np.concatenate(pxs), "pairs": [],
+            "kept_fraction": len(points) / max(total, 1)}
 
 
 def scene_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:

@@ -38,7 +38,13 @@ from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
 from fgjax.method.flows import estimate_training_flows, previous_frames, training_tracks
-from fgjax.method.init_points import first_view_colors, flow_point_cloud, random_points, scene_box
+from fgjax.method.init_points import (
+    depth_point_cloud,
+    first_view_colors,
+    flow_point_cloud,
+    random_points,
+    scene_box,
+)
 from fgjax.method.poses import bundle_adjust
 from fgjax.method.static import detect_static
 from fgjax.models.deform import DeformSpec, deform_init
@@ -48,12 +54,14 @@ from fgjax.render.api import count_intersections, round_capacity
 from fgjax.train import checkpoint as ckpt
 from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
 from fgjax.train.losses import (
+    depth_loss,
     isometry_loss,
     photometric_loss,
     scale_change_loss,
     scale_regularizer,
 )
 from fgjax.train.optim import OptimSpec, active_sh_degree, make_optimizer
+from fgjax.train.sampling import batch_indices, time_window
 from fgjax.version import __version__
 
 __all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "FlowBatch", "flow_term", "training_tracks",
@@ -81,26 +89,33 @@ class TrainState:
 
 
 def init_gaussians(cfg: Config, scene, key, log=print, cache_dir=None) -> tuple[Gaussians, jax.Array]:
-    """Initial Gaussians: points triangulated from optical flow (``model.init = "flow"``, with a fraction of
-    random points), or random points in the scene box that some training camera sees."""
+    """Initial Gaussians: points triangulated from optical flow (``model.init = "flow"``) or back-projected from the
+    measured depth (``"depth"``, where the scene has depth maps), each with a fraction of random points, or random
+    points in the scene box that some training camera sees."""
     lo, hi = scene_box(scene.viewmats, scene.Ks, scene.width, scene.height)
     rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).astype(np.uint64).tolist())
     want = cfg.model.init_points
     pts, cols = np.zeros((0, 3)), np.zeros((0, 3))
-    if cfg.model.init not in ("flow", "random"):
-        raise ConfigError(f"config key 'model.init' must be 'flow' or 'random'; got {cfg.model.init!r}")
+    init = cfg.model.init
+    if init not in ("flow", "depth", "random"):
+        raise ConfigError(f"config key 'model.init' must be 'flow', 'depth' or 'random'; got {init!r}")
+    if init == "depth" and scene.depths is None:
+        log("model.init = depth: the scene has no depth maps; triangulating points from optical flow instead")
+        init = "flow"
     flow_ok = scene.num_frames > 1 and min(scene.width, scene.height) >= 16  # optical flow needs 16x16
-    if cfg.model.init == "flow" and not flow_ok:
+    if init == "flow" and not flow_ok:
         log(f"model.init = flow: {scene.num_frames} frame(s) of {scene.width}x{scene.height} are too few or too "
             "small for optical flow; using random points")
-    if cfg.model.init == "flow" and flow_ok:
-        pc = flow_point_cloud(scene, gap=cfg.model.init_flow_gap, cache_dir=cache_dir, log=log)
+    if init == "depth" or (init == "flow" and flow_ok):
+        pc = (depth_point_cloud(scene, log=log) if init == "depth" else
+              flow_point_cloud(scene, gap=cfg.model.init_flow_gap, cache_dir=cache_dir, log=log))
         c, r = 0.5 * (lo + hi), 0.5 * (hi - lo)
         inside = np.all(np.abs(pc["points"] - c) <= 2.0 * r, axis=-1)  # drop far-off mismatches
         n_flow = min(int(inside.sum()), int(round(want * (1.0 - cfg.model.init_random_fraction))))
         if n_flow == 0:
-            log("model.init = flow: no point could be triangulated (the cameras barely move against the distance to "
-                "what they see, or no pixel matched); starting from random points in the scene box")
+            why = ("no measured depth inside the scene box" if init == "depth" else "no point could be triangulated (the "
+                   "cameras barely move against the distance to what they see, or no pixel matched)")
+            log(f"model.init = {init}: {why}; starting from random points in the scene box")
         sel = rng.choice(np.flatnonzero(inside), size=n_flow, replace=False) if n_flow else np.zeros(0, int)
         pts, cols = pc["points"][sel], pc["colors"][sel]
     rnd = random_points(rng, want - len(pts), lo, hi, scene)
@@ -160,6 +175,7 @@ class StepSpec:
     flow_loss: str = "pair"  # "pair": L_uGS of frames t-1, t; "track": the first frame's tracks (fgjax.flow.track)
     gaussian_flow: str = "isotropic"  # "pair": u~_GS isotropic (the paper) or anisotropic (GaussianFlow)
     camera_depth: str = "composited"  # "pair": u_cam from the composited ("composited") or expected depth
+    depth_weight: float = 0.0  # weight of the measured-depth term (0: none; the step then takes no depth batch)
 
 
 class FlowBatch(NamedTuple):
@@ -205,15 +221,17 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
     optimizer = make_optimizer(ospec, num_sh)
     bg = jnp.asarray(background, jnp.float32)
 
-    def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx, fl, nbr):
+    def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx, fl, depth, nbr):
         if ss.pose:
             viewmat = matmul(se3_exp(params["pose"][idx]), viewmat)
         img, _, info, geo = render_params(
             params, alive, viewmat, K, t, spec=ss.spec, sh_degree=ss.sh_degree, width=ss.width,
             height=ss.height, background=bg, capacity=ss.capacity, tile_size=ss.tile_size, delta2d=delta2d,
-            sh_mask=sh_mask, motion_grad=ss.photo_motion,
+            sh_mask=sh_mask, motion_grad=ss.photo_motion, render_depth=depth is not None,
         )
         loss = photometric_loss(img, image, ss.lambda_dssim)
+        if depth is not None:
+            loss = loss + ss.depth_weight * depth_loss(info["depth_acc"], depth)
         if ss.scale_reg > 0:
             loss = loss + ss.scale_reg * scale_regularizer(geo["log_scales"], alive, ss.scale_reg_max)
         if nbr is not None:  # rigidity: neighbour distances keep their canonical lengths
@@ -230,10 +248,10 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         mse = jnp.mean((img - image) ** 2)
         return loss, (mse, overflow, info["valid"])
 
-    def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx, fl, nbr):
-        per_cam = (delta2d, images, viewmats, Ks, times, idx, fl)  # leading axis: the batch's cameras
+    def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx, fl, depths, nbr):
+        per_cam = (delta2d, images, viewmats, Ks, times, idx, fl, depths)  # leading axis: the batch's cameras
         if ss.vmap_cameras:  # a data-parallel mesh: the partitioner splits the vmapped cameras over devices
-            losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0, None))(
+            losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0, 0, None))(
                 params, alive, sh_mask, *per_cam, nbr)
         elif images.shape[0] == 1:
             # One device: no vmap. Under vmap the compositor's lax.cond (skip the unused chunk batches)
@@ -246,14 +264,15 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         return jnp.mean(losses), aux
 
     def step(params, opt_state, dstate: DensifyState, sh_mask, images, viewmats, Ks, times, idx, flow_batch=None,
-             nbr=None):
+             nbr=None, depths=None):
         b = images.shape[0]
         n = params["gaussians"].means.shape[0]
         delta2d = jnp.zeros((b, n, 2), jnp.float32)
         fl = flow_batch if (ss.flow_weight > 0 and ss.spec is not None) else None
         nbr = nbr if (ss.rigid_weight > 0 and ss.spec is not None) else None
+        depths = depths if ss.depth_weight > 0 else None
         (loss, (mse, overflow, valid)), (grads, g2d) = jax.value_and_grad(batch_loss, argnums=(0, 1), has_aux=True)(
-            params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx, fl, nbr)
+            params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx, fl, depths, nbr)
         bad = jnp.any(overflow) | ~jnp.isfinite(loss)
         updates, new_opt = optimizer.update(grads, opt_state, params)
         if ss.freeze_gaussians:  # masked updates (zero gradients alone would still move them by momentum)
@@ -294,38 +313,6 @@ def _flow_batch(idx: np.ndarray, prev: np.ndarray, flows: np.ndarray, viewmats, 
     has = p >= 0
     pi = np.where(has, p, idx)
     return FlowBatch(flows[idx], viewmats[pi], times[pi], pi.astype(np.int32), has.astype(np.float32), Ks[pi])
-
-
-def _batch_indices(seed: int, step: int, num_frames: int, batch: int, window: np.ndarray | None = None,
-                   frame_err: np.ndarray | None = None, mix: float = 0.0) -> np.ndarray:
-    """Frame indices of one step, a function of (seed, step, frame_err) only, so a resumed run draws the
-    same ones. With `window` (frame indices) they are drawn from it. With `mix` > 0, that fraction of the
-    steps draws frames with probability proportional to their squared last MSE `frame_err` [T] (frames
-    not measured yet, NaN, count as the worst measured one); the other steps draw uniformly."""
-    rng = np.random.default_rng([seed, step])
-    pool = np.arange(num_frames) if window is None else np.asarray(window)
-    replace = batch > len(pool)
-    if mix > 0 and frame_err is not None and rng.uniform() < mix:
-        e = np.asarray(frame_err, np.float64)[pool]
-        if np.any(np.isfinite(e)):
-            e = np.where(np.isfinite(e), e, np.nanmax(e))
-            p = e * e
-            if p.sum() > 0 and np.count_nonzero(p) >= (batch if not replace else 1):
-                return pool[rng.choice(len(pool), size=batch, replace=replace, p=p / p.sum())]
-    return pool[rng.choice(len(pool), size=batch, replace=replace)]
-
-
-def time_window(step: int, times: np.ndarray, warmup: int, curriculum: int, start_fraction: float) -> np.ndarray:
-    """Frames (indices, earliest first) that step `step` may draw under the time curriculum: the earliest
-    `start_fraction` of them up to the end of the warm-up, then a window opening linearly to all frames
-    over `curriculum` steps."""
-    order = np.argsort(np.asarray(times), kind="stable")
-    n = len(order)
-    if curriculum <= 0:
-        return order
-    open_ = min(1.0, max(0.0, (step - warmup) / curriculum))
-    frac = start_fraction + (1.0 - start_fraction) * open_
-    return order[:max(1, min(n, int(math.ceil(frac * n - 1e-9))))]
 
 
 def _mesh_shardings(batch: int, devices=None):
@@ -479,6 +466,11 @@ def train_stage1(
         prev, flows = training_tracks(scene, fc.method, None if out is None else out / "flow_cache", log=log)
     elif use_flow and flows is None:
         flows = estimate_training_flows(scene, fc.method, None if out is None else out / "flow_cache", log=log)
+    depths = depths_lo = None
+    if t.depth_weight > 0 and scene.depths is None:
+        log(f"train.depth_weight = {t.depth_weight}: the scene has no depth maps; training without the depth term")
+    elif t.depth_weight > 0:
+        depths = np.where(np.isfinite(scene.depths) & (scene.depths > 0), scene.depths, 0.0).astype(np.float32)
     if use_flow:
         flows = np.asarray(flows, np.float32)
         if flows.shape != (scene.num_frames, h, w, 2):
@@ -492,6 +484,9 @@ def train_stage1(
         images_lo = images[:, :2 * h2, :2 * w2].reshape(-1, h2, 2, w2, 2, 3).mean(axis=(2, 4))
         Ks_lo = Ks.copy()
         Ks_lo[:, :2, :] *= 0.5
+        if depths is not None:  # a coarse pixel has a depth where all four of its pixels have one
+            d4 = depths[:, :2 * h2, :2 * w2].reshape(-1, h2, 2, w2, 2)
+            depths_lo = np.where(np.all(d4 > 0, axis=(2, 4)), d4.mean(axis=(2, 4)), 0.0).astype(np.float32)
     elif t.coarse_to_fine > 0:
         log(f"coarse-to-fine skipped: {w}x{h} images are too small to halve")
 
@@ -502,7 +497,8 @@ def train_stage1(
                       fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
-                      fc.photo_motion if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth)
+                      fc.photo_motion if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth,
+                      t.depth_weight if depths is not None else 0.0)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
@@ -546,13 +542,14 @@ def train_stage1(
         sh_mask = active_sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)
                   if t.time_curriculum > 0 else None)
-        idx = _batch_indices(cfg.model.seed, s, n_frames, t.batch_size, window, state.frame_err, t.error_sampling)
+        idx = batch_indices(cfg.model.seed, s, n_frames, t.batch_size, window, state.frame_err, t.error_sampling)
         batch = ((images_lo if lo else images)[idx], viewmats[idx], (Ks_lo if lo else Ks)[idx], times[idx],
                  idx.astype(np.int32))
         if flow_on:
             batch = (*batch, _flow_batch(idx, prev, flows, viewmats, times, Ks))
+        dbatch = None if depths is None else (depths_lo if lo else depths)[idx]
         if batch_sh is not None:
-            batch = jax.device_put(batch, batch_sh)
+            batch, dbatch = jax.device_put((batch, dbatch), batch_sh)
         nbr = None
         if use_deform and t.rigid_weight > 0:
             if graph is None:  # the canonical neighbour graph, rebuilt when densification changes the set
@@ -561,7 +558,7 @@ def train_stage1(
                     graph = jax.device_put(graph, repl_sh)
             nbr = graph
         state.params, state.opt_state, state.densify, loss, mse, bad = step_fn(
-            state.params, state.opt_state, state.densify, sh_mask, *batch, nbr=nbr)
+            state.params, state.opt_state, state.densify, sh_mask, *batch, nbr=nbr, depths=dbatch)
         pending.append((loss, mse, bad, idx))
         if state.frame_err is not None:  # error sampling: the next step's draw needs this one's error (a sync)
             m_host, bad_host = jax.device_get((mse, bad))
@@ -643,26 +640,37 @@ def _maybe_grow_capacity(state: TrainState, viewmats, Ks, w, h, t, log, force: b
 # ---------------------------------------------------------------------------------------------
 
 
-def render_frame(state: TrainState, spec: DeformSpec, cfg: Config, viewmat, K, t, width, height):
-    """Render the trained model (deformation unless the scene is static) at time t: image [H, W, 3] numpy.
+def render_frame(state: TrainState, spec: DeformSpec, cfg: Config, viewmat, K, t, width, height, depth=False):
+    """Render the trained model (deformation unless the scene is static) at time t: image [H, W, 3] numpy; with
+    `depth`, (image, expected depth [H, W], alpha [H, W]).
 
     Runs outside jit so that the rasterizer sizes its intersection buffer exactly (no overflow)."""
     use = None if state.static else spec
-    img, _, _, _ = render_params(state.params, state.densify.alive, jnp.asarray(viewmat, jnp.float32),
-                                 jnp.asarray(K, jnp.float32), jnp.asarray(t, jnp.float32), spec=use,
-                                 sh_degree=cfg.model.sh_degree, width=int(width), height=int(height),
-                                 background=jnp.asarray(cfg.model.background, jnp.float32), capacity=None,
-                                 tile_size=cfg.train.tile_size)
-    return np.clip(np.asarray(img), 0.0, 1.0)
+    img, alpha, info, _ = render_params(state.params, state.densify.alive, jnp.asarray(viewmat, jnp.float32),
+                                        jnp.asarray(K, jnp.float32), jnp.asarray(t, jnp.float32), spec=use,
+                                        sh_degree=cfg.model.sh_degree, width=int(width), height=int(height),
+                                        background=jnp.asarray(cfg.model.background, jnp.float32), capacity=None,
+                                        tile_size=cfg.train.tile_size, render_depth=depth)
+    img = np.clip(np.asarray(img), 0.0, 1.0)
+    return (img, np.asarray(info["depth"]), np.asarray(alpha)) if depth else img
 
 
 def evaluate(state: TrainState, spec, cfg: Config, test_scene, masks=None, out_dir: Path | None = None,
              names=None) -> dict[str, Any]:
-    """PSNR, SSIM (and masked PSNR of the dynamic region where masks exist) over the test views."""
-    ps, ss, mps = [], [], []
+    """PSNR, SSIM (and masked PSNR of the dynamic region where masks exist) over the test views; where they have a
+    measured depth, "depth_error": |expected depth - measured| / measured on their pixels with one that the model
+    covers (alpha >= 0.5), median and mean, and the median in world units."""
+    ps, ss, mps, rel, absw = [], [], [], [], []
+    has_depth = test_scene.depths is not None
     for i in range(test_scene.num_frames):
         img = render_frame(state, spec, cfg, test_scene.viewmats[i], test_scene.Ks[i], test_scene.times[i],
-                           test_scene.width, test_scene.height)
+                           test_scene.width, test_scene.height, depth=has_depth)
+        if has_depth:
+            img, d, alpha = img
+            ref = test_scene.depths[i]
+            ok = (ref > 0) & (alpha >= 0.5)
+            rel.append(np.abs(d[ok] - ref[ok]) / ref[ok])
+            absw.append(test_scene.normalization.lengths_to_world(np.abs(d[ok] - ref[ok])))
         gt = test_scene.images[i]
         ps.append(float(metrics.psnr(img, gt)))
         ss.append(float(metrics.ssim(img, gt)))
@@ -676,6 +684,10 @@ def evaluate(state: TrainState, spec, cfg: Config, test_scene, masks=None, out_d
                            "num_views": len(ps)}
     if mps:
         res["masked_psnr_dynamic"] = float(np.mean(mps))
+    if rel and sum(map(len, rel)):
+        r = np.concatenate(rel)
+        res["depth_error"] = {"median_relative": float(np.median(r)), "mean_relative": float(np.mean(r)),
+                              "median": float(np.median(np.concatenate(absw))), "pixels": int(len(r))}
     return res
 
 
@@ -765,7 +777,8 @@ def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print,
         m = evaluate(res["state"], res["spec"], cfg, test, masks, out / "test", names)
         metrics.update(m)
         log(f"test views: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}"
-            + (f", dynamic-region PSNR {m['masked_psnr_dynamic']:.2f} dB" if "masked_psnr_dynamic" in m else ""))
+            + (f", dynamic-region PSNR {m['masked_psnr_dynamic']:.2f} dB" if "masked_psnr_dynamic" in m else "")
+            + (f", depth error {100 * m['depth_error']['median_relative']:.1f}% (median)" if "depth_error" in m else ""))
     atomic_write(out / "metrics.json", lambda f: f.write(json.dumps(metrics, indent=1).encode()))
     if cfg.train.video_frames > 0:
         v = write_video(res["state"], res["spec"], cfg, scene, out / "sweep.mp4", cfg.train.video_frames)

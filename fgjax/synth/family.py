@@ -101,13 +101,15 @@ def parse_seeds(text: str) -> list[int]:
     return out
 
 
-def family_config(seed: int, *, size: tuple[int, int] | None = None, frames: int | None = None) -> SynthConfig:
+def family_config(seed: int, *, size: tuple[int, int] | None = None, frames: int | None = None,
+                  depth_maps: bool = False) -> SynthConfig:
     """The `SynthConfig` of family scene `seed`: its resolution, frame count, part kinds and lighting.
 
     Args:
         seed: any non-negative integer.
         size: (width, height) instead of the seed's own (the scene's geometry and motion stay the seed's).
         frames: number of training frames instead of the seed's own.
+        depth_maps: write each frame's depth as a measured one (`SynthConfig.depth_maps`: an RGB-D scene).
     """
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"family: the seed must be a non-negative integer, got {seed!r}")
@@ -119,7 +121,7 @@ def family_config(seed: int, *, size: tuple[int, int] | None = None, frames: int
     if size is not None:
         w, h = (int(x) for x in size)
     return SynthConfig(objects=kinds, width=w, height=h, frames=int(frames or n_frames), seed=int(seed),
-                       lighting_change=lighting, family=int(seed))
+                       lighting_change=lighting, family=int(seed), depth_maps=bool(depth_maps))
 
 
 # ============================================================================ drawing the parts

@@ -72,6 +72,9 @@ class SynthConfig:
         family: None for the hand-made scenes above; an int for a scene of the random family
             (`fgjax.synth.family`): its seed, from which `fgjax.synth.family.family_config`
             draws the other fields and `fgjax.synth.family.make_family_scene` the scene.
+        depth_maps: also write each frame's depth where the loader reads a measured one
+            (``depth/<frame>.npy``, camera z in scene units, 0 = none): the rendered expected depth on the
+            pixels the render covers (alpha >= 0.5), as an ideal RGB-D sensor would measure it.
     """
 
     objects: tuple[str, ...] = ("door", "drawer", "lid")
@@ -93,6 +96,7 @@ class SynthConfig:
     test_views: int = 6
     test_states: int = 4
     family: int | None = None
+    depth_maps: bool = False
 
     def __post_init__(self):
         objs = (self.objects,) if isinstance(self.objects, str) else tuple(self.objects)
@@ -135,6 +139,8 @@ class SynthConfig:
             if isinstance(v, bool) or not isinstance(v, int | float) or not (lo <= float(v) <= hi):
                 raise ValueError(f"SynthConfig.{name} must be a number in [{lo}, {hi}], got {v!r}")
             object.__setattr__(self, name, float(v))
+        if not isinstance(self.depth_maps, bool):
+            raise ValueError(f"SynthConfig.depth_maps must be true or false, got {self.depth_maps!r}")
         if self.close_pair and len(objs) < 2:
             raise ValueError("SynthConfig.close_pair needs at least 2 objects")
 

@@ -139,6 +139,13 @@ def _write_all(tmp: Path, scene: SynthScene, train: dict[str, Any], tests: list[
     for f in tests:
         names.append(f"test_{f['kind']}_{counters[f['kind']]:03d}")
         counters[f["kind"]] += 1
+    if cfg.depth_maps:  # the loader's sibling folder: depth/<image stem>.npy, camera z in scene units
+        (tmp / "depth").mkdir()
+        for i in range(n):
+            np.save(tmp / "depth" / f"train_{i:05d}.npy", np.where(tr.alpha >= 0.5, tr.depth, 0.0)[i].astype(np.float32))
+        if tests and te is not None:
+            for i, nm in enumerate(names):
+                np.save(tmp / "depth" / f"{nm}.npy", np.where(te.alpha >= 0.5, te.depth, 0.0)[i].astype(np.float32))
     gt = tmp / "gt"
     gt.mkdir()
     np.save(gt / "labels.npy", scene.labels.astype(np.int32))
@@ -206,7 +213,8 @@ def generate(
       ``transform_matrix``, ``time``, fl_x, fl_y, cx, cy, w, h; top level camera_angle_x),
       ``images/train_00000.png ...``, ``images/test_view_000.png``, ``images/test_state_000.png``,
       and ``gt/``: ``meta.json`` (config, objects, schedules, test frame kinds, file list),
-      ``labels.npy`` [N], ``canonical.npz``, ``train/*.npy``, ``test/*.npy`` (see meta.json).
+      ``labels.npy`` [N], ``canonical.npz``, ``train/*.npy``, ``test/*.npy`` (see meta.json). With
+      ``cfg.depth_maps`` also ``depth/<frame>.npy``, each frame's measured depth as the loader reads it.
 
     Everything is written to a temporary folder next to `out_dir` that is renamed at the end, so
     a failed run leaves nothing behind (nor any parent folder it created).

@@ -1,5 +1,5 @@
-"""Training losses: photometric (0.8 L1 + 0.2 (1 - SSIM)), scale and isometry regularisers; the flow loss is
-fgjax.flow.flow_loss."""
+"""Training losses: photometric (0.8 L1 + 0.2 (1 - SSIM)), measured depth, scale and isometry regularisers; the
+flow loss is fgjax.flow.flow_loss."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from jaxtyping import Array, ArrayLike, Float
 from fgjax.geometry import abs0
 from fgjax.metrics import ssim
 
-__all__ = ["l1", "photometric_loss", "scale_regularizer", "isometry_loss", "scale_change_loss"]
+__all__ = ["l1", "photometric_loss", "depth_loss", "scale_regularizer", "isometry_loss", "scale_change_loss"]
 
 
 def l1(a: Float[ArrayLike, "H W C"], b: Float[ArrayLike, "H W C"]) -> Float[Array, ""]:
@@ -25,6 +25,25 @@ def photometric_loss(
     if lambda_dssim > 0:
         out = out + lambda_dssim * (1.0 - ssim(render, target))
     return out
+
+
+def depth_loss(depth_acc: Float[ArrayLike, "H W"], measured: Float[ArrayLike, "H W"]) -> Float[Array, ""]:
+    """Relative L1 of the rendered depth against a measured one (an RGB-D sensor), over the pixels with a
+    measurement (finite and > 0; 0 = unknown, as ``Scene.depths`` stores it):
+
+        L = sum_p v_p |sum_i T_i a_i z_i(p) - D(p)| / D(p) / sum_p v_p
+
+    ``depth_acc`` is the accumulated depth sum_i T_i a_i z_i of `fgjax.render.rasterization(render_depth=True)`
+    (``info["depth_acc"]``, camera z), not the expected depth sum_i T_i a_i z_i / alpha: a pixel the sensor sees a
+    surface at but the Gaussians leave half covered costs too, so the term fills surfaces as well as placing them.
+    Relative, so it weighs near and far alike and does not depend on the scene's normalisation. 0 without any
+    measured pixel."""
+    d = jnp.asarray(measured)
+    z = jnp.asarray(depth_acc)
+    valid = jnp.isfinite(d) & (d > 0)
+    d_safe = jnp.where(valid, d, 1.0)
+    err = jnp.where(valid, abs0(z - d_safe) / d_safe, 0.0)
+    return jnp.sum(err) / jnp.maximum(jnp.sum(valid), 1)
 
 
 def scale_regularizer(

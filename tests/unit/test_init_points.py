@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import look_at
 
-from fgjax.method.init_points import flow_point_cloud, pixel_rays, triangulate_midpoint
+from fgjax.method.init_points import depth_point_cloud, flow_point_cloud, pixel_rays, triangulate_midpoint
 
 
 def _proj(vm, K, p):
@@ -47,7 +47,7 @@ def synth_scene(tmp_path_factory):
                    overwrite=True, progress=None)
     scene = load_scene(d, "train")
     depth = np.load(d / "gt" / "train" / "depth.npy") * scene.normalization.scale  # measurement only
-    return scene, depth
+    return scene, depth, np.load(d / "gt" / "train" / "object_id.npy")
 
 
 def _depth_errors(scene, depth, pc):
@@ -61,7 +61,7 @@ def _depth_errors(scene, depth, pc):
 def test_flow_point_cloud_matches_synthetic_depth(synth_scene):
     """DIS flow + true poses on the synthetic scene: most pixels triangulate, within a few % of the true depth
     of the pixel they came from (measured: median 2.2%, 90th percentile 9.5%, 84% of pixels kept)."""
-    scene, depth = synth_scene
+    scene, depth, _ = synth_scene
     pc = flow_point_cloud(scene, gap=2, stride=1, log=lambda m: None)
     assert pc["kept_fraction"] > 0.5
     assert pc["points"].shape == (len(pc["frames"]), 3) and pc["colors"].shape == pc["points"].shape
@@ -76,7 +76,7 @@ def test_flow_point_cloud_matches_synthetic_depth(synth_scene):
 
 
 def test_flow_point_cloud_degenerate_inputs(synth_scene):
-    scene, _ = synth_scene
+    scene, _, _ = synth_scene
     one = scene.subset([0])
     pc = flow_point_cloud(one, log=lambda m: None)
     assert pc["points"].shape == (0, 3) and pc["pairs"] == []
@@ -93,7 +93,7 @@ def test_ghost_filter_pairs_each_depth_map_with_its_own_camera(synth_scene, monk
     each reference's own depth map, never a neighbour pair's map under the wrong camera."""
     import fgjax.method.init_points as ip
 
-    scene, _ = synth_scene
+    scene, _, _ = synth_scene
     orig_mask, calls, seen = ip.forward_backward_mask, [0], []
 
     def first_pair_empty(a, b, **kw):
@@ -119,3 +119,37 @@ def test_ghost_filter_pairs_each_depth_map_with_its_own_camera(synth_scene, monk
                 assert np.all(np.isnan(dm))  # the empty pair's own (empty) map
             else:
                 assert np.any(np.isfinite(dm))
+
+
+def test_depth_point_cloud_back_projects_onto_the_measured_depth_and_drops_moved_parts(synth_scene, tmp_path):
+    """The synthetic scene with its true depth as the measurement: every point projects back into its pixel at
+    its measured depth; the free-space test drops a part's points from frames where it has moved, and almost
+    no static ones (measured: 20% of the later frames' part points, 0.9% of their static points)."""
+    import dataclasses
+
+    scene, depth, ids_all = synth_scene
+    rgbd = dataclasses.replace(scene, depths=depth.astype(np.float32))
+    with pytest.raises(ValueError, match="no depth maps"):
+        depth_point_cloud(scene, log=lambda m: None)
+    said = []
+    pc = depth_point_cloud(rgbd, frames=8, log=said.append)
+    assert said and said[0].startswith("depth point cloud: 8 frames")
+    f, px, p = pc["frames"], pc["pixels"], pc["points"]
+    assert len(np.unique(f)) == 8 and np.all(np.isfinite(p)) and pc["colors"].shape == p.shape
+    vm, K = scene.viewmats[f], scene.Ks[f]
+    cam = np.einsum("mij,mj->mi", vm[:, :3, :3], p) + vm[:, :3, 3]
+    uv = np.stack([K[:, 0, 0] * cam[:, 0] / cam[:, 2] + K[:, 0, 2], K[:, 1, 1] * cam[:, 1] / cam[:, 2] + K[:, 1, 2]], -1)
+    np.testing.assert_allclose(uv, px, atol=1e-6)
+    i, j = np.floor(px[:, 1]).astype(int), np.floor(px[:, 0]).astype(int)
+    np.testing.assert_allclose(cam[:, 2], depth[f, i, j], rtol=1e-5)
+    ids = ids_all[f, i, j]
+    n_ghost = int(said[0].split("(")[1].split()[0])
+    full = depth_point_cloud(rgbd, frames=8, canonical=False, log=lambda m: None)
+    assert len(full["points"]) == len(p) + n_ghost > len(p)
+    fi, fpx = full["frames"], full["pixels"]
+    full_ids = ids_all[fi, np.floor(fpx[:, 1]).astype(int), np.floor(fpx[:, 0]).astype(int)]
+    later, full_later = f != f.min(), fi != fi.min()
+    assert np.all(f[~later] == fi.min()) and np.sum(~later) == np.sum(~full_later)  # the first frame keeps all
+    dropped = lambda part: 1.0 - np.sum(later & part(ids)) / np.sum(full_later & part(full_ids))
+    moving, static = dropped(lambda x: x > 0), dropped(lambda x: x == 0)
+    assert moving > 0.1 and static < 0.03 and moving > 5 * static, (moving, static)

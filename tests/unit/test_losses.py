@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fgjax.gaussians import knn_graph
-from fgjax.train.losses import isometry_loss, photometric_loss, scale_regularizer
+from fgjax.train.losses import depth_loss, isometry_loss, photometric_loss, scale_regularizer
 
 
 def _cloud(seed=0, n=60):
@@ -128,3 +128,30 @@ def test_l1_terms_push_nothing_at_a_zero_residual():
     g2 = jax.grad(lambda m: isometry_loss(m, x, idx, jnp.ones((6, 2))))(x.at[0].add(0.3))
     assert float(jnp.abs(g2).max()) > 0.0
 
+
+
+def test_depth_loss_is_the_relative_l1_on_measured_pixels_with_exact_gradients():
+    """Against a loop over pixels (float64), gradients against central differences; unknown pixels (0, NaN, inf,
+    negative) count for nothing, a map with none gives 0 with a zero, finite gradient."""
+    rng = np.random.default_rng(3)
+    z = rng.uniform(0.5, 3.0, (7, 9))
+    d = rng.uniform(0.5, 3.0, (7, 9))
+    d[0, :4] = [0.0, np.nan, np.inf, -1.0]
+    ref, n = 0.0, 0
+    for i in range(7):
+        for j in range(9):
+            if np.isfinite(d[i, j]) and d[i, j] > 0:
+                ref += abs(z[i, j] - d[i, j]) / d[i, j]
+                n += 1
+    assert float(depth_loss(z, d)) == pytest.approx(ref / n, rel=1e-12)
+    _assert_gradient_matches_central_differences(lambda x: depth_loss(x, d), z, rng)
+    g = np.asarray(jax.grad(depth_loss)(jnp.asarray(z), jnp.asarray(d)))
+    assert np.all(np.isfinite(g)) and np.all(g[0, :4] == 0)
+    none = np.full((7, 9), np.nan)
+    none[1] = 0.0
+    assert float(depth_loss(z, none)) == 0.0
+    g0 = np.asarray(jax.grad(depth_loss)(jnp.asarray(z), jnp.asarray(none)))
+    assert np.all(g0 == 0)
+    # an exact match costs nothing and pushes nothing (|x| with a zero derivative at 0)
+    assert float(depth_loss(d[1:], d[1:])) == 0.0
+    assert np.all(np.asarray(jax.grad(depth_loss)(jnp.asarray(d[1:]), jnp.asarray(d[1:]))) == 0)

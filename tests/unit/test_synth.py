@@ -251,6 +251,23 @@ def test_loader_reads_scene_back(scene_dir):
     assert te.frame_names[0].endswith("test_view_000") and te.frame_names[-1].endswith("test_state_001")
 
 
+def test_depth_maps_are_read_back_as_the_scenes_measured_depth(scene_dir, tmp_path):
+    """``--depth-maps``: the loader finds depth/<frame>.npy and gives the rendered depth on the covered pixels (in
+    normalised units, like the poses), 0 elsewhere; a scene without them has no depth."""
+    assert load_scene(scene_dir, "train").depths is None
+    out = tmp_path / "rgbd"
+    assert synth_app.main(["--out", str(out), "--width", "32", "--height", "24", "--frames", "3", "--test-views", "1",
+                           "--test-states", "0", "--depth-maps", "--quiet"]) == 0
+    for split in ("train", "test"):
+        sc = load_scene(out, split)
+        depth, alpha = _gt(out, "depth", split), _gt(out, "alpha", split)
+        want = np.where(alpha >= 0.5, depth, 0.0) * sc.normalization.scale
+        assert sc.depths is not None and np.mean(want > 0) > 0.5
+        np.testing.assert_allclose(sc.depths, want, rtol=1e-6)
+    with pytest.raises(ValueError, match="depth_maps"):
+        synth.SynthConfig(depth_maps=1)
+
+
 def test_failures_leave_nothing_behind(tmp_path, monkeypatch, capsys):
     out = tmp_path / "new" / "scene"
     assert synth_app.main(["--out", str(out), "--width", "0"]) == 2

@@ -17,6 +17,9 @@ seed and as the mean, and written to ``DIR/family.json``::
   benchmark's scenes and stage-1 runs, stage 2 and the evaluation only);
 - ``discovery``: where step 5 loses a part (`fgjax.method.evaluate.discovery_trace`), with ``--trace``.
 
+With ``--depth-maps`` every scene also carries its true depth as a measured one (`fgjax.synth.SynthConfig.depth_maps`:
+an ideal RGB-D sensor), which ``model.init = "depth"`` and ``train.depth_weight`` use.
+
 A PNG sheet per seed, ``DIR/seed_NNN/sheet.png``: for each "view" test frame, the gt ids, the predicted ids, the
 controlled render and the gt image. The protocol (seeds 0-5 tune, 6-11 validate) is in docs/benchmarks.md.
 """

@@ -36,6 +36,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "opticalflow": ("fgjax.bench.opticalflow", "OpenCV optical flow: EPE and time on Middlebury/Sintel"),
     "train": ("fgjax.bench.train", "stage-1 PSNR against wall time"),
     "motion": ("fgjax.bench.motion", "stage-1 run: object vs static PSNR, learned vs true object motion"),
+    "field": ("fgjax.bench.field", "the deformation field alone fitted to a local motion: L1 against L2"),
     "track": ("fgjax.bench.track", "photometric tracker: time a frame drawing all Gaussians vs those near the parts"),
     "family": ("fgjax.bench.family", "the whole pipeline on seeds of the scene family: ARI, parts found, PSNR, time"),
     "step": ("fgjax.bench.step", "stage-1 step (cameras looped vs vmapped), render with active tiles vs all"),

@@ -102,7 +102,6 @@ from pathlib import Path
 
 import cv2
 import imageio.v3 as iio
-import jax.numpy as jnp
 import numpy as np
 from sklearn.neighbors import NearestNeighbors
 
@@ -116,7 +115,6 @@ from fgjax.method.stage1 import evaluate as evaluate_stage1
 from fgjax.method.stage1 import load_test_views, refined_viewmats, render_frame
 from fgjax.method.stage2 import prepare_run
 from fgjax.metrics import rotation_angle_deg
-from fgjax.models.model import render_params
 from fgjax.synth import SynthObject, compose_transforms
 
 __all__ = ["write_control_metrics", "evaluate_measurable", "align_cameras", "run_camera", "apply_alignment",
@@ -596,17 +594,6 @@ def _true_motion_psnr(run, test, meta: dict, objs: dict, match: dict[int, int], 
     return {key: float(np.mean(v)) for key, v in out.items() if v}
 
 
-def _render_depth(run, viewmat, K, t: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """(expected depth [H, W] in scene units, alpha [H, W]) of the stage-1 model at time t."""
-    _, alpha, info, _ = render_params(run.state.params, run.state.densify.alive, jnp.asarray(viewmat, jnp.float32),
-                                      jnp.asarray(K, jnp.float32), jnp.asarray(t, jnp.float32),
-                                      spec=None if run.static else run.spec, sh_degree=run.cfg.model.sh_degree,
-                                      width=int(width), height=int(height),
-                                      background=jnp.asarray(run.cfg.model.background, jnp.float32), capacity=None,
-                                      tile_size=run.cfg.train.tile_size, render_depth=True)
-    return np.asarray(info["depth"], np.float64), np.asarray(alpha, np.float64)
-
-
 def evaluate_measurable(run, data_dir: Path, log=print, min_alpha: float = 0.5) -> dict:
     """The metrics of a scene without ground truth (module docstring: ``ground_truth`` false, objects and their
     share of the frame, stage-1 test PSNR/SSIM, depth error on static pixels where the test views have depth; a
@@ -631,7 +618,8 @@ def evaluate_measurable(run, data_dir: Path, log=print, min_alpha: float = 0.5) 
         ids = result.render_clusters(run, *args, test.width, test.height, t=float(test.times[i]))
         shares += np.array([np.mean(ids == c + 1) for c in range(k)]) / test.num_frames
         if test.depths is not None:
-            d, alpha = _render_depth(run, *args, float(test.times[i]), test.width, test.height)
+            _, d, alpha = render_frame(run.state, run.spec, run.cfg, *args, float(test.times[i]), test.width,
+                                       test.height, depth=True)
             ref = np.asarray(test.depths[i], np.float64)
             ok = (ref > 0) & (alpha >= min_alpha) & (ids == 0) & (d > 0)
             errs.append(norm.lengths_to_world(np.abs(d[ok] - ref[ok])))

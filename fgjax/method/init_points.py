@@ -197,20 +197,20 @@ def depth_point_cloud(scene, *, frames: int = 8, canonical: bool = True, log=pri
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
     pix = np.stack([xs + 0.5, ys + 0.5], -1)
     depths = np.asarray(scene.depths, np.float64)
+    depths = np.where(np.isfinite(depths) & (depths > 0), depths, np.nan)  # NaN: unknown, for the free-space test
     t0 = time.time()
     pts, cols, tms, src, pxs = [], [], [], [], []
     total = n_ghost = 0
     for k, i in enumerate(pick):
         d = depths[i]
-        ok = np.isfinite(d) & (d > 0)
+        ok = np.isfinite(d)
         total += int(ok.sum())
         c, rays = pixel_rays(scene.viewmats[i], scene.Ks[i], pix[ok])
         p = c + d[ok][:, None] * rays  # rays are scaled so that the parameter is the camera z-depth
         keep = np.ones(len(p), bool)
         if canonical and k > 0:
             ref = pick[:k]
-            keep = ~free_space_violations(p, np.where(depths[ref] > 0, depths[ref], np.nan), scene.viewmats[ref],
-                                          scene.Ks[ref])
+            keep = ~free_space_violations(p, depths[ref], scene.viewmats[ref], scene.Ks[ref])
             n_ghost += int((~keep).sum())
         pts.append(p[keep])
         cols.append(np.asarray(scene.images[i], np.float64)[ok][keep])

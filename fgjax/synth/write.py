@@ -141,11 +141,11 @@ def _write_all(tmp: Path, scene: SynthScene, train: dict[str, Any], tests: list[
         counters[f["kind"]] += 1
     if cfg.depth_maps:  # the loader's sibling folder: depth/<image stem>.npy, camera z in scene units
         (tmp / "depth").mkdir()
-        for i in range(n):
-            np.save(tmp / "depth" / f"train_{i:05d}.npy", np.where(tr.alpha >= 0.5, tr.depth, 0.0)[i].astype(np.float32))
+        measured = [(f"train_{i:05d}", d) for i, d in enumerate(np.where(tr.valid, tr.depth, 0.0).astype(np.float32))]
         if tests and te is not None:
-            for i, nm in enumerate(names):
-                np.save(tmp / "depth" / f"{nm}.npy", np.where(te.alpha >= 0.5, te.depth, 0.0)[i].astype(np.float32))
+            measured += list(zip(names, np.where(te.valid, te.depth, 0.0).astype(np.float32), strict=True))
+        for name, d in measured:
+            np.save(tmp / "depth" / f"{name}.npy", d)
     gt = tmp / "gt"
     gt.mkdir()
     np.save(gt / "labels.npy", scene.labels.astype(np.int32))

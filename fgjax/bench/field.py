@@ -17,6 +17,7 @@ the part is a few % of them (docs/benchmarks.md, "Can the field learn a local mo
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -29,7 +30,8 @@ import optax
 
 from fgjax.config import Config, load_config
 from fgjax.io import atomic_write
-from fgjax.models.deform import DeformSpec, deform_apply, deform_init
+from fgjax.method.stage1 import deform_spec_from_config
+from fgjax.models.deform import deform_apply, deform_init
 from fgjax.train.optim import exp_decay
 
 __all__ = ["fit_local_motion", "main"]
@@ -46,17 +48,13 @@ def fit_local_motion(cfg: Config, *, loss: str = "l1", hash_factor: float | None
     t = 0.9), "ratio" (learned / shift), "static_max" (largest |dX| of a static point at t = 0.9), "time_s"}."""
     if loss not in ("l1", "l2"):
         raise ValueError(f"fit_local_motion: loss must be 'l1' or 'l2', got {loss!r}")
-    d = cfg.deform
-    spec = DeformSpec(anchor=0.0, kind=d.kind, depth=d.depth, width=d.width, x_freqs=d.x_freqs, t_freqs=d.t_freqs,
-                      skip=d.skip, hash_levels=d.hash_levels, hash_log2_table=d.hash_log2_table,
-                      hash_features=d.hash_features, hash_base_res=d.hash_base_res, hash_max_res=d.hash_max_res,
-                      x_freqs_hash=d.x_freqs_hash, aabb=BOX)
+    spec = dataclasses.replace(deform_spec_from_config(cfg, BOX), anchor=0.0)
     rng = np.random.default_rng(seed)
     x = jnp.asarray(rng.uniform(-1.2, 1.2, (points, 3)), jnp.float32)
     on = np.all(np.abs(np.asarray(x) - CENTRE) < part, axis=-1)
     times = np.linspace(0.0, 1.0, frames)
-    hf = cfg.train.lr_hash_factor if hash_factor is None else float(hash_factor)
     t = cfg.train
+    hf = t.lr_hash_factor if hash_factor is None else float(hash_factor)
     params = deform_init(jax.random.key(seed), spec)
     labels = {k: jax.tree_util.tree_map(lambda _, k=k: "hash" if k == "grid" else "field", v) for k, v in params.items()}
     tx = optax.multi_transform({

@@ -13,7 +13,7 @@ while the others stay still; ``OUT/run/metrics.json``). Ground-truth pictures:
   ``OUT/demo.gif`` when mp4 writing fails).
 
 The settings of both stages come from one named configuration: experiments/articulated.toml, or
-experiments/demo_quick.toml with ``--quick`` (a smaller scene, 96x72 and 24 frames, for a smoke run), or ``--config
+experiments/demo_quick.toml with ``--quick`` (a smaller scene, 128x96 and 24 frames: `QUICK_SCENE`), or ``--config
 FILE``. ``--set SECTION.KEY=VALUE`` (repeatable) overrides one key, e.g. ``--set train.steps=3000``, ``--set
 stage2.eps=0.08`` or ``--set articulate.track_rest=false``. Every override is checked before anything is written,
 and a bad one exits with status 2 and names the key.
@@ -41,9 +41,11 @@ from fgjax.method.evaluate import write_control_metrics
 from fgjax.pipeline import train_and_discover, write_control_pictures
 from fgjax.viz import caption, depth_to_color, ids_to_color, pad16, to_u8, upscale
 
-__all__ = ["main", "contact_sheet", "pipeline_configs"]
+__all__ = ["main", "contact_sheet", "pipeline_configs", "QUICK_SCENE"]
 
 EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
+QUICK_SCENE = dict(width=128, height=96, frames=24, test_views=2, test_states=2)
+"""`fgjax.synth.SynthConfig` fields of ``fgjax demo --quick``'s scene (with the seed, default 0)."""
 
 
 def _pick_frames(object_flow: np.ndarray, n: int) -> list[int]:
@@ -108,7 +110,7 @@ def _video_frames(scene_dir: Path) -> list[np.ndarray]:
 
 
 def _scene_config(args: argparse.Namespace) -> synth.SynthConfig:
-    base = dict(width=96, height=72, frames=24, test_views=2, test_states=2) if args.quick else {}
+    base = dict(QUICK_SCENE) if args.quick else {}
     for k in ("width", "height", "frames"):
         if getattr(args, k) is not None:
             base[k] = getattr(args, k)
@@ -128,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="fgjax demo", description="Generate the built-in synthetic articulated scene "
                                 "and pictures of its ground truth (contact sheet, video).")
     p.add_argument("--out", default="outputs/demo", help="output folder (default: %(default)s)")
-    p.add_argument("--quick", action="store_true", help="smaller scene (96x72, 24 frames)")
+    p.add_argument("--quick", action="store_true", help="smaller scene (128x96, 24 frames)")
     p.add_argument("--width", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--height", type=int, default=None, help=argparse.SUPPRESS)
     p.add_argument("--frames", type=int, default=None, help=argparse.SUPPRESS)

@@ -45,7 +45,7 @@ def test_demo_set_overrides(tmp_path, capsys):
     assert cfg.articulate.track_photo == 40 and cfg.articulate.track_rounds == 3
     assert cfg.stage2.flow_cache == str(tmp_path / "fc")
     quick = demo.pipeline_configs(tmp_path / "fc", quick=True, overrides=[])
-    assert quick.articulate.track_photo == 0 and quick.train.video_frames == 0
+    assert quick.articulate.track_photo == 20 and quick.articulate.hinge_trial == 0 and quick.train.video_frames == 0
     for bad, msg in (("articulate.track_rest=maybe", "articulate.track_rest' expects a bool"),
                      ("stage2.nope=1", "unknown config key 'stage2.nope'"),
                      ("stage2.track_rest=false", "unknown config key 'stage2.track_rest'"),  # moved to articulate

@@ -141,7 +141,7 @@ def test_flow_warps_next_frame_onto_previous(scene_dir):
 
 
 def test_texture_stays_put_when_the_camera_faces_a_wall():
-    """Independent check against OpenCV's optical flow on the quick demo's scene (96x72, 24 frames, a 60-degree
+    """Independent check against OpenCV's optical flow on the default scene at 96x72 (24 frames, a 60-degree
     orbit that faces the back wall half-way): on the room's pixels the median difference between DIS flow and the
     ground-truth flow stays a small fraction of a pixel in every pair. Coplanar splats composited by their centres'
     depth all swap order when the camera faces their surface, which shifted the whole texture by 0.78 px in one

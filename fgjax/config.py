@@ -207,6 +207,14 @@ class FlowConfig:
     """The depth the "pair" loss's camera flow u_cam is computed from: "composited" is 1 / sum_i w_i / Z_i, for which
     Lemma 1's residual vanishes (DESIGN.md section 1, step 4); "expected" is sum_i w_i Z_i / alpha, which leaves the
     residual in the target (`fgjax.flow.maps_camera_flow`)."""
+    norm: str = "l1"
+    """The "pair" loss's penalty on each pixel's residual r = u - u_cam - u~_GS (`fgjax.flow.flow_loss`): "l1" is
+    |r_x| + |r_y|; "charbonnier" is c^2 (sqrt(1 + |r|^2 / c^2) - 1) with c = ``charbonnier_px``, squared below c
+    and linear beyond. Under L1 a deformation field shared by the whole scene learns none of a small part's motion
+    from velocity targets; under the squared form it does (docs/benchmarks.md, "Can the field learn a local
+    motion?")."""
+    charbonnier_px: float = 10.0
+    """c of ``norm = "charbonnier"``, in pixels."""
     photo_motion: float = 1.0
     """While the flow loss is on, the factor on the photometric loss's gradient into the deformation field's
     displacements dx (the flow loss's reaches them in full). 1: both losses train the motion (the paper); 0: the
@@ -647,6 +655,10 @@ def validate_stage1(cfg: Config) -> None:
     need(fl.camera_depth in ("composited", "expected"), "flow.camera_depth", "'composited' or 'expected'",
          fl.camera_depth)
     need(_finite(fl.photo_motion) and 0 <= fl.photo_motion <= 1, "flow.photo_motion", "in [0, 1]", fl.photo_motion)
+    need(fl.norm in ("l1", "charbonnier"), "flow.norm", "'l1' or 'charbonnier'", fl.norm)
+    need(fl.norm == "l1" or fl.loss == "pair", "flow.norm", "'l1' with flow.loss = 'track'", fl.norm)
+    need(_finite(fl.charbonnier_px) and fl.charbonnier_px > 0, "flow.charbonnier_px", "a finite number > 0",
+         fl.charbonnier_px)
     for k in ("lr", "lr_final"):
         v = getattr(cfg.pose, k)
         need(_finite(v) and v > 0, f"pose.{k}", "a finite number > 0", v)

@@ -238,7 +238,7 @@ def flow_diagnosis(cfg, state, spec, data_dir: Path, norm: Normalization, flows:
     w, h = sc.width, sc.height
     bg = jnp.asarray(cfg.model.background, jnp.float32)
     ss = StepSpec(spec, cfg.model.sh_degree, w, h, None, cfg.train.tile_size, cfg.train.lambda_dssim, 0.0, 0.0, False,
-                  1.0, cfg.flow.threshold)
+                  1.0, cfg.flow.threshold, flow_norm=cfg.flow.norm, flow_scale=cfg.flow.charbonnier_px)
     out = []
     for lab in labels:
         frames = []
@@ -403,7 +403,8 @@ def oracle_fit(run_dir: Path, data_dir: Path, steps: int, *, flow: str = "estima
     capacity = compute_capacity(params, alive, sc.viewmats, sc.Ks, sc.width, sc.height, cfg.train.tile_size,
                                 cfg.train.capacity_margin)
     ss = StepSpec(spec, cfg.model.sh_degree, sc.width, sc.height, capacity, cfg.train.tile_size,
-                  cfg.train.lambda_dssim, 0.0, 0.0, False, 1.0, cfg.flow.threshold, flow_loss=loss)
+                  cfg.train.lambda_dssim, 0.0, 0.0, False, 1.0, cfg.flow.threshold, flow_loss=loss,
+                  flow_norm=cfg.flow.norm, flow_scale=cfg.flow.charbonnier_px)
     bg = jnp.asarray(cfg.model.background, jnp.float32)
 
     def objective(d, batch):

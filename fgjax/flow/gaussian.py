@@ -350,15 +350,16 @@ def lemma1_residual(
 # ----------------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("norm", "threshold"))
+@functools.partial(jax.jit, static_argnames=("norm", "threshold", "scale"))
 def flow_loss(
     flow: Float[ArrayLike, "*batch H W 2"],
     flow_cam: Float[ArrayLike, "*batch H W 2"],
     flow_gs: Float[ArrayLike, "*batch H W 2"],
     valid: Bool[ArrayLike, "*batch H W"] | Float[ArrayLike, "*batch H W"] | None = None,
     *,
-    norm: Literal["l1", "l2"] = "l1",
+    norm: Literal["l1", "l2", "charbonnier"] = "l1",
     threshold: float | None = None,
+    scale: float = 10.0,
 ) -> Float[Array, ""]:
     """Dynamic flow loss L_uGS = mean over valid pixels of ||u - u_cam - u~_GS|| (DESIGN section 1, step 4).
 
@@ -373,9 +374,13 @@ def flow_loss(
         valid: pixel mask (bool, or float weights in [0, 1]), [..., H, W]; None = all pixels.
         norm: "l1" = |dx| + |dy| per pixel (zero gradient where a component's residual is exactly 0);
             "l2" = sqrt(dx^2 + dy^2) per pixel (end-point error; zero
-            gradient at a zero residual instead of NaN).
+            gradient at a zero residual instead of NaN);
+            "charbonnier" = c^2 (sqrt(1 + |r|^2 / c^2) - 1) with c = ``scale`` (Charbonnier 1994): |r|^2 / 2 for
+            |r| << c, so a parameter shared by many pixels moves towards the mean of what they ask rather than
+            the median, and c |r| beyond (robust); gradient r / sqrt(1 + |r|^2 / c^2), smooth at 0.
         threshold: optional magnitude threshold (pixels) on the target u - u_cam; None = off. A Python
             float (static under jit, like ``norm``).
+        scale: c of "charbonnier", in pixels (> 0; a Python float, static under jit).
 
     Returns:
         Scalar loss: sum(w * err) / max(sum(w), 1) with w the validity weights (0 when nothing is valid).
@@ -386,8 +391,10 @@ def flow_loss(
             f"flow, flow_cam, flow_gs must share one shape [..., H, W, 2]; got {list(flow.shape)}, "
             f"{list(flow_cam.shape)}, {list(flow_gs.shape)}."
         )
-    if norm not in ("l1", "l2"):
-        raise ValueError(f"norm must be 'l1' or 'l2'; got {norm!r}.")
+    if norm not in ("l1", "l2", "charbonnier"):
+        raise ValueError(f"norm must be 'l1', 'l2' or 'charbonnier'; got {norm!r}.")
+    if not scale > 0:
+        raise ValueError(f"scale must be > 0; got {scale!r}.")
     target = flow - flow_cam  # [..., H, W, 2]
     if threshold is not None:
         mag2 = jnp.sum(target * target, axis=-1, keepdims=True)
@@ -397,6 +404,9 @@ def flow_loss(
         # abs0: jnp.abs's derivative 1 at r = 0 would push every pixel whose target and flow agree exactly (a static
         # pixel at rest, a thresholded target) towards +x, +y
         err = jnp.sum(abs0(r), axis=-1)
+    elif norm == "charbonnier":
+        c2 = float(scale) ** 2
+        err = c2 * (jnp.sqrt(1.0 + jnp.sum(r * r, axis=-1) / c2) - 1.0)
     else:
         r2 = jnp.sum(r * r, axis=-1)
         pos = r2 > 0
@@ -458,6 +468,8 @@ def gaussian_flow_loss(
     quats1: Float[ArrayLike, "N 4"] | None = None,
     scales1: Float[ArrayLike, "N 3"] | None = None,
     camera_depth: str = "composited",
+    norm: Literal["l1", "l2", "charbonnier"] = "l1",
+    scale: float = 10.0,
 ) -> tuple[Float[Array, ""], Bool[Array, ""]]:
     """L_uGS of one frame pair from Gaussians (DESIGN section 1, step 4): (loss, overflow flag).
 
@@ -470,7 +482,8 @@ def gaussian_flow_loss(
 
     Variants (the paper's ablation, its Table 8): ``anisotropic`` renders u~_GS in GaussianFlow's affine form with the
     frame t rotations and scales ``quats1, scales1`` (`dynamic_gaussian_flow`); ``camera_depth="expected"`` takes
-    u_cam from the expected depth, leaving Lemma 1's residual in the target (`maps_camera_flow`).
+    u_cam from the expected depth, leaving Lemma 1's residual in the target (`maps_camera_flow`). ``norm`` and
+    ``scale``: the per-pixel penalty (`flow_loss`).
     """
     maps = dynamic_gaussian_flow(means0, quats0, scales0, opacities, means1, viewmat0, K, width, height,
                                  anisotropic=anisotropic, quats1=quats1, scales1=scales1, capacity=capacity,
@@ -480,7 +493,7 @@ def gaussian_flow_loss(
     known = jnp.all(jnp.isfinite(u_obs), axis=-1)
     valid = cam_ok & known & (jax.lax.stop_gradient(maps.alpha) > min_alpha)
     loss = flow_loss(jnp.where(known[..., None], u_obs, 0.0), jax.lax.stop_gradient(u_cam), maps.flow, valid,
-                     threshold=threshold)
+                     threshold=threshold, norm=norm, scale=scale)
     return loss, maps.overflow
 
 

@@ -176,6 +176,8 @@ class StepSpec:
     gaussian_flow: str = "isotropic"  # "pair": u~_GS isotropic (the paper) or anisotropic (GaussianFlow)
     camera_depth: str = "composited"  # "pair": u_cam from the composited ("composited") or expected depth
     depth_weight: float = 0.0  # weight of the measured-depth term (0: none; the step then takes no depth batch)
+    flow_norm: str = "l1"  # "pair": the per-pixel penalty of L_uGS, "l1" or "charbonnier" (fgjax.flow.flow_loss)
+    flow_scale: float = 10.0  # "pair": c of "charbonnier" (pixels)
 
 
 class FlowBatch(NamedTuple):
@@ -210,7 +212,7 @@ def flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
                                         threshold=ss.flow_threshold if ss.flow_threshold > 0 else None,
                                         capacity=ss.capacity, tile_size=ss.tile_size,
                                         anisotropic=ss.gaussian_flow == "anisotropic", quats1=q1, scales1=s1,
-                                        camera_depth=ss.camera_depth)
+                                        camera_depth=ss.camera_depth, norm=ss.flow_norm, scale=ss.flow_scale)
     return fl.weight * loss, overflow
 
 
@@ -498,7 +500,7 @@ def train_stage1(
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
                       fc.photo_motion if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth,
-                      t.depth_weight if depths is not None else 0.0)
+                      t.depth_weight if depths is not None else 0.0, fc.norm, fc.charbonnier_px)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]

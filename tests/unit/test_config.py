@@ -82,10 +82,14 @@ def test_named_configurations_load_and_name_their_variant(name, variant):
 @pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"), ("flow.photo_motion=1.5", "flow.photo_motion"),
                                           ("deform.anchor=last", "deform.anchor"),
                                           ("flow.gaussian_flow=affine", "flow.gaussian_flow"),
-                                          ("flow.camera_depth=median", "flow.camera_depth")])
+                                          ("flow.camera_depth=median", "flow.camera_depth"),
+                                          ("flow.norm=l2", "flow.norm"), ("flow.charbonnier_px=0", "flow.charbonnier_px")])
 def test_stage1_flow_options_are_validated(override, key):
     with pytest.raises(ConfigError, match=rf"^config key '{key}' must be "):
         load_config(None, overrides=[override])  # "config key 'KEY' must be ..."
     assert load_config(None, overrides=["flow.loss=track"]).flow.loss == "track"
     cfg = load_config(None, overrides=["flow.gaussian_flow=anisotropic", "flow.camera_depth=expected"])
     assert (cfg.flow.gaussian_flow, cfg.flow.camera_depth) == ("anisotropic", "expected")
+    assert load_config(None, overrides=["flow.norm=charbonnier"]).flow.norm == "charbonnier"
+    with pytest.raises(ConfigError, match=r"^config key 'flow.norm' must be 'l1' with flow.loss = 'track'"):
+        load_config(None, overrides=["flow.norm=charbonnier", "flow.loss=track"])

@@ -477,6 +477,41 @@ def test_flow_loss_values_mask_threshold():
         fl.flow_loss(u, cam, gs, norm="huber")
 
 
+def test_flow_loss_charbonnier_value_gradient_and_limits():
+    """rho(r) = c^2 (sqrt(1 + |r|^2 / c^2) - 1) per pixel against numpy; |r|^2 / 2 well below c and c |r| - c^2 well
+    above it; its gradient against central differences (float64) and finite, zero, at a zero residual."""
+    h, w = 6, 5
+    k1, k2, k3 = jr.split(jr.key(82), 3)
+    cam, gs = jr.normal(k1, (h, w, 2)), jr.normal(k2, (h, w, 2))
+    r = 3.0 * jr.normal(k3, (h, w, 2))
+    u = cam + gs + r
+    rn = np.asarray(r, np.float64)
+    for c in (0.5, 2.0, 10.0):
+        ref = np.mean(c * c * (np.sqrt(1.0 + (rn ** 2).sum(-1) / c ** 2) - 1.0))
+        np.testing.assert_allclose(fl.flow_loss(u, cam, gs, norm="charbonnier", scale=c), ref, rtol=1e-12)
+    small = 1e-3 * r
+    np.testing.assert_allclose(fl.flow_loss(cam + gs + small, cam, gs, norm="charbonnier", scale=10.0),
+                               np.mean((np.asarray(small) ** 2).sum(-1)) / 2, rtol=1e-6)
+    big = 1e4 * r
+    np.testing.assert_allclose(fl.flow_loss(cam + gs + big, cam, gs, norm="charbonnier", scale=1.0),
+                               np.mean(np.linalg.norm(np.asarray(big), axis=-1) - 1.0), rtol=1e-6)
+
+    def f(x):
+        return fl.flow_loss(u, cam, x, norm="charbonnier", scale=2.0)
+
+    g = np.asarray(jax.grad(f)(gs))
+    e = np.zeros(gs.shape)
+    for idx in [(0, 0, 0), (2, 3, 1), (5, 4, 0)]:
+        e[:] = 0.0
+        e[idx] = 1e-6
+        fd = (float(f(gs + e)) - float(f(gs - e))) / 2e-6
+        np.testing.assert_allclose(g[idx], fd, rtol=1e-6, atol=1e-10)
+    g0 = jax.grad(lambda x: fl.flow_loss(cam + gs, cam, x, norm="charbonnier"))(gs)
+    assert np.all(np.isfinite(np.asarray(g0))) and np.abs(np.asarray(g0)).max() < 1e-15  # round-off of r = 0 only
+    with pytest.raises(ValueError, match="scale"):
+        fl.flow_loss(u, cam, gs, norm="charbonnier", scale=0.0)
+
+
 def test_warp_backward_integer_shift():
     """A constant flow of (+2, -1) samples frame t at (j + 2, i - 1): the warp of a shifted image is exact."""
     img = jr.uniform(jr.key(81), (12, 16, 3))

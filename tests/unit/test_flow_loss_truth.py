@@ -48,9 +48,9 @@ def door_pair():
             "labels": scene.labels}
 
 
-def _loss(p, m1, threshold=None):
+def _loss(p, m1, threshold=None, norm="l1"):
     loss, overflow = gaussian_flow_loss(p["m0"], p["q0"], p["s"], p["o"], m1, p["vm0"], p["vm1"], p["K"], p["flow"],
-                                        W, H, threshold=threshold)
+                                        W, H, threshold=threshold, norm=norm)
     assert not bool(overflow)
     return loss
 
@@ -64,6 +64,9 @@ def test_loss_near_zero_at_true_motion_and_large_at_rest(door_pair):
     # the mean runs over every valid pixel: the static ones (94 % here) keep the optical flow's and the composited
     # depth's small errors at both motions, so the whole loss falls by less than the door's share of it
     assert true < 0.5 * rest, (true, rest)
+    # the same under the Charbonnier penalty (flow.norm = "charbonnier"), which squares the door's residuals
+    true_c, rest_c = float(_loss(p, p["m1"], norm="charbonnier")), float(_loss(p, p["m0"], norm="charbonnier"))
+    assert np.isfinite(true_c) and true_c < 0.2 * rest_c, (true_c, rest_c)
     # on the door's pixels: the rendered dynamic flow is the true object flow to within a fraction of its size
     maps = dynamic_gaussian_flow(p["m0"], p["q0"], p["s"], p["o"], p["m1"], p["vm0"], p["K"], W, H)
     epe = np.linalg.norm(np.asarray(maps.flow)[p["door"]] - p["object_flow"][p["door"]], axis=-1)

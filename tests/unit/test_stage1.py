@@ -256,6 +256,11 @@ def test_flow_loss_is_finite_and_reaches_the_deformation(gaussian_flow, camera_d
     # no previous frame: weight 0, loss 0
     fb0 = fb._replace(weight=jnp.float32(0.0))
     assert float(stage1.flow_term(ss, params, state.densify.alive, vm, K, t, fb0)[0]) == 0.0
+    # flow.norm = "charbonnier" reaches the loss: the residuals (about 1.6 px) squared, not summed
+    ssc = dataclasses.replace(ss, flow_norm="charbonnier", flow_scale=10.0)
+    lc, gc = jax.value_and_grad(lambda p: stage1.flow_term(ssc, p, state.densify.alive, vm, K, t, fb)[0])(params)
+    assert np.isfinite(float(lc)) and 0 < float(lc) < float(loss)
+    assert np.all(np.isfinite(np.asarray(gc["deform"]["head"]["w"]))) and np.abs(gc["deform"]["head"]["w"]).max() > 0
 
 
 def test_training_step_with_flow_loss_runs():
@@ -266,6 +271,9 @@ def test_training_step_with_flow_loss_runs():
                "static.force=dynamic", "densify.enabled=false")
     res = stage1.train_stage1(cfg, scene, None, stop_at=3, progress=False, log=lambda *_: None, flows=flows)
     assert len(res["losses"]) == 3 and np.all(np.isfinite(res["losses"]))
+    charb = stage1.train_stage1(dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, norm="charbonnier")), scene,
+                                None, stop_at=3, progress=False, log=lambda *_: None, flows=flows)
+    assert np.all(np.isfinite(charb["losses"])) and charb["losses"] != res["losses"]  # the option reaches the step
     g = res["state"].params["gaussians"]
     assert np.all(np.isfinite(np.asarray(g.means)))
     assert np.abs(np.asarray(res["state"].params["deform"]["head"]["w"])).max() > 0  # the field was updated

@@ -459,24 +459,34 @@ def _run_tvl1(image0, image1, p: TVL1Params):
 
 
 RLOF_ATTEMPTS = 6
+RLOF_MIN_SIDE = 96
+"""Shortest image side dense RLOF accepts. On smaller images OpenCV's dense RLOF (default settings, one
+thread) gave run-to-run different fields for the same pair: all zeros, NaN, or a wrong translation
+(64x80 and 48x64 textures, at every pyramid depth 1-4); at 96x120, 128x160 and 192x240 every one of
+80 repeated calls was bitwise the same."""
 
 
 def _run_rlof(image0, image1, p: RLOFParams):
-    """OpenCV's dense RLOF returns an exactly all-zero field on some calls for the same input (6-25 of 60 repeated
-    calls on a 2-core machine; under 1 in 100 on one OpenCV thread, sometimes several in a row). It runs on one
-    OpenCV thread (the caller's thread count is restored), and an all-zero field for two images that differ is
-    computed again, up to `RLOF_ATTEMPTS` times; then it raises instead of passing for "no motion"."""
+    """OpenCV's dense RLOF on one OpenCV thread (the caller's thread count is restored): with several
+    threads it returned an all-zero field on 6-25 of 60 repeated calls. Images with a side under
+    `RLOF_MIN_SIDE` are refused (ValueError). An all-zero field for two images that differ, or a
+    non-finite one, is computed again, up to `RLOF_ATTEMPTS` times; then it raises instead of passing
+    for "no motion"."""
+    if min(image0.shape[:2]) < RLOF_MIN_SIDE:
+        raise ValueError(f"flow method rlof needs images at least {RLOF_MIN_SIDE} px on each side (these are "
+                         f"{image0.shape[1]}x{image0.shape[0]}): OpenCV's dense RLOF is not repeatable on smaller "
+                         "images; use another flow method (flow.method)")
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
         for _ in range(RLOF_ATTEMPTS):
             flow = _rlof_once(image0, image1, p)
-            if np.any(flow) or np.array_equal(image0, image1):
+            if np.all(np.isfinite(flow)) and (np.any(flow) or np.array_equal(image0, image1)):
                 return flow
     finally:
         cv2.setNumThreads(threads)
-    raise RuntimeError(f"OpenCV's dense RLOF returned an all-zero flow {RLOF_ATTEMPTS} times for two different images; "
-                       "use another flow method (flow.method)")
+    raise RuntimeError(f"OpenCV's dense RLOF returned an all-zero or non-finite flow {RLOF_ATTEMPTS} times for "
+                       "two different images; use another flow method (flow.method)")
 
 
 def _rlof_once(image0, image1, p: RLOFParams):

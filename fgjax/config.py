@@ -67,7 +67,8 @@ class ModelConfig:
 @dataclasses.dataclass(frozen=True)
 class DeformConfig:
     kind: str = "hash"
-    """"frequency" (Deformable-3DGS 8x256 MLP) or "hash" (hash grid + small MLP)."""
+    """"frequency" (Deformable-3DGS 8x256 MLP), "hash" (hash grid + small MLP) or "bases" (a few rigid motions
+    blended per point by weights from the hash-grid MLP: `fgjax.models.deform`)."""
     depth: int = 2
     """MLP hidden layers (8 for Deformable-3DGS)."""
     width: int = 64
@@ -85,6 +86,10 @@ class DeformConfig:
     hash_max_res: int = 256
     x_freqs_hash: int = 2
     """Low frequencies of gamma(X) next to the hash features."""
+    bases: int = 6
+    """"bases" kind: rigid motions, the static one included."""
+    knots: int = 16
+    """"bases" kind: control times of each motion over the clip."""
     anchor: str = "none"
     """"first": the field is zero at the first training time (`fgjax.models.deform.DeformSpec.anchor`), so the
     canonical Gaussians are the scene in its first frame (where ``model.init = "flow"`` puts them) and the field
@@ -208,8 +213,8 @@ class FlowConfig:
     Lemma 1's residual vanishes (DESIGN.md section 1, step 4); "expected" is sum_i w_i Z_i / alpha, which leaves the
     residual in the target (`fgjax.flow.maps_camera_flow`)."""
     norm: str = "l1"
-    """The "pair" loss's penalty on each pixel's residual r = u - u_cam - u~_GS (`fgjax.flow.flow_loss`): "l1" is
-    |r_x| + |r_y|; "charbonnier" is c^2 (sqrt(1 + |r|^2 / c^2) - 1) with c = ``charbonnier_px``, squared below c
+    """The flow loss's penalty on each pixel's residual (the "pair" loss's r = u - u_cam - u~_GS, `fgjax.flow.flow_loss`;
+    the "track" loss's r = C - D, `fgjax.flow.track`): "l1" is |r_x| + |r_y|; "charbonnier" is c^2 (sqrt(1 + |r|^2 / c^2) - 1) with c = ``charbonnier_px``, squared below c
     and linear beyond. Under L1 a deformation field shared by the whole scene learns none of a small part's motion
     from velocity targets; under the squared form it does (docs/benchmarks.md, "Can the field learn a local
     motion?")."""
@@ -621,7 +626,9 @@ def validate_stage1(cfg: Config) -> None:
     need(_finite(m.init_scale) and m.init_scale > 0, "model.init_scale", "> 0", m.init_scale)
     need(len(m.background) == 3 and all(0.0 <= c <= 1.0 for c in m.background), "model.background",
          "three numbers in [0, 1]", m.background)
-    need(f.kind in ("hash", "frequency"), "deform.kind", "'hash' or 'frequency'", f.kind)
+    need(f.kind in ("hash", "frequency", "bases"), "deform.kind", "'hash', 'frequency' or 'bases'", f.kind)
+    need(f.bases >= 2, "deform.bases", ">= 2", f.bases)
+    need(f.knots >= 2, "deform.knots", ">= 2", f.knots)
     for k in ("depth", "width", "hash_levels", "hash_features", "hash_base_res", "hash_max_res"):
         need(getattr(f, k) >= 1, f"deform.{k}", ">= 1", getattr(f, k))
     for k in ("skip", "x_freqs", "t_freqs", "x_freqs_hash"):
@@ -656,7 +663,6 @@ def validate_stage1(cfg: Config) -> None:
          fl.camera_depth)
     need(_finite(fl.photo_motion) and 0 <= fl.photo_motion <= 1, "flow.photo_motion", "in [0, 1]", fl.photo_motion)
     need(fl.norm in ("l1", "charbonnier"), "flow.norm", "'l1' or 'charbonnier'", fl.norm)
-    need(fl.norm == "l1" or fl.loss == "pair", "flow.norm", "'l1' with flow.loss = 'track'", fl.norm)
     need(_finite(fl.charbonnier_px) and fl.charbonnier_px > 0, "flow.charbonnier_px", "a finite number > 0",
          fl.charbonnier_px)
     for k in ("lr", "lr_final"):

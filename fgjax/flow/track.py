@@ -15,7 +15,10 @@ fixes) and any later frame t:
   displacements as colour channels);
 - `gaussian_track_loss` = mean over valid pixels (rendered alpha > ``min_alpha`` at r, finite D) of
   max(|C(p, t) - D(p, t)|_1 - tau, 0): errors under tau pixels (``threshold``, `fgjax.config.FlowConfig.threshold`)
-  cost nothing. C composites the displacements of the Gaussians' centres, not of the surface point each pixel sees
+  cost nothing (``norm = "l1"``); or, with ``norm = "charbonnier"``, the mean of
+  c^2 (sqrt(1 + e^2 / c^2) - 1) with e = max(|C(p, t) - D(p, t)|_2 - tau, 0) and c = ``scale`` pixels (Charbonnier
+  1994: e^2 / 2 for e << c, so a small residual pulls in proportion to its size, and linear beyond, as in
+  `fgjax.flow.gaussian.gaussian_flow_loss`). C composites the displacements of the Gaussians' centres, not of the surface point each pixel sees
   (the isotropic form of L_uGS, DESIGN.md section 1, step 4), so a static pixel's residual grows with the camera's
   motion between r and t (measured on a synthetic door: median 0.04 px one frame apart, 0.2 px six frames, 0.47 px
   fifteen), and so does the chained flow's own error; without tau, L1's gradient sign(r) would push every static
@@ -68,11 +71,16 @@ def gaussian_track_loss(
     opacities: Float[ArrayLike, " N"], means_t: Float[ArrayLike, "N 3"], viewmat_r: Float[ArrayLike, "4 4"],
     K_r: Float[ArrayLike, "3 3"], viewmat_t: Float[ArrayLike, "4 4"], K_t: Float[ArrayLike, "3 3"],
     track: Float[ArrayLike, "H W 2"], width: int, height: int, *, threshold: float = 0.0, min_alpha: float = 0.5,
-    capacity: int | None = None, tile_size: int = 16,
+    capacity: int | None = None, tile_size: int = 16, norm: str = "l1", scale: float = 10.0,
 ) -> tuple[Float[Array, ""], Bool[Array, ""]]:
-    """(mean over valid pixels of max(|C - D|_1 - threshold, 0) in pixels, overflow flag): module docstring.
+    """(mean over valid pixels of max(|C - D|_1 - threshold, 0) in pixels, or of its Charbonnier form with ``norm =
+    "charbonnier"`` and c = ``scale`` (a Python float, static under jit), overflow flag): module docstring.
     ``track`` is D [H, W, 2] on frame r's grid (NaN = lost). Frame r's Gaussians are held fixed; gradients reach
     ``means_t`` only. 0 when no pixel is valid."""
+    if norm not in ("l1", "charbonnier"):
+        raise ValueError(f"norm must be 'l1' or 'charbonnier'; got {norm!r}.")
+    if not scale > 0:
+        raise ValueError(f"scale must be > 0; got {scale!r}.")
     sg = jax.lax.stop_gradient
     corr, alpha, overflow = rendered_correspondence(sg(means_r), sg(quats_r), sg(scales_r), sg(opacities), means_t,
                                                     viewmat_r, K_r, viewmat_t, K_t, width, height, capacity=capacity,
@@ -80,6 +88,13 @@ def gaussian_track_loss(
     track = as_float(track)
     known = jnp.all(jnp.isfinite(track), axis=-1)
     valid = (known & (sg(alpha) > min_alpha)).astype(corr.dtype)
-    err = jnp.sum(abs0(corr - jnp.where(known[..., None], track, 0.0)), axis=-1)
-    err = jnp.maximum(err - threshold, 0.0)
+    r = corr - jnp.where(known[..., None], track, 0.0)
+    if norm == "l1":
+        err = jnp.maximum(jnp.sum(abs0(r), axis=-1) - threshold, 0.0)
+    else:
+        r2 = jnp.sum(r * r, axis=-1)
+        pos = r2 > 0  # |r|_2 with a zero (not NaN) derivative at r = 0
+        e = jnp.maximum(jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0) - threshold, 0.0)
+        c2 = float(scale) ** 2
+        err = c2 * (jnp.sqrt(1.0 + e * e / c2) - 1.0)
     return jnp.sum(valid * err) / jnp.maximum(jnp.sum(valid), 1.0), overflow

@@ -137,8 +137,8 @@ def deform_spec_from_config(cfg: Config, aabb, times=None) -> DeformSpec:
     return DeformSpec(
         anchor=anchor, kind=d.kind, depth=d.depth, width=d.width, x_freqs=d.x_freqs, t_freqs=d.t_freqs, skip=d.skip,
         hash_levels=d.hash_levels, hash_log2_table=d.hash_log2_table, hash_features=d.hash_features,
-        hash_base_res=d.hash_base_res, hash_max_res=d.hash_max_res, x_freqs_hash=d.x_freqs_hash,
-        aabb=tuple(float(x) for x in aabb),
+        hash_base_res=d.hash_base_res, hash_max_res=d.hash_max_res, x_freqs_hash=d.x_freqs_hash, bases=d.bases,
+        knots=d.knots, aabb=tuple(float(x) for x in aabb),
     )
 
 
@@ -206,7 +206,7 @@ def flow_term(ss: StepSpec, params, alive, viewmat, K, t, fl: FlowBatch):
         k_prev = K if fl.K_prev is None else fl.K_prev
         loss, overflow = gaussian_track_loss(m0, q0, s0, o0, m1, vm_prev, k_prev, viewmat, K, fl.flow, ss.width,
                                              ss.height, threshold=ss.flow_threshold, capacity=ss.capacity,
-                                             tile_size=ss.tile_size)
+                                             tile_size=ss.tile_size, norm=ss.flow_norm, scale=ss.flow_scale)
         return fl.weight * loss, overflow
     loss, overflow = gaussian_flow_loss(m0, q0, s0, o0, m1, vm_prev, viewmat, K, fl.flow, ss.width, ss.height,
                                         threshold=ss.flow_threshold if ss.flow_threshold > 0 else None,

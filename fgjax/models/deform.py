@@ -1,14 +1,23 @@
 """Deformation field f(params, X, t) -> (dX, dq, ds): canonical Gaussians to time t.
 
-Two encodings (DESIGN.md section 1, step 1):
+Three kinds (DESIGN.md section 1, step 1):
 
 - ``"frequency"``: Deformable-3DGS (Yang et al. 2024): gamma(X) with 10 frequencies, gamma(t) with 6,
   an MLP of depth 8 and width 256 with a skip connection (input re-concatenated) after layer 4, and
   three linear heads.
 - ``"hash"``: a 3D multiresolution hash grid on X (normalised by the scene box) plus gamma(t), into a
   small MLP (2 x 64 by default): the fast option on CPU.
+- ``"bases"``: a few rigid motions shared by the scene, blended per point (the motion bases of Shape of Motion,
+  Wang et al. 2024, with weights read from position instead of stored per Gaussian): basis 0 is the identity
+  (the static scene) and basis k >= 1 is a rotation R_k(t) = exp(omega_k(t)) about a learned pivot c_k plus a
+  translation tau_k(t), both linear between ``knots`` evenly spaced control times on [0, 1]. The weights
+  w(X) = softmax(logits(X)) come from the hash-grid MLP of X (no time input), and
+  dX = sum_k w_k(X) [R_k(t) (X - c_k) + c_k + tau_k(t) - X]. A part is then a region whose weight sits on one
+  basis, and its motion is that basis's few parameters, which every point of the part informs. dq and ds are zero
+  (the Gaussians' orientations are not rotated).
 
-The heads are initialised to zero, so the field starts at the identity (dX = 0, dq = 0, ds = 0).
+The heads of the first two kinds are initialised to zero, so the field starts at the identity (dX = 0, dq = 0,
+ds = 0); the bases start at the identity (omega = tau = 0) with random logits (symmetry breaking).
 dX is added to the means, dq to the raw (unnormalised) quaternions, ds to the log-scales.
 Parameters are a plain pytree (dict of arrays); the spec is a frozen, hashable dataclass (static under jit).
 """
@@ -22,6 +31,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from fgjax.geometry import so3_exp
 from fgjax.models.encoding import (
     frequency_dim,
     frequency_encoding,
@@ -31,7 +41,7 @@ from fgjax.models.encoding import (
     hash_grid_resolutions,
 )
 
-__all__ = ["DeformSpec", "deform_init", "deform_apply", "deform_num_params"]
+__all__ = ["DeformSpec", "basis_motions", "deform_init", "deform_apply", "deform_num_params"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,7 +49,7 @@ class DeformSpec:
     """Static description of a deformation field (hashable: usable as a jit static argument)."""
 
     kind: str = "frequency"
-    """"frequency" (Deformable-3DGS MLP) or "hash" (hash grid + small MLP)."""
+    """"frequency" (Deformable-3DGS MLP), "hash" (hash grid + small MLP) or "bases" (blended rigid motions)."""
     depth: int = 8
     """Hidden layers of the MLP."""
     width: int = 256
@@ -59,13 +69,19 @@ class DeformSpec:
     """Low frequencies of gamma(X) added next to the hash features."""
     aabb: tuple[float, ...] = (-1.0, -1.0, -1.0, 1.0, 1.0, 1.0)
     """Scene box (lo xyz, hi xyz) that the hash grid covers."""
+    bases: int = 6
+    """"bases" kind: rigid motions including the static one (>= 2)."""
+    knots: int = 16
+    """"bases" kind: control times of each motion over t in [0, 1] (>= 2)."""
     anchor: float | None = None
     """A time t_a at which the field is the identity: f(X, t) = g(X, t) - g(X, t_a) with g the network, so the
     canonical Gaussians are the scene at t_a (None: f = g, a canonical space of the network's choosing)."""
 
     def __post_init__(self):
-        if self.kind not in ("frequency", "hash"):
-            raise ValueError(f"DeformSpec.kind must be 'frequency' or 'hash'; got {self.kind!r}")
+        if self.kind not in ("frequency", "hash", "bases"):
+            raise ValueError(f"DeformSpec.kind must be 'frequency', 'hash' or 'bases'; got {self.kind!r}")
+        if self.bases < 2 or self.knots < 2:
+            raise ValueError(f"DeformSpec.bases and knots must be >= 2; got {self.bases}, {self.knots}")
         if self.depth < 1 or self.width < 1:
             raise ValueError(f"DeformSpec.depth and width must be >= 1; got {self.depth}, {self.width}")
         if len(self.aabb) != 6 or any(self.aabb[i + 3] <= self.aabb[i] for i in range(3)):
@@ -80,7 +96,7 @@ class DeformSpec:
 
     @property
     def in_dim(self) -> int:
-        t_dim = frequency_dim(1, self.t_freqs)
+        t_dim = 0 if self.kind == "bases" else frequency_dim(1, self.t_freqs)
         if self.kind == "frequency":
             return frequency_dim(3, self.x_freqs) + t_dim
         return hash_grid_dim(self.hash_levels, self.hash_features) + frequency_dim(3, self.x_freqs_hash) + t_dim
@@ -103,8 +119,14 @@ def deform_init(key: jax.Array, spec: DeformSpec, dtype=jnp.float32) -> dict[str
             fan_in += spec.in_dim
         layers.append(_dense_init(keys[i], fan_in, spec.width, dtype))
         fan_in = spec.width
-    params: dict[str, Any] = {"layers": layers, "head": _dense_init(keys[-2], spec.width, 10, dtype, zero=True)}
-    if spec.kind == "hash":
+    if spec.kind == "bases":  # random logits break the symmetry between the (identical) moving bases
+        head = _dense_init(keys[-2], spec.width, spec.bases, dtype)
+        params: dict[str, Any] = {"layers": layers, "head": head,
+                                  "motion": jnp.zeros((spec.bases - 1, spec.knots, 6), dtype),
+                                  "pivot": jnp.zeros((spec.bases - 1, 3), dtype)}
+    else:
+        params = {"layers": layers, "head": _dense_init(keys[-2], spec.width, 10, dtype, zero=True)}
+    if spec.kind in ("hash", "bases"):
         params["grid"] = hash_grid_init(keys[-1], spec.hash_levels, spec.hash_log2_table, spec.hash_features, dtype)
     return params
 
@@ -115,8 +137,11 @@ def deform_num_params(params) -> int:
 
 def _encode(spec: DeformSpec, params, x, t):
     n = x.shape[0]
-    t = jnp.broadcast_to(jnp.asarray(t, x.dtype).reshape(-1, 1), (n, 1))
-    t_enc = frequency_encoding(t, spec.t_freqs)
+    if spec.kind == "bases":
+        t_enc = jnp.zeros((n, 0), x.dtype)
+    else:
+        t = jnp.broadcast_to(jnp.asarray(t, x.dtype).reshape(-1, 1), (n, 1))
+        t_enc = frequency_encoding(t, spec.t_freqs)
     if spec.kind == "frequency":
         return jnp.concatenate([frequency_encoding(x, spec.x_freqs), t_enc], axis=-1)
     lo = jnp.asarray(spec.aabb[:3], x.dtype)
@@ -150,4 +175,36 @@ def _network(spec: DeformSpec, params, x, t):
         if spec.skip > 0 and i == spec.skip:
             h = jnp.concatenate([h, inp], axis=-1)
         h = jax.nn.relu(h @ layer["w"] + layer["b"])
-    return h @ params["head"]["w"] + params["head"]["b"]
+    out = h @ params["head"]["w"] + params["head"]["b"]
+    if spec.kind != "bases":
+        return out
+    weights = jax.nn.softmax(out, axis=-1)  # [N, K]
+    dx = jnp.einsum("nk,nkd->nd", weights[:, 1:], _basis_displacements(spec, params, x, t))
+    return jnp.concatenate([dx, jnp.zeros((x.shape[0], 7), x.dtype)], axis=-1)
+
+
+def basis_motions(spec: DeformSpec, params, t) -> tuple[Float[Array, "K 3 3"], Float[Array, "K 3"]]:
+    """The moving bases' rotations R_k(t) [K-1, 3, 3] and the offsets b_k(t) = c_k + tau_k(t) - R_k(t) c_k [K-1, 3]
+    at a time t (scalar), so that basis k maps X to R_k(t) X + b_k(t); control values are interpolated linearly
+    between the knots (t clipped to [0, 1])."""
+    m = _knot_values(spec, params["motion"], t)  # [K-1, 6]
+    rot = so3_exp(m[:, :3])
+    c = params["pivot"]
+    return rot, c + m[:, 3:] - jnp.einsum("kij,kj->ki", rot, c)
+
+
+def _knot_values(spec: DeformSpec, motion, t):
+    s = jnp.clip(jnp.asarray(t, motion.dtype), 0.0, 1.0) * (spec.knots - 1)
+    i0 = jnp.clip(jnp.floor(s).astype(jnp.int32), 0, spec.knots - 2)
+    f = s - i0
+    return (1.0 - f) * motion[:, i0] + f * motion[:, i0 + 1]
+
+
+def _basis_displacements(spec: DeformSpec, params, x, t):
+    """[N, K-1, 3]: each moving basis's displacement of each point at t (scalar, or [N] per point)."""
+    t = jnp.asarray(t, x.dtype)
+    if t.ndim == 0:
+        rot, off = basis_motions(spec, params, t)
+        return jnp.einsum("kij,nj->nki", rot, x) + off[None] - x[:, None]
+    rot, off = jax.vmap(lambda ti: basis_motions(spec, params, ti))(t)  # [N, K-1, 3, 3], [N, K-1, 3]
+    return jnp.einsum("nkij,nj->nki", rot, x) + off - x[:, None]

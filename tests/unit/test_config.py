@@ -80,7 +80,8 @@ def test_named_configurations_load_and_name_their_variant(name, variant):
 
 
 @pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"), ("flow.photo_motion=1.5", "flow.photo_motion"),
-                                          ("deform.anchor=last", "deform.anchor"),
+                                          ("deform.anchor=last", "deform.anchor"), ("deform.kind=mlp", "deform.kind"),
+                                          ("deform.bases=1", "deform.bases"), ("deform.knots=1", "deform.knots"),
                                           ("flow.gaussian_flow=affine", "flow.gaussian_flow"),
                                           ("flow.camera_depth=median", "flow.camera_depth"),
                                           ("flow.norm=l2", "flow.norm"), ("flow.charbonnier_px=0", "flow.charbonnier_px")])
@@ -91,5 +92,5 @@ def test_stage1_flow_options_are_validated(override, key):
     cfg = load_config(None, overrides=["flow.gaussian_flow=anisotropic", "flow.camera_depth=expected"])
     assert (cfg.flow.gaussian_flow, cfg.flow.camera_depth) == ("anisotropic", "expected")
     assert load_config(None, overrides=["flow.norm=charbonnier"]).flow.norm == "charbonnier"
-    with pytest.raises(ConfigError, match=r"^config key 'flow.norm' must be 'l1' with flow.loss = 'track'"):
-        load_config(None, overrides=["flow.norm=charbonnier", "flow.loss=track"])
+    assert load_config(None, overrides=["deform.kind=bases", "deform.bases=4"]).deform.bases == 4
+    assert load_config(None, overrides=["flow.norm=charbonnier", "flow.loss=track"]).flow.norm == "charbonnier"

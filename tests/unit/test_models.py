@@ -85,6 +85,44 @@ def test_deform_starts_at_identity_and_learns(key, kind):
     np.testing.assert_allclose(dx2, dx)
 
 
+def test_bases_field_is_a_blend_of_rigid_motions(key):
+    """kind = "bases": identity at init (dX = 0, with a gradient into the motions); with the logits pinned by the
+    head's bias, dX = sum_k w_k [R_k(t) (X - c_k) + c_k + tau_k(t) - X] against scipy's rotation vectors and numpy's
+    linear interpolation between the knots (t clipped to [0, 1]); per-point times; gradients against central
+    differences in float64."""
+    from jax.test_util import check_grads
+    from scipy.spatial.transform import Rotation
+
+    spec = deform.DeformSpec(kind="bases", depth=2, width=16, hash_levels=4, hash_log2_table=10, bases=3, knots=4)
+    p = deform.deform_init(key, spec, dtype=jnp.float64)
+    x = jax.random.uniform(jax.random.key(3), (40, 3), jnp.float64, minval=-1, maxval=1)
+    dx, dq, ds = deform.deform_apply(spec, p, x, 0.3)
+    assert float(jnp.max(jnp.abs(dx))) == 0.0 and float(jnp.max(jnp.abs(dq))) == 0.0 and ds.shape == (40, 3)
+    g = jax.grad(lambda q: jnp.sum(deform.deform_apply(spec, q, x, 0.3)[0][:, 0]))(p)
+    assert float(jnp.abs(g["motion"]).sum()) > 0
+
+    rng = np.random.default_rng(0)
+    motion, pivot, w = rng.normal(0, 0.4, (2, 4, 6)), rng.normal(0, 0.5, (2, 3)), np.array([0.2, 0.3, 0.5])
+    p = {**p, "motion": jnp.asarray(motion), "pivot": jnp.asarray(pivot),
+         "head": {"w": jnp.zeros_like(p["head"]["w"]), "b": jnp.asarray(np.log(w))}}
+    xs = np.asarray(x)
+    for t in (0.0, 0.3, 2.0 / 3.0, 0.95, 1.4):
+        knots_t = np.linspace(0.0, 1.0, 4)
+        want = np.zeros_like(xs)
+        for k in range(2):
+            m = np.array([np.interp(min(t, 1.0), knots_t, motion[k, :, j]) for j in range(6)])
+            rot = Rotation.from_rotvec(m[:3]).as_matrix()
+            want += w[k + 1] * ((xs - pivot[k]) @ rot.T + pivot[k] + m[3:] - xs)
+        np.testing.assert_allclose(np.asarray(deform.deform_apply(spec, p, x, t)[0]), want, atol=1e-12)
+    per_point = deform.deform_apply(spec, p, x, jnp.linspace(0.0, 1.0, 40))[0]
+    for i in (0, 17, 39):
+        np.testing.assert_allclose(per_point[i], deform.deform_apply(spec, p, x[i:i + 1], i / 39.0)[0][0], atol=1e-12)
+    check_grads(lambda m, c: deform.deform_apply(spec, {**p, "motion": m, "pivot": c}, x, 0.45)[0],
+                (p["motion"], p["pivot"]), order=1, modes=["rev"], atol=1e-6, rtol=1e-6)
+    with pytest.raises(ValueError, match="bases and knots must be >= 2"):
+        deform.DeformSpec(kind="bases", bases=1)
+
+
 def test_deform_default_sizes_match_deformable_3dgs(key):
     spec = deform.DeformSpec()
     assert spec.in_dim == 63 + 13
@@ -105,7 +143,7 @@ def test_gaussians_init_and_activate(key):
         G.Gaussians(g.means, g.log_scales, g.quats, g.opacity_logits[:3], g.sh)
 
 
-@pytest.mark.parametrize("kind", ["hash", "frequency"])
+@pytest.mark.parametrize("kind", ["hash", "frequency", "bases"])
 def test_anchored_field_is_zero_at_its_anchor_and_holds_no_constant_offset(key, kind):
     """DeformSpec.anchor: f(X, t) = g(X, t) - g(X, t_a): exactly zero at t_a for any parameters, and the network's
     output elsewhere minus its output at t_a (DESIGN section 1, step 1; config deform.anchor)."""

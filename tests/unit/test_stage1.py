@@ -283,7 +283,7 @@ def test_training_step_with_flow_loss_runs():
 
 def test_training_with_the_track_loss_runs_and_tracks_from_the_first_frame(tmp_path):
     """flow.loss = "track": the first frame's tracks from OpenCV flow (both directions, cached), the reference of
-    every other frame, and a few steps that update the field."""
+    every other frame, and a few steps that update the field (also in the Charbonnier form, with the motion bases)."""
     scene = _tiny_scene(True, frames=4, w=48, h=32)
     ref, tracks = stage1.training_tracks(scene, "dis", tmp_path / "c", log=lambda *_: None)
     first = int(np.argmin(scene.times))
@@ -295,6 +295,12 @@ def test_training_with_the_track_loss_runs_and_tracks_from_the_first_frame(tmp_p
     res = stage1.train_stage1(cfg, scene, tmp_path / "run", stop_at=3, progress=False, log=lambda *_: None)
     assert len(res["losses"]) == 3 and np.all(np.isfinite(res["losses"]))
     assert np.abs(np.asarray(res["state"].params["deform"]["head"]["w"])).max() > 0
+    # the Charbonnier form with the motion bases: the bases' motions leave the identity
+    bases = C.apply_overrides(cfg, ["flow.norm=charbonnier", "deform.kind=bases", "deform.bases=3", "deform.knots=4"])
+    res = stage1.train_stage1(bases, scene, tmp_path / "run_bases", stop_at=3, progress=False, log=lambda *_: None)
+    assert np.all(np.isfinite(res["losses"]))
+    motion = np.asarray(res["state"].params["deform"]["motion"])
+    assert motion.shape == (2, 4, 6) and np.all(np.isfinite(motion)) and np.abs(motion).max() > 0
     with pytest.raises(ValueError, match="makes its own tracks"):
         stage1.train_stage1(cfg, scene, None, stop_at=1, progress=False, log=lambda *_: None,
                             flows=np.zeros((4, 32, 48, 2), np.float32))

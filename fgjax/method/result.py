@@ -113,7 +113,7 @@ def _deformed_fn(spec, static: bool):
         g: Gaussians = params["gaussians"]
         if static or spec is None:
             return g.means, g.quats, g.log_scales
-        dx, dq, ds = deform_apply(spec, params["deform"], g.means, t)
+        dx, dq, ds = deform_apply(spec, params["deform"], g.means, t, quats=g.quats)
         return g.means + dx, g.quats + dq, g.log_scales + ds
 
     return jax.jit(f)

@@ -13,8 +13,11 @@ Three kinds (DESIGN.md section 1, step 1):
   translation tau_k(t), both linear between ``knots`` evenly spaced control times on [0, 1]. The weights
   w(X) = softmax(logits(X)) come from the hash-grid MLP of X (no time input), and
   dX = sum_k w_k(X) [R_k(t) (X - c_k) + c_k + tau_k(t) - X]. A part is then a region whose weight sits on one
-  basis, and its motion is that basis's few parameters, which every point of the part informs. dq and ds are zero
-  (the Gaussians' orientations are not rotated).
+  basis, and its motion is that basis's few parameters, which every point of the part informs. Given the
+  Gaussians' raw quaternions q, each turns with the blend r = normalise(w_0 (1, 0, 0, 0) + sum_k w_k r_k(t)) of
+  the bases' unit quaternions (wxyz, each on the hemisphere w >= 0): dq = r q - q, exact for a point on one basis;
+  without q, dq = 0. ds = 0. With an anchor t_a each basis's control values are taken relative to t_a
+  (omega_k(t) - omega_k(t_a), tau_k(t) - tau_k(t_a)), so the field is the identity at t_a and stays rigid.
 
 The heads of the first two kinds are initialised to zero, so the field starts at the identity (dX = 0, dq = 0,
 ds = 0); the bases start at the identity (omega = tau = 0) with random logits (symmetry breaking).
@@ -31,7 +34,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from fgjax.geometry import so3_exp
+from fgjax.geometry import quat_multiply, so3_exp
 from fgjax.models.encoding import (
     frequency_dim,
     frequency_encoding,
@@ -152,9 +155,11 @@ def _encode(spec: DeformSpec, params, x, t):
 
 
 def deform_apply(
-    spec: DeformSpec, params, x: Float[ArrayLike, "N 3"], t: Float[ArrayLike, ""] | Float[ArrayLike, " N"]
+    spec: DeformSpec, params, x: Float[ArrayLike, "N 3"], t: Float[ArrayLike, ""] | Float[ArrayLike, " N"],
+    quats: Float[ArrayLike, "N 4"] | None = None,
 ) -> tuple[Float[Array, "N 3"], Float[Array, "N 4"], Float[Array, "N 3"]]:
-    """(dX, dq, ds) at canonical centres `x` [N, 3] and time `t` (scalar or [N]).
+    """(dX, dq, ds) at canonical centres `x` [N, 3] and time `t` (scalar or [N]); ``quats`` [N, 4], the raw
+    canonical quaternions, are read by the "bases" kind only (its dq turns them; module docstring).
 
     Add dX to the means, dq to the raw quaternions and ds to the log-scales. With ``spec.anchor`` = t_a the
     network's output at t_a is subtracted (one more evaluation), so the field is exactly zero at t_a. X is not
@@ -162,6 +167,8 @@ def deform_apply(
     the same gradient).
     """
     x = jnp.asarray(x)
+    if spec.kind == "bases":  # the anchor is inside the bases' control values
+        return _bases_apply(spec, params, x, t, quats)
     out = _network(spec, params, x, t)  # [N, 10]
     if spec.anchor is not None:  # zero at the anchor time: the canonical space is the scene then
         out = out - _network(spec, params, x, spec.anchor)
@@ -175,22 +182,47 @@ def _network(spec: DeformSpec, params, x, t):
         if spec.skip > 0 and i == spec.skip:
             h = jnp.concatenate([h, inp], axis=-1)
         h = jax.nn.relu(h @ layer["w"] + layer["b"])
-    out = h @ params["head"]["w"] + params["head"]["b"]
-    if spec.kind != "bases":
-        return out
-    weights = jax.nn.softmax(out, axis=-1)  # [N, K]
-    dx = jnp.einsum("nk,nkd->nd", weights[:, 1:], _basis_displacements(spec, params, x, t))
-    return jnp.concatenate([dx, jnp.zeros((x.shape[0], 7), x.dtype)], axis=-1)
+    return h @ params["head"]["w"] + params["head"]["b"]
 
 
-def basis_motions(spec: DeformSpec, params, t) -> tuple[Float[Array, "K 3 3"], Float[Array, "K 3"]]:
-    """The moving bases' rotations R_k(t) [K-1, 3, 3] and the offsets b_k(t) = c_k + tau_k(t) - R_k(t) c_k [K-1, 3]
-    at a time t (scalar), so that basis k maps X to R_k(t) X + b_k(t); control values are interpolated linearly
-    between the knots (t clipped to [0, 1])."""
+def _bases_apply(spec: DeformSpec, params, x, t, quats):
+    weights = jax.nn.softmax(_network(spec, params, x, t), axis=-1)  # [N, K]
+    t = jnp.asarray(t, x.dtype)
+    if t.ndim == 0:
+        rot, off, rq = basis_motions(spec, params, t)
+        disp = jnp.einsum("kij,nj->nki", rot, x) + off[None] - x[:, None]  # [N, K-1, 3]
+        rq = jnp.broadcast_to(rq, (x.shape[0], *rq.shape))
+    else:
+        rot, off, rq = jax.vmap(lambda ti: basis_motions(spec, params, ti))(t)  # [N, K-1, ...]
+        disp = jnp.einsum("nkij,nj->nki", rot, x) + off - x[:, None]
+    dx = jnp.einsum("nk,nkd->nd", weights[:, 1:], disp)
+    dq = jnp.zeros((x.shape[0], 4), x.dtype)
+    if quats is not None:
+        ident = jnp.asarray([1.0, 0.0, 0.0, 0.0], x.dtype)
+        r = weights[:, :1] * ident + jnp.einsum("nk,nkd->nd", weights[:, 1:], rq)
+        r = r / jnp.maximum(jnp.linalg.norm(r, axis=-1, keepdims=True), 1e-12)  # |r| >= r_w >= w_0 > 0
+        q = jnp.asarray(quats, x.dtype)
+        dq = quat_multiply(r, q) - q
+    return dx, dq, jnp.zeros((x.shape[0], 3), x.dtype)
+
+
+def basis_motions(spec: DeformSpec, params, t) -> tuple[Float[Array, "K 3 3"], Float[Array, "K 3"], Float[Array, "K 4"]]:
+    """The moving bases at a time t (scalar): rotations R_k(t) [K-1, 3, 3], offsets b_k(t) = c_k + tau_k(t) - R_k(t) c_k
+    [K-1, 3] (basis k maps X to R_k(t) X + b_k(t)) and unit quaternions r_k(t) [K-1, 4] (wxyz, w >= 0) of R_k(t).
+    Control values are linear between the knots (t clipped to [0, 1]) and relative to ``spec.anchor`` if set."""
     m = _knot_values(spec, params["motion"], t)  # [K-1, 6]
-    rot = so3_exp(m[:, :3])
+    if spec.anchor is not None:
+        m = m - _knot_values(spec, params["motion"], spec.anchor)
+    omega = m[:, :3]
+    rot = so3_exp(omega)
     c = params["pivot"]
-    return rot, c + m[:, 3:] - jnp.einsum("kij,kj->ki", rot, c)
+    theta2 = jnp.sum(omega * omega, axis=-1, keepdims=True)
+    pos = theta2 > 0  # |omega| with a zero (not NaN) derivative at omega = 0, where the quaternion's is zero too
+    theta = jnp.where(pos, jnp.sqrt(jnp.where(pos, theta2, 1.0)), 0.0)
+    # (cos(theta / 2), sin(theta / 2) omega / theta); jnp.sinc(x) = sin(pi x) / (pi x), smooth at 0
+    rq = jnp.concatenate([jnp.cos(0.5 * theta), 0.5 * jnp.sinc(theta / (2.0 * jnp.pi)) * omega], axis=-1)
+    rq = rq * jnp.where(rq[:, :1] < 0, -1.0, 1.0)  # the w >= 0 hemisphere (|theta| > pi)
+    return rot, c + m[:, 3:] - jnp.einsum("kij,kj->ki", rot, c), rq
 
 
 def _knot_values(spec: DeformSpec, motion, t):
@@ -200,11 +232,3 @@ def _knot_values(spec: DeformSpec, motion, t):
     return (1.0 - f) * motion[:, i0] + f * motion[:, i0 + 1]
 
 
-def _basis_displacements(spec: DeformSpec, params, x, t):
-    """[N, K-1, 3]: each moving basis's displacement of each point at t (scalar, or [N] per point)."""
-    t = jnp.asarray(t, x.dtype)
-    if t.ndim == 0:
-        rot, off = basis_motions(spec, params, t)
-        return jnp.einsum("kij,nj->nki", rot, x) + off[None] - x[:, None]
-    rot, off = jax.vmap(lambda ti: basis_motions(spec, params, ti))(t)  # [N, K-1, 3, 3], [N, K-1, 3]
-    return jnp.einsum("nkij,nj->nki", rot, x) + off - x[:, None]

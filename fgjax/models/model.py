@@ -47,7 +47,7 @@ def deformed_gaussians(params, alive, t, spec: DeformSpec | None, motion_grad: f
     g: Gaussians = params["gaussians"]
     means, quats, log_scales = g.means, g.quats, g.log_scales
     if spec is not None:
-        dx, dq, ds = deform_apply(spec, params["deform"], jax.lax.stop_gradient(means), t)
+        dx, dq, ds = deform_apply(spec, params["deform"], jax.lax.stop_gradient(means), t, quats=quats)
         dx = scale_gradient(dx, motion_grad)
         means, quats, log_scales = means + dx, quats + dq, log_scales + ds
     g2 = Gaussians(means, log_scales, quats, g.opacity_logits, g.sh)

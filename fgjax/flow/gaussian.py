@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from fgjax import geometry
-from fgjax.flow._common import mm, safe_inv_depth
+from fgjax.flow._common import charbonnier, mm, safe_inv_depth, safe_norm
 from fgjax.flow.motion import motion_field_inv_depth, pixel_centers, reprojection_flow
 from fgjax.geometry import abs0, as_float
 from fgjax.render.api import rasterization
@@ -405,12 +405,9 @@ def flow_loss(
         # pixel at rest, a thresholded target) towards +x, +y
         err = jnp.sum(abs0(r), axis=-1)
     elif norm == "charbonnier":
-        c2 = float(scale) ** 2
-        err = c2 * (jnp.sqrt(1.0 + jnp.sum(r * r, axis=-1) / c2) - 1.0)
+        err = charbonnier(jnp.sum(r * r, axis=-1), scale)
     else:
-        r2 = jnp.sum(r * r, axis=-1)
-        pos = r2 > 0
-        err = jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0)
+        err = safe_norm(jnp.sum(r * r, axis=-1))
     if valid is None:
         w = jnp.ones_like(err)
     else:

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from fgjax.flow._common import charbonnier, safe_norm
 from fgjax.geometry import abs0, as_float, project_points
 from fgjax.render.api import rasterization
 
@@ -92,9 +93,6 @@ def gaussian_track_loss(
     if norm == "l1":
         err = jnp.maximum(jnp.sum(abs0(r), axis=-1) - threshold, 0.0)
     else:
-        r2 = jnp.sum(r * r, axis=-1)
-        pos = r2 > 0  # |r|_2 with a zero (not NaN) derivative at r = 0
-        e = jnp.maximum(jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0) - threshold, 0.0)
-        c2 = float(scale) ** 2
-        err = c2 * (jnp.sqrt(1.0 + e * e / c2) - 1.0)
+        e = jnp.maximum(safe_norm(jnp.sum(r * r, axis=-1)) - threshold, 0.0)
+        err = charbonnier(e * e, scale)
     return jnp.sum(valid * err) / jnp.maximum(jnp.sum(valid), 1.0), overflow

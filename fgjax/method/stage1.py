@@ -176,8 +176,8 @@ class StepSpec:
     gaussian_flow: str = "isotropic"  # "pair": u~_GS isotropic (the paper) or anisotropic (GaussianFlow)
     camera_depth: str = "composited"  # "pair": u_cam from the composited ("composited") or expected depth
     depth_weight: float = 0.0  # weight of the measured-depth term (0: none; the step then takes no depth batch)
-    flow_norm: str = "l1"  # "pair": the per-pixel penalty of L_uGS, "l1" or "charbonnier" (fgjax.flow.flow_loss)
-    flow_scale: float = 10.0  # "pair": c of "charbonnier" (pixels)
+    flow_norm: str = "l1"  # the flow loss's per-pixel penalty, "l1" or "charbonnier" (fgjax.flow.flow_loss, .track)
+    flow_scale: float = 10.0  # c of "charbonnier" (pixels)
 
 
 class FlowBatch(NamedTuple):

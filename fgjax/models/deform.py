@@ -77,8 +77,9 @@ class DeformSpec:
     knots: int = 16
     """"bases" kind: control times of each motion over t in [0, 1] (>= 2)."""
     anchor: float | None = None
-    """A time t_a at which the field is the identity: f(X, t) = g(X, t) - g(X, t_a) with g the network, so the
-    canonical Gaussians are the scene at t_a (None: f = g, a canonical space of the network's choosing)."""
+    """A time t_a at which the field is the identity, so the canonical Gaussians are the scene at t_a (None: a
+    canonical space of the network's choosing): f(X, t) = g(X, t) - g(X, t_a) with g the network, or, for the
+    "bases" kind, control values taken relative to t_a (module docstring)."""
 
     def __post_init__(self):
         if self.kind not in ("frequency", "hash", "bases"):
@@ -162,7 +163,8 @@ def deform_apply(
     canonical quaternions, are read by the "bases" kind only (its dq turns them; module docstring).
 
     Add dX to the means, dq to the raw quaternions and ds to the log-scales. With ``spec.anchor`` = t_a the
-    network's output at t_a is subtracted (one more evaluation), so the field is exactly zero at t_a. X is not
+    network's output at t_a is subtracted (one more evaluation; the "bases" kind shifts its control values
+    instead), so the field is exactly zero at t_a. X is not
     detached (Deformable-3DGS detaches it only through the canonical optimiser step, which we do too by giving both
     the same gradient).
     """

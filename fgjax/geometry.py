@@ -57,6 +57,7 @@ __all__ = [
     "look_at_point",
     "project_points",
     "as_float",
+    "safe_norm",
     "abs0",
 ]
 
@@ -117,6 +118,11 @@ def _small_angle_threshold(dtype) -> float:
     far below the dtype's resolution of the result.
     """
     return float(jnp.finfo(dtype).eps) ** 0.25
+
+
+def safe_norm(x: ArrayLike) -> Array:
+    """|x| over the last axis, with a zero (not NaN) gradient at x = 0 (double-where)."""
+    return _safe_norm_sq(jnp.asarray(x))[1]
 
 
 def _safe_norm_sq(x: Array) -> tuple[Array, Array]:

@@ -27,12 +27,6 @@ def intrinsics(K: Array) -> tuple[Array, Array, Array, Array]:
     return K[0, 0], K[1, 1], K[0, 2], K[1, 2]
 
 
-def safe_norm(r2: Array) -> Array:
-    """sqrt(r2) of squared norms r2 >= 0, with a zero (not NaN) derivative at r2 = 0 (double-where)."""
-    pos = r2 > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, r2, 1.0)), 0.0)
-
-
 def charbonnier(e2: Array, scale: float) -> Array:
     """c^2 (sqrt(1 + e2 / c^2) - 1) of squared residual norms e2, c = ``scale`` (Charbonnier 1994): e2 / 2 for
     small residuals, c |e| beyond; smooth at 0."""

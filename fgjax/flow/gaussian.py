@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from fgjax import geometry
-from fgjax.flow._common import charbonnier, mm, safe_inv_depth, safe_norm
+from fgjax.flow._common import charbonnier, mm, safe_inv_depth
 from fgjax.flow.motion import motion_field_inv_depth, pixel_centers, reprojection_flow
 from fgjax.geometry import abs0, as_float
 from fgjax.render.api import rasterization
@@ -407,7 +407,7 @@ def flow_loss(
     elif norm == "charbonnier":
         err = charbonnier(jnp.sum(r * r, axis=-1), scale)
     else:
-        err = safe_norm(jnp.sum(r * r, axis=-1))
+        err = geometry.safe_norm(r)
     if valid is None:
         w = jnp.ones_like(err)
     else:

@@ -35,8 +35,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from fgjax.flow._common import charbonnier, safe_norm
-from fgjax.geometry import abs0, as_float, project_points
+from fgjax.flow._common import charbonnier
+from fgjax.geometry import abs0, as_float, project_points, safe_norm
 from fgjax.render.api import rasterization
 
 __all__ = ["project_centres", "rendered_correspondence", "gaussian_track_loss"]
@@ -93,6 +93,6 @@ def gaussian_track_loss(
     if norm == "l1":
         err = jnp.maximum(jnp.sum(abs0(r), axis=-1) - threshold, 0.0)
     else:
-        e = jnp.maximum(safe_norm(jnp.sum(r * r, axis=-1)) - threshold, 0.0)
+        e = jnp.maximum(safe_norm(r) - threshold, 0.0)
         err = charbonnier(e * e, scale)
     return jnp.sum(valid * err) / jnp.maximum(jnp.sum(valid), 1.0), overflow

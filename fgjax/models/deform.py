@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from fgjax.geometry import quat_multiply, so3_exp
+from fgjax.geometry import quat_multiply, safe_norm, so3_exp
 from fgjax.models.encoding import (
     frequency_dim,
     frequency_encoding,
@@ -218,9 +218,7 @@ def basis_motions(spec: DeformSpec, params, t) -> tuple[Float[Array, "K 3 3"], F
     omega = m[:, :3]
     rot = so3_exp(omega)
     c = params["pivot"]
-    theta2 = jnp.sum(omega * omega, axis=-1, keepdims=True)
-    pos = theta2 > 0  # |omega| with a zero (not NaN) derivative at omega = 0, where the quaternion's is zero too
-    theta = jnp.where(pos, jnp.sqrt(jnp.where(pos, theta2, 1.0)), 0.0)
+    theta = safe_norm(omega)[:, None]  # zero derivative at omega = 0, where the quaternion's is zero too
     # (cos(theta / 2), sin(theta / 2) omega / theta); jnp.sinc(x) = sin(pi x) / (pi x), smooth at 0
     rq = jnp.concatenate([jnp.cos(0.5 * theta), 0.5 * jnp.sinc(theta / (2.0 * jnp.pi)) * omega], axis=-1)
     rq = rq * jnp.where(rq[:, :1] < 0, -1.0, 1.0)  # the w >= 0 hemisphere (|theta| > pi)

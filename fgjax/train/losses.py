@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from fgjax.geometry import abs0
+from fgjax.geometry import abs0, safe_norm
 from fgjax.metrics import ssim
 
 __all__ = ["l1", "photometric_loss", "depth_loss", "scale_regularizer", "isometry_loss", "scale_change_loss"]
@@ -55,12 +55,6 @@ def scale_regularizer(
     return jnp.sum(w * jax.nn.relu(s - max_scale)) / jnp.maximum(jnp.sum(w), 1.0)
 
 
-def _safe_norm(x: Array) -> Array:
-    sq = jnp.sum(x * x, axis=-1)
-    pos = sq > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
-
-
 def isometry_loss(
     means_t: Float[ArrayLike, "N 3"], means_c: Float[ArrayLike, "N 3"], nbr_idx, nbr_w: Float[ArrayLike, "N K"],
     eps: float = 1e-6, cap: float = 0.0,
@@ -81,8 +75,8 @@ def isometry_loss(
     xt = jnp.asarray(means_t)
     xc = jax.lax.stop_gradient(jnp.asarray(means_c))
     w = jnp.asarray(nbr_w).astype(xt.dtype)
-    d_t = _safe_norm(xt[:, None, :] - xt[nbr_idx])  # [N, K]
-    d_c = _safe_norm(xc[:, None, :] - xc[nbr_idx])
+    d_t = safe_norm(xt[:, None, :] - xt[nbr_idx])  # [N, K]
+    d_c = safe_norm(xc[:, None, :] - xc[nbr_idx])
     err = abs0(d_t / (d_c + eps) - d_c / (d_c + eps))
     if cap > 0:
         err = cap * err**2 / (err**2 + cap**2)

@@ -295,3 +295,11 @@ def test_the_rasterizers_quaternion_matrix_agrees_with_geometrys():
     q = np.concatenate([q, np.zeros((1, 4))])
     np.testing.assert_allclose(np.asarray(raster_form(jnp.asarray(q))), np.asarray(g.quat_to_rotmat(q)),
                                rtol=0, atol=1e-12)
+
+
+def test_safe_norm_is_the_norm_with_a_zero_gradient_at_zero():
+    x = np.array([[3.0, 4.0], [0.0, 0.0], [-1.0, 2.0]])
+    np.testing.assert_allclose(np.asarray(g.safe_norm(x)), np.linalg.norm(x, axis=-1), rtol=1e-6)
+    grad = np.asarray(jax.grad(lambda v: jnp.sum(g.safe_norm(v)))(jnp.asarray(x)))
+    np.testing.assert_allclose(grad[0], [0.6, 0.8], rtol=1e-6)
+    assert np.array_equal(grad[1], [0.0, 0.0])

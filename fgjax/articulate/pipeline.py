@@ -50,9 +50,9 @@ from fgjax.articulate.trial import hinge_trial, trial_held
 from fgjax.config import ArticulateConfig, Stage2Config, validate_articulate, validate_stage2
 from fgjax.data.scene import Scene
 from fgjax.gaussians import Gaussians, activate
-from fgjax.method.discover import Discovery, discover_run
+from fgjax.method.discover import Discovery
 from fgjax.method.result import LoadedRun, Stage2Result, reference_scene, render_capacity, with_geometry
-from fgjax.method.stage2 import deformed_geometry, finish, prepare_run
+from fgjax.method.stage2 import deformed_geometry, discover_run, finish, prepare_run
 
 __all__ = ["run_articulated", "select_parts", "tracked_poses", "photometric_poses", "photo_level_steps",
            "label_passes"]

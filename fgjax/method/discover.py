@@ -26,8 +26,6 @@ Nothing here knows of stage-1 models: `discover` takes the deformed Gaussians pe
 from __future__ import annotations
 
 import functools
-import time
-from pathlib import Path
 from typing import Literal, NamedTuple
 
 import jax
@@ -37,15 +35,7 @@ from jaxtyping import Bool, Float
 
 from fgjax import cluster
 from fgjax import flow as fl
-from fgjax.config import Stage2Config
-from fgjax.data.opticalflow import estimate_flow
-from fgjax.data.scene import Scene
-from fgjax.gaussians import activate
-from fgjax.geometry import viewmat_to_c2w
-from fgjax.method.camera import camera_correction
-from fgjax.method.result import LoadedRun, with_geometry
-from fgjax.render.api import gaussian_weights, rasterization
-from fgjax.viz import to_u8
+from fgjax.render.api import gaussian_weights
 
 __all__ = [
     "residual_flow",
@@ -55,7 +45,6 @@ __all__ = [
     "accumulate_scores",
     "Discovery",
     "discover",
-    "discover_run",
 ]
 
 
@@ -318,72 +307,3 @@ def discover(
         thr = float(score_threshold)
     dyn = cluster.select_dynamic(sc.score, thr, min_score=min_score, valid=ok)
     return Discovery(dynamic=dyn, scores=sc, masks=masks, threshold=float(thr))
-
-
-def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Path, *, per_frame: bool = False,
-                 log=print):
-    """Step 5 on a stage-1 run (`discover` on every training pair in time order).
-
-    For each pair (t-1, t): the stage-1 Gaussians deformed to time t-1 are rendered from camera t-1 for their
-    expected depth; the camera flow is `camera_flow_from_depth` of that depth (with ``cfg.camera_correction``, camera
-    t's pose first corrected from the static flow, `fgjax.method.camera.camera_correction`); the optical flow
-    t-1 -> t comes from `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``).
-
-    Returns:
-        (`Discovery` with D restricted to alive Gaussians, deformed centres [T, N, 3] in time order, times [T],
-        (order [T] of the training frames by time, flows [T-1, H, W, 2], camera flows [T-1, H, W, 2])).
-        ``per_frame``: keep the per-pair score terms (`Scores`), which the articulated variant reads.
-    """
-
-    order = np.argsort(scene.times, kind="stable")
-    times = scene.times[order]
-    alive = run.state.densify.alive
-    w, h = scene.width, scene.height
-    means_t, quats_t, centres = [], [], []
-    depths, alphas = [], []
-    g = run.state.params["gaussians"]
-    for i in order:
-        m, q, ls = run.deformed(float(scene.times[i]))
-        centres.append(np.asarray(m))
-        params = with_geometry(run.state.params, m, q, ls)
-        qa, sa, oa = activate(params["gaussians"], alive)
-        means_t.append(np.asarray(m))
-        quats_t.append(np.asarray(qa))
-        _, alpha, info = rasterization(m, qa, sa, oa, jnp.zeros((m.shape[0], 1), jnp.float32),
-                                       jnp.asarray(scene.viewmats[i], jnp.float32),
-                                       jnp.asarray(scene.Ks[i], jnp.float32), w, h, render_depth=True,
-                                       tile_size=run.cfg.train.tile_size)
-        depths.append(np.asarray(info["depth"]))
-        alphas.append(np.asarray(alpha))
-    _, sa, oa = activate(g, alive)
-    c2w = viewmat_to_c2w(scene.viewmats[order])
-    flows, cams, valid = [], [], []
-    correct = cfg.camera_correction == "on" or (cfg.camera_correction == "auto" and "pose" in run.state.params)
-    rms_all: list[float] = []
-    t_flow = time.perf_counter()
-    for j in range(len(order) - 1):
-        a, b = order[j], order[j + 1]
-        flows.append(estimate_flow(to_u8(scene.images[a]), to_u8(scene.images[b]), cfg.flow_method,
-                                   cache_dir=cache_dir))
-        trusted = alphas[j] >= cfg.min_alpha  # pixels with a rendered depth to trust
-        c2w_b = c2w[j + 1]
-        if correct:
-            vm_b, rms, _ = camera_correction(depths[j], trusted, flows[-1], scene.viewmats[a], scene.viewmats[b],
-                                             scene.Ks[a])
-            c2w_b = viewmat_to_c2w(vm_b[None])[0]
-            rms_all.append(rms)
-        cf, ok = camera_flow_from_depth(depths[j], scene.Ks[a], c2w[j], c2w_b)
-        cams.append(cf)
-        valid.append(ok & trusted)
-    log(f"stage 2: optical flow of {len(flows)} pairs ({time.perf_counter() - t_flow:.1f} s)"
-        + (f"; camera poses corrected from the static flow (median inlier RMS {np.nanmedian(rms_all):.2f} px)"
-           if correct and rms_all and np.any(np.isfinite(rms_all)) else ""))
-    n = len(order) - 1
-    thr = cfg.threshold_px if cfg.threshold_px == "otsu" else float(cfg.threshold_px)
-    # the deformed scales differ from canonical ones only by ds; discovery uses the canonical ones
-    disc = discover(np.stack(means_t[:n]), np.stack(quats_t[:n]), np.asarray(sa), np.asarray(oa),
-                    scene.viewmats[order][:n], scene.Ks[order][:n], np.stack(flows), np.stack(cams),
-                    valid=np.stack(valid), threshold_px=thr, min_px=cfg.min_px,
-                    score_threshold=cfg.score_threshold, min_score=cfg.min_score, per_frame=per_frame)
-    dyn = disc.dynamic & np.asarray(alive)
-    return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))

@@ -110,10 +110,9 @@ from fgjax.data.loaders import load_scene
 from fgjax.data.scene import Normalization
 from fgjax.io import atomic_write
 from fgjax.method import result
-from fgjax.method.discover import discover_run
 from fgjax.method.stage1 import evaluate as evaluate_stage1
 from fgjax.method.stage1 import load_test_views, refined_viewmats, render_frame
-from fgjax.method.stage2 import prepare_run
+from fgjax.method.stage2 import discover_run, prepare_run
 from fgjax.metrics import rotation_angle_deg
 from fgjax.synth import SynthObject, compose_transforms
 
@@ -652,7 +651,7 @@ def write_control_metrics(run, data_dir: Path | None = None, maps_dir: Path | No
 
 def discovery_trace(run_dir: Path, data_dir: Path, cfg, log=print, flow_threshold: float = 0.5) -> dict:
     """Where discovery (step 5) loses a moving part, against the synthetic ground truth: step 5 is run again on
-    the stage-1 run (`fgjax.method.discover.discover_run` with the stage-2 options `cfg`), and its per-pixel
+    the stage-1 run (`fgjax.method.stage2.discover_run` with the stage-2 options `cfg`), and its per-pixel
     flags |u - u_cam| and its dynamic set D are compared with the truth.
 
     - ``moving_pixels_flagged``: share of the true moving pixels (|gt object flow| > `flow_threshold` px, gt flow

@@ -37,6 +37,7 @@ from fgjax.gaussians import Gaussians, activate, init_from_points, knn_graph
 from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
+from fgjax.method.bases_init import init_bases_from_flow
 from fgjax.method.flows import estimate_training_flows, previous_frames, training_tracks
 from fgjax.method.init_points import (
     depth_point_cloud,
@@ -140,11 +141,6 @@ def deform_spec_from_config(cfg: Config, aabb, times=None) -> DeformSpec:
         hash_base_res=d.hash_base_res, hash_max_res=d.hash_max_res, x_freqs_hash=d.x_freqs_hash, bases=d.bases,
         knots=d.knots, aabb=tuple(float(x) for x in aabb),
     )
-
-
-# ---------------------------------------------------------------------------------------------
-# rendering with the model
-# ---------------------------------------------------------------------------------------------
 
 
 # ---------------------------------------------------------------------------------------------
@@ -536,6 +532,13 @@ def train_stage1(
                     + ("static: training without the deformation field" if state.static else "dynamic"))
             else:
                 state.static = False
+        if s == t.warmup_steps and cfg.deform.bases_init == "flow" and not state.static:
+            state.params = {**state.params, "deform": init_bases_from_flow(
+                state.params, state.densify.alive, spec, scene, flows if use_flow and fc.loss == "pair" else None,
+                method=fc.method, capacity=state.capacity, background=cfg.model.background,
+                cache_dir=None if out is None else out / "flow_cache", log=log)}
+            if repl_sh is not None:
+                state.params = jax.device_put(state.params, repl_sh)
         use_deform = s >= t.warmup_steps and not bool(state.static)
         lo = coarse and s < t.coarse_to_fine
         flow_on = use_flow and use_deform and s >= fc.start and not lo

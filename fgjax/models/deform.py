@@ -20,7 +20,8 @@ Three kinds (DESIGN.md section 1, step 1):
   (omega_k(t) - omega_k(t_a), tau_k(t) - tau_k(t_a)), so the field is the identity at t_a and stays rigid.
 
 The heads of the first two kinds are initialised to zero, so the field starts at the identity (dX = 0, dq = 0,
-ds = 0); the bases start at the identity (omega = tau = 0) with random logits (symmetry breaking).
+ds = 0); the bases start at the identity (omega = tau = 0) with random logits (symmetry breaking), which stage 1 can
+replace by weights fitted to the parts the flow shows after its warm-up (`fgjax.method.bases_init`).
 dX is added to the means, dq to the raw (unnormalised) quaternions, ds to the log-scales.
 Parameters are a plain pytree (dict of arrays); the spec is a frozen, hashable dataclass (static under jit).
 """
@@ -44,7 +45,7 @@ from fgjax.models.encoding import (
     hash_grid_resolutions,
 )
 
-__all__ = ["DeformSpec", "basis_motions", "deform_init", "deform_apply", "deform_num_params"]
+__all__ = ["DeformSpec", "basis_logits", "basis_motions", "deform_init", "deform_apply", "deform_num_params"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,8 +188,13 @@ def _network(spec: DeformSpec, params, x, t):
     return h @ params["head"]["w"] + params["head"]["b"]
 
 
+def basis_logits(spec: DeformSpec, params, x: Float[ArrayLike, "N 3"]) -> Float[Array, "N K"]:
+    """The "bases" kind's weight logits at canonical centres ``x``: w(X) = softmax(logits(X)) over the K bases."""
+    return _network(spec, params, jnp.asarray(x), 0.0)
+
+
 def _bases_apply(spec: DeformSpec, params, x, t, quats):
-    weights = jax.nn.softmax(_network(spec, params, x, t), axis=-1)  # [N, K]
+    weights = jax.nn.softmax(basis_logits(spec, params, x), axis=-1)  # [N, K]
     t = jnp.asarray(t, x.dtype)
     if t.ndim == 0:
         rot, off, rq = basis_motions(spec, params, t)

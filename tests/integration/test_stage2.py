@@ -17,7 +17,7 @@ from fgjax.articulate.pipeline import run_articulated
 from fgjax.config import ArticulateConfig, Stage2Config
 from fgjax.method import result
 from fgjax.method.control import train_control
-from fgjax.method.discover import discover_run
+from fgjax.method.stage2 import discover_run
 
 
 def _cfgs(**kw) -> tuple[Stage2Config, ArticulateConfig]:
@@ -265,7 +265,6 @@ def test_control_training_uses_the_flow_loss(tiny):
 def test_camera_correction_config_is_checked_and_wired_into_discovery(tiny, monkeypatch, tmp_path):
     from fgjax.data.loaders import load_scene
     from fgjax.data.scene import Normalization
-    from fgjax.method import discover
     from fgjax.method import stage2 as paper
 
     with pytest.raises(ValueError, match="articulate.track_joints"):
@@ -276,14 +275,14 @@ def test_camera_correction_config_is_checked_and_wired_into_discovery(tiny, monk
     run = result.load_stage2(tiny[0], require_stage2=False)
     scene = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
     calls = []
-    real = discover.camera_correction
+    real = paper.camera_correction
 
     def spy(*a, **k):
         out = real(*a, **k)
         calls.append(out)
         return out
 
-    monkeypatch.setattr(discover, "camera_correction", spy)
+    monkeypatch.setattr(paper, "camera_correction", spy)
     base = discover_run(run, scene, Stage2Config(), tmp_path, log=lambda m: None)
     assert calls == []  # "auto" and a run without pose refinement: no correction
     logs = []

@@ -90,10 +90,6 @@ class DeformConfig:
     """"bases" kind: rigid motions, the static one included."""
     knots: int = 16
     """"bases" kind: control times of each motion over the clip."""
-    bases_init: str = "random"
-    """"bases" kind: "random" (random weight logits, pivots at the origin) or "flow" (after the warm-up, the parts
-    found from |u - u_cam| on the warm-up model each get a basis, the rest basis 0, and each part's pivot its
-    centroid: `fgjax.method.bases_init`)."""
     anchor: str = "none"
     """"first": the field is zero at the first training time (`fgjax.models.deform.DeformSpec.anchor`), so the
     canonical Gaussians are the scene in its first frame (where ``model.init = "flow"`` puts them) and the field
@@ -633,9 +629,6 @@ def validate_stage1(cfg: Config) -> None:
     need(f.kind in ("hash", "frequency", "bases"), "deform.kind", "'hash', 'frequency' or 'bases'", f.kind)
     need(f.bases >= 2, "deform.bases", ">= 2", f.bases)
     need(f.knots >= 2, "deform.knots", ">= 2", f.knots)
-    need(f.bases_init in ("random", "flow"), "deform.bases_init", "'random' or 'flow'", f.bases_init)
-    need(f.bases_init == "random" or f.kind == "bases", "deform.bases_init", "'random' unless deform.kind = 'bases'",
-         f.bases_init)
     for k in ("depth", "width", "hash_levels", "hash_features", "hash_base_res", "hash_max_res"):
         need(getattr(f, k) >= 1, f"deform.{k}", ">= 1", getattr(f, k))
     for k in ("skip", "x_freqs", "t_freqs", "x_freqs_hash"):

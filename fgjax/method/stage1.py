@@ -37,7 +37,6 @@ from fgjax.gaussians import Gaussians, activate, init_from_points, knn_graph
 from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
-from fgjax.method.bases_init import init_bases_from_flow
 from fgjax.method.flows import estimate_training_flows, previous_frames, training_tracks
 from fgjax.method.init_points import (
     depth_point_cloud,
@@ -532,13 +531,6 @@ def train_stage1(
                     + ("static: training without the deformation field" if state.static else "dynamic"))
             else:
                 state.static = False
-        if s == t.warmup_steps and cfg.deform.bases_init == "flow" and not state.static:
-            state.params = {**state.params, "deform": init_bases_from_flow(
-                state.params, state.densify.alive, spec, scene, flows if use_flow and fc.loss == "pair" else None,
-                method=fc.method, capacity=state.capacity, background=cfg.model.background,
-                cache_dir=None if out is None else out / "flow_cache", log=log)}
-            if repl_sh is not None:
-                state.params = jax.device_put(state.params, repl_sh)
         use_deform = s >= t.warmup_steps and not bool(state.static)
         lo = coarse and s < t.coarse_to_fine
         flow_on = use_flow and use_deform and s >= fc.start and not lo

@@ -20,8 +20,7 @@ Three kinds (DESIGN.md section 1, step 1):
   (omega_k(t) - omega_k(t_a), tau_k(t) - tau_k(t_a)), so the field is the identity at t_a and stays rigid.
 
 The heads of the first two kinds are initialised to zero, so the field starts at the identity (dX = 0, dq = 0,
-ds = 0); the bases start at the identity (omega = tau = 0) with random logits (symmetry breaking), which stage 1 can
-replace by weights fitted to the parts the flow shows after its warm-up (`fgjax.method.bases_init`).
+ds = 0); the bases start at the identity (omega = tau = 0) with random logits (symmetry breaking).
 dX is added to the means, dq to the raw (unnormalised) quaternions, ds to the log-scales.
 Parameters are a plain pytree (dict of arrays); the spec is a frozen, hashable dataclass (static under jit).
 """

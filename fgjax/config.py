@@ -215,9 +215,9 @@ class FlowConfig:
     norm: str = "l1"
     """The flow loss's penalty on each pixel's residual (the "pair" loss's r = u - u_cam - u~_GS,
     `fgjax.flow.flow_loss`; the "track" loss's r = C - D, `fgjax.flow.track`): "l1" is |r_x| + |r_y|;
-    "charbonnier" is c^2 (sqrt(1 + |r|^2 / c^2) - 1) with c = ``charbonnier_px``, squared below c and linear beyond. Under L1 a deformation field shared by the whole scene learns none of a small part's motion
-    from velocity targets; under the squared form it does (docs/benchmarks.md, "Can the field learn a local
-    motion?")."""
+    "charbonnier" is c^2 (sqrt(1 + |r|^2 / c^2) - 1) with c = ``charbonnier_px``, squared below c and linear
+    beyond. Under L1 a deformation field shared by the whole scene learns none of a small part's motion from
+    velocity targets; under the squared form it does (docs/benchmarks.md, "Can the field learn a local motion?")."""
     charbonnier_px: float = 10.0
     """c of ``norm = "charbonnier"``, in pixels."""
     photo_motion: float = 1.0

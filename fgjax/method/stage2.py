@@ -3,8 +3,8 @@
 Library entry point: ``run_stage2(run_dir, data_dir, cfg)`` writes RUN/stage2.npz and RUN/stage2.json
 (`fgjax.method.result`). The chain never reads ground truth (no ``gt/``): only the training images, poses and times.
 
-1. **Discovery** (`discover_run`, on `fgjax.method.discover`): |u - u_cam| per training pair, binarised and back-projected
-   through the rasterizer's contribution weights; D is Otsu's cut of the per-Gaussian scores.
+1. **Discovery** (`discover_run`, on `fgjax.method.discover`): |u - u_cam| per training pair, binarised and
+   back-projected through the rasterizer's contribution weights; D is Otsu's cut of the per-Gaussian scores.
 2. **Clustering** (`select_objects`): DBSCAN (or HDBSCAN) on the canonical centres of D; clusters under
    ``min_fraction`` of D are dropped; the rest are numbered by decreasing size.
 3. **Trajectories** ς(t, k): the mean deformed centre of cluster k at each training time (time order), from the

@@ -213,9 +213,12 @@ def _bases_apply(spec: DeformSpec, params, x, t, quats):
     return dx, dq, jnp.zeros((x.shape[0], 3), x.dtype)
 
 
-def basis_motions(spec: DeformSpec, params, t) -> tuple[Float[Array, "K 3 3"], Float[Array, "K 3"], Float[Array, "K 4"]]:
-    """The moving bases at a time t (scalar): rotations R_k(t) [K-1, 3, 3], offsets b_k(t) = c_k + tau_k(t) - R_k(t) c_k
-    [K-1, 3] (basis k maps X to R_k(t) X + b_k(t)) and unit quaternions r_k(t) [K-1, 4] (wxyz, w >= 0) of R_k(t).
+def basis_motions(
+    spec: DeformSpec, params, t
+) -> tuple[Float[Array, "K 3 3"], Float[Array, "K 3"], Float[Array, "K 4"]]:
+    """The moving bases at a time t (scalar): rotations R_k(t) [K-1, 3, 3], offsets
+    b_k(t) = c_k + tau_k(t) - R_k(t) c_k [K-1, 3] (basis k maps X to R_k(t) X + b_k(t)) and unit quaternions r_k(t)
+    [K-1, 4] (wxyz, w >= 0) of R_k(t).
     Control values are linear between the knots (t clipped to [0, 1]) and relative to ``spec.anchor`` if set."""
     m = _knot_values(spec, params["motion"], t)  # [K-1, 6]
     if spec.anchor is not None:

@@ -566,26 +566,30 @@ class ArticulateConfig:
     ``ghost_opacity`` (`fgjax.cluster.near_swept`); 0: off."""
     ghost_opacity: float = 0.05
     """The opacity the faded Gaussians start a re-fit at (at most), in (0, 1)."""
-    hull_fill: bool = True
-    """Static Gaussians inside the convex hull of a cluster's opaque members join it (`fgjax.cluster.fill_hulls`)."""
+    hull_fill: bool = False
+    """Static Gaussians inside the convex hull of a cluster's opaque members join it (`fgjax.cluster.fill_hulls`).
+    This and the other label passes (``hinge_fill``, ``isolated_factor``, ``colour_radius``, ``through_prune``) are
+    off by default: together they lower the ARI on the scene family's tuning and validation seeds
+    (docs/benchmarks.md, "Label passes"); `experiments/articulated.toml` turns them on for the hand-made scenes."""
     hull_opacity: float = 0.7
     """Members with at least this opacity span the hulls (and the hinge fill's part)."""
     hull_max_growth: float = 0.6
     """A hull holding more static Gaussians than this times its cluster's size is not filled."""
-    hinge_fill: bool = True
-    """Static Gaussians along a turning part's hinge join it (`fgjax.cluster.fill_hinges`)."""
+    hinge_fill: bool = False
+    """Static Gaussians along a turning part's hinge join it (`fgjax.cluster.fill_hinges`); off by default (see
+    ``hull_fill``)."""
     hinge_radius: float = 0.15
     """The hinge fill's cylinder radius, as a fraction of the part's largest distance from its axis."""
     hinge_reach: float = 0.15
     """The hinge fill skips a part whose nearest opaque member is farther than this fraction from the axis."""
     hinge_min_deg: float = 20.0
     """The hinge fill treats a part as turning when its poses turn by at least this many degrees."""
-    isolated_factor: float = 2.5
+    isolated_factor: float = 0.0
     """Members farther from every other member than this times their cluster's median spacing become static
-    (`fgjax.cluster.drop_isolated`); 0: off, else >= 1."""
-    colour_radius: float = 0.08
+    (`fgjax.cluster.drop_isolated`); 0: off (the default, see ``hull_fill``), else >= 1."""
+    colour_radius: float = 0.0
     """Each part's outline relabelled by colour against the static Gaussians within this distance
-    (`fgjax.cluster.refine_by_colour`); 0: off."""
+    (`fgjax.cluster.refine_by_colour`); 0: off (the default, see ``hull_fill``)."""
     colour_components: int = 4
     """Gaussian-mixture components of each colour model."""
     colour_separation: float = 0.65
@@ -594,9 +598,9 @@ class ArticulateConfig:
     settle_rest: bool = True
     """After the label passes, each object's still spans are put back at rest where that renders closer
     (`fgjax.articulate.phototrack.settle_at_rest`)."""
-    through_prune: float = 0.5
+    through_prune: float = 0.0
     """Static Gaussians with more than this share of their painted weight where the parts cover the pixel get
-    opacity ~0 (`fgjax.articulate.labels.seen_through`); 0: off."""
+    opacity ~0 (`fgjax.articulate.labels.seen_through`); 0: off (the default, see ``hull_fill``)."""
     hull_refit_steps: int = 100
     """Re-fit steps after the label passes; 0: none."""
 

@@ -326,7 +326,9 @@ def run_articulated(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config
 def label_passes(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], reference: Gaussians, refit: Gaussians, labels: Int[np.ndarray, " N"],
                  poses: Float[np.ndarray, "K T 4 4"], moving, acfg: ArticulateConfig, seed: int, rounds: int, log=print):
     """After the last round: hull and hinge fills, isolated members, colour outlines, still spans settled at rest,
-    static Gaussians seen through the parts pruned, then ``acfg.hull_refit_steps`` of re-fit under the new labels.
+    static Gaussians seen through the parts pruned (each where its `ArticulateConfig` key turns it on; the fills, the
+    isolated members, the colour outlines and the pruning are off by default, docs/benchmarks.md "Label passes"),
+    then ``acfg.hull_refit_steps`` of re-fit under the new labels.
     Returns (re-fitted scene, labels [N], poses [K, T, 4, 4], a record of what each pass changed)."""
     alive = run.state.densify.alive
     fills: dict = {}

@@ -633,7 +633,7 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     loss_of.update({1: 0.5})
     trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
                         ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, hinge_trial_search_slides=False,
-                                         hinge_trial_edges=4),
+                                         hinge_trial_edges=4, colour_radius=0.08),
                         np.ones(1, bool), log=logs.append)
     assert len(coloured) == 1 and coloured[0] is ref and len(labels_seen) in (6, 7)  # the snapped slide may run
     assert all(lab is recoloured for lab in labels_seen)
@@ -923,7 +923,8 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
                                      "articulate.refit_steps=4", "articulate.track_photo=5",
                                      "articulate.track_only_moving=false", "articulate.track_subset_margin=3",
                                      "articulate.track_photo_next=3", "articulate.track_rounds=1",
-                                     "articulate.track_rest=true"])
+                                     "articulate.track_rest=true", "articulate.hull_fill=true",
+                                     "articulate.hinge_fill=true"])
     res = run_articulated(dst, tiny[1], cfg.stage2, cfg.articulate, log=logs.append)
     defaults = ArticulateConfig()
     assert seen == [(False, 3, (2, 2, 1), True)] and defaults.track_only_moving
@@ -931,10 +932,11 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert res.num_objects > 0, logs
     assert sum(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs) == 1, logs
     assert sum("-> revolute" in m or "-> prismatic" in m for m in logs) == res.num_objects, logs
-    # one round's re-fit, then the hull fill's (`hull_fill`, on by default) with its own step count
+    # one round's re-fit, then the hull fill's (`hull_fill`, on in experiments/articulated.toml) with its own step
+    # count
     assert sum(m.startswith("stage 2: re-fitted the Gaussians") for m in logs) == 2, logs
     assert any("inside the hulls" in m for m in logs) and any("re-fitted" in m and "100 steps" in m for m in logs), logs
-    assert sum("along the hinges" in m for m in logs) == 1, logs  # `hinge_fill`, on by default, shares that re-fit
+    assert sum("along the hinges" in m for m in logs) == 1, logs  # `hinge_fill` shares that re-fit
     assert not any("round 2" in m for m in logs), logs
     # `ghost_radius` (0.03 by default): the round's re-fit, not the hull fill's, starts with the static
     # Gaussians by the parts' swept volume faded

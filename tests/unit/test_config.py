@@ -79,6 +79,19 @@ def test_named_configurations_load_and_name_their_variant(name, variant):
     assert cfg.stage2.variant == variant
 
 
+LABEL_PASSES = ("hull_fill", "hinge_fill", "isolated_factor", "colour_radius", "through_prune")
+
+
+def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_configurations():
+    """The articulated variant's label passes lower the family benchmark's ARI (docs/benchmarks.md, "Label passes"):
+    the library default and the family's configuration leave them off; the demo's configurations turn them on."""
+    for cfg in (load_config(None), load_config(REPO / "experiments" / "family.toml")):
+        assert not any(getattr(cfg.articulate, k) for k in LABEL_PASSES), cfg.articulate
+    for name in ("articulated", "demo_quick"):
+        a = load_config(REPO / "experiments" / f"{name}.toml").articulate
+        assert all(getattr(a, k) for k in LABEL_PASSES), (name, a)
+
+
 @pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"), ("flow.photo_motion=1.5", "flow.photo_motion"),
                                           ("deform.anchor=last", "deform.anchor"), ("deform.kind=mlp", "deform.kind"),
                                           ("deform.bases=1", "deform.bases"), ("deform.knots=1", "deform.knots"),

@@ -570,7 +570,8 @@ class ArticulateConfig:
     """Static Gaussians inside the convex hull of a cluster's opaque members join it (`fgjax.cluster.fill_hulls`).
     This and the other label passes (``hinge_fill``, ``isolated_factor``, ``colour_radius``, ``through_prune``) are
     off by default: together they lower the ARI on the scene family's tuning and validation seeds
-    (docs/benchmarks.md, "Label passes"); `experiments/articulated.toml` turns them on for the hand-made scenes."""
+    (docs/benchmarks.md, "Label passes"); `experiments/articulated.toml` and `experiments/demo_quick.toml` turn them
+    on for the hand-made scenes."""
     hull_opacity: float = 0.7
     """Members with at least this opacity span the hulls (and the hinge fill's part)."""
     hull_max_growth: float = 0.6

@@ -932,8 +932,7 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
     assert res.num_objects > 0, logs
     assert sum(m.startswith("photometric tracking:") and "frames fitted" in m for m in logs) == 1, logs
     assert sum("-> revolute" in m or "-> prismatic" in m for m in logs) == res.num_objects, logs
-    # one round's re-fit, then the hull fill's (`hull_fill`, on in experiments/articulated.toml) with its own step
-    # count
+    # one round's re-fit, then the hull fill's (`hull_fill`, turned on above) with its own step count
     assert sum(m.startswith("stage 2: re-fitted the Gaussians") for m in logs) == 2, logs
     assert any("inside the hulls" in m for m in logs) and any("re-fitted" in m and "100 steps" in m for m in logs), logs
     assert sum("along the hinges" in m for m in logs) == 1, logs  # `hinge_fill` shares that re-fit

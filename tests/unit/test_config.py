@@ -85,11 +85,14 @@ LABEL_PASSES = ("hull_fill", "hinge_fill", "isolated_factor", "colour_radius", "
 def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_configurations():
     """The articulated variant's label passes lower the family benchmark's ARI (docs/benchmarks.md, "Label passes"):
     the library default and the family's configuration leave them off; the demo's configurations turn them on."""
-    for cfg in (load_config(None), load_config(REPO / "experiments" / "family.toml")):
-        assert not any(getattr(cfg.articulate, k) for k in LABEL_PASSES), cfg.articulate
-    for name in ("articulated", "demo_quick"):
-        a = load_config(REPO / "experiments" / f"{name}.toml").articulate
-        assert all(getattr(a, k) for k in LABEL_PASSES), (name, a)
+    hand_made = {"articulated", "demo_quick"}
+    named = sorted((REPO / "experiments").glob("*.toml"))
+    assert hand_made < {f.stem for f in named} and "family" in {f.stem for f in named}
+    assert not any(getattr(load_config(None).articulate, k) for k in LABEL_PASSES)
+    for f in named:
+        a = load_config(f).articulate
+        on = [bool(getattr(a, k)) for k in LABEL_PASSES]
+        assert on == [f.stem in hand_made] * len(LABEL_PASSES), (f.name, a)
 
 
 @pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"), ("flow.photo_motion=1.5", "flow.photo_motion"),

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from fgjax.config import (
+    LABEL_PASSES,
     ArticulateConfig,
     ConfigError,
     Stage2Config,
@@ -79,20 +80,21 @@ def test_named_configurations_load_and_name_their_variant(name, variant):
     assert cfg.stage2.variant == variant
 
 
-LABEL_PASSES = ("hull_fill", "hinge_fill", "isolated_factor", "colour_radius", "through_prune")
-
-
 def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_configurations():
     """The articulated variant's label passes lower the family benchmark's ARI (docs/benchmarks.md, "Label passes"):
     the library default and the family's configuration leave them off; the demo's configurations turn them on."""
     hand_made = {"articulated", "demo_quick"}
     named = sorted((REPO / "experiments").glob("*.toml"))
     assert hand_made < {f.stem for f in named} and "family" in {f.stem for f in named}
-    assert not any(getattr(load_config(None).articulate, k) for k in LABEL_PASSES)
+    passes = LABEL_PASSES
+    assert passes == ("hull_fill", "hinge_fill", "isolated_factor", "colour_radius", "through_prune")
+    assert load_config(None).articulate.label_passes_on() == ()
     for f in named:
         a = load_config(f).articulate
-        on = [bool(getattr(a, k)) for k in LABEL_PASSES]
-        assert on == [f.stem in hand_made] * len(LABEL_PASSES), (f.name, a)
+        assert a.label_passes_on() == (passes if f.stem in hand_made else ()), (f.name, a)
+    # one pass on, by its key's own kind of value
+    assert ArticulateConfig(colour_radius=0.05).label_passes_on() == ("colour_radius",)
+    assert ArticulateConfig(hinge_fill=True, through_prune=0.5).label_passes_on() == ("hinge_fill", "through_prune")
 
 
 @pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"), ("flow.photo_motion=1.5", "flow.photo_motion"),

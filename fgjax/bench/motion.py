@@ -17,12 +17,16 @@ here, never by the pipeline), prints:
   plane normal to the viewing ray at t*), D(t*)'s angle to that ray, and the widest angle between the rays to the
   part over the frames it spends in its t* state, the only parallax that fixes its motion along the rays;
 - how many live Gaussians move more than 0.01, 0.05 and 0.1 scene units from where they are at t0, at any time;
+- for a "bases" field (`fgjax.models.deform`), where the weights w(X) = softmax(logits(X)) sit (`basis_weights`):
+  the mean weight on the static basis (basis 0) over every live Gaussian, and each part's mean weight on every
+  basis. A part whose weight sits on basis 0 cannot move, whatever its bases' motions learn;
 - with ``--flow``, the dynamic-flow diagnosis (DESIGN.md section 1, step 4), per part over the frame pairs in which
   it moves (median ground-truth object flow on its pixels above 0.5 px): on the part's pixels of frame t-1, the
   rendered dynamic Gaussian flow u~_GS against the target u - u_cam (u: the optical flow stage 1 trains with, u_cam:
   the reprojection of the rendered depth), as median end-point error and median magnitude ratio |u~_GS| / |u - u_cam|,
   the target's own error against the true object flow, and the gradient norms that L_uGS (unweighted) and the
-  photometric loss send to the deformation field's displacement head at that frame.
+  photometric loss send to the deformation field's motion at that frame (the displacement head's weights; for a
+  "bases" field, the bases' control values).
 
 ``--oracle STEPS`` asks whether the deformation field can learn the motion at all when everything else is right: the
 run's field architecture (a fresh one, the identity at t0: `fgjax.models.deform.DeformSpec.anchor`) on the scene's
@@ -33,7 +37,8 @@ flow loss; ``--oracle-loss track``: the first frame's tracks, `fgjax.flow.track`
 x ``train.lr_hash_factor``) unless ``--oracle-lr``. It prints L(t*) / D(t*) and the angle per part every 100 steps.
 
 ``--train CONFIG`` trains the run first (into ``--run``, with ``--set`` overrides) and records L(t*) / D(t*) per part
-every ``train.log_every`` steps (the trace: learned against true displacement over training).
+every ``train.log_every`` steps (the trace: learned against true displacement over training), with a "bases" field
+also the static basis's mean weight over all live Gaussians and over each part's.
 """
 
 from __future__ import annotations
@@ -71,12 +76,12 @@ from fgjax.method.stage1 import (
     training_tracks,
 )
 from fgjax.method.stage1 import run as run_stage1
-from fgjax.models.deform import deform_init
+from fgjax.models.deform import basis_logits, deform_init
 from fgjax.models.model import deformed_gaussians, render_params
 from fgjax.train.losses import photometric_loss
 from fgjax.train.optim import guarded_step
 
-__all__ = ["main", "motion_report", "part_gaussians", "learned_motion", "true_motion", "motion_scores",
+__all__ = ["main", "motion_report", "part_gaussians", "learned_motion", "true_motion", "motion_scores", "basis_weights",
            "motion_observability", "true_observability",
            "flow_diagnosis", "means_at", "part_scores", "true_gaussians", "oracle_fit"]
 
@@ -119,6 +124,19 @@ def means_at(params, alive, spec, t: float) -> np.ndarray:
     if spec is None:
         return np.asarray(params["gaussians"].means)
     return np.asarray(deformed_gaussians(params, alive, float(t), spec)[0])
+
+
+def basis_weights(params, alive, spec, parts: list[np.ndarray]) -> dict | None:
+    """For a "bases" field (``spec.kind``; `fgjax.models.deform`), the weights w(X) = softmax(logits(X)) [N, B] at
+    the canonical centres: {"static_all": mean w_0 (the static basis) over the live Gaussians, "parts": per part (its
+    indices in ``parts``) the mean of its Gaussians' weights, [B] (NaN for a part with no Gaussians)}; None for the
+    other kinds and a static model (``spec`` None)."""
+    if spec is None or spec.kind != "bases":
+        return None
+    w = np.asarray(jax.nn.softmax(basis_logits(spec, params["deform"], params["gaussians"].means), axis=-1))
+    live = np.asarray(alive, bool)
+    return {"static_all": float(np.mean(w[live, 0])) if live.any() else float("nan"),
+            "parts": [w[idx].mean(axis=0).tolist() if len(idx) else [float("nan")] * w.shape[1] for idx in parts]}
 
 
 def learned_motion(params, alive, spec, parts: list[np.ndarray], times: np.ndarray) -> np.ndarray:
@@ -274,7 +292,8 @@ def flow_diagnosis(cfg, state, spec, data_dir: Path, norm: Normalization, flows:
                                     sh_degree=cfg.model.sh_degree, width=w, height=h, background=bg, capacity=None)[0]
                 return photometric_loss(img, jnp.asarray(sc.images[i]), cfg.train.lambda_dssim)
 
-            head = lambda g: float(np.linalg.norm(np.asarray(g["head"]["w"])[:, :3]))
+            head = lambda g: float(np.linalg.norm(np.asarray(g["motion"]) if spec.kind == "bases"
+                                                  else np.asarray(g["head"]["w"])[:, :3]))
             rows.append((np.median(np.linalg.norm(gs - tg, axis=-1)),
                          np.median(np.linalg.norm(gs, axis=-1)) / max(np.median(np.linalg.norm(tg, axis=-1)), 1e-9),
                          np.median(np.linalg.norm(tg - oflow[j][sel], axis=-1)),
@@ -317,13 +336,16 @@ def motion_report(run_dir: Path, data_dir: Path, num_times: int = 21, flow: bool
                                     np.stack([o["view_dir"] for o in obs]))
     objects = json.loads((gt / "meta.json").read_text())["objects"]
     diag = flow_diagnosis(cfg, state, use, data_dir, norm, cache_dir=Path(run_dir) / "flow_cache") if flow else None
+    bw = basis_weights(state.params, state.densify.alive, use, parts)
+    res["static_weight"] = None if bw is None else bw["static_all"]
     res["objects"] = []
     for k, (o, idx, sc) in enumerate(zip(objects, parts, scores)):
         learned_max = float(np.max(np.linalg.norm(lm[k], axis=-1))) if len(idx) else float("nan")
         row = {"name": o["name"], "gaussians": int(len(idx)),
                "true_max_displacement": float(np.max(np.linalg.norm(true[k], axis=-1))),
                "learned_max_displacement": learned_max, **{f"at_tmax_{n}": v for n, v in sc.items()},
-               "along_ray_deg": obs[k]["along_ray_deg"], "ray_spread_deg": obs[k]["ray_spread_deg"]}
+               "along_ray_deg": obs[k]["along_ray_deg"], "ray_spread_deg": obs[k]["ray_spread_deg"],
+               "basis_weights": None if bw is None else bw["parts"][k]}
         if diag is not None:
             row["flow"] = diag[k]
         res["objects"].append(row)
@@ -468,6 +490,11 @@ def _print(r: dict) -> None:
     mv = r["moving_gaussians"]
     print(f"live Gaussians {r['live_gaussians']}; moving more than 0.01 / 0.05 / 0.1: "
           f"{mv['0.01']} / {mv['0.05']} / {mv['0.1']}")
+    if r.get("static_weight") is not None:
+        print(f"bases' weights: the static basis holds {r['static_weight']:.3f} of the live Gaussians' weight (mean); "
+              "per part, its Gaussians' mean weight on each basis (basis 0: static):")
+        for o in r["objects"]:
+            print(f"{o['name']:<12} " + " ".join(f"{v:.3f}" for v in o["basis_weights"]))
     if any("flow" in o for o in r["objects"]):
         print("dynamic flow on each part's pixels (medians over the frame pairs in which it moves):")
         print(f"{'part':<12} {'pairs':>5} {'EPE GS-target':>13} {'|GS|/|target|':>13} {'EPE target-true':>15} "
@@ -478,11 +505,16 @@ def _print(r: dict) -> None:
                 print(f"{o['name']:<12} {f['frames']:>5} {f['epe_gs_target']:>13.2f} {f['ratio_gs_target']:>13.3f} "
                       f"{f['epe_target_true']:>15.2f} {f['grad_flow']:>10.3g} {f['grad_photo']:>10.3g}")
     if r.get("trace"):
-        print("learned / true displacement at t* over training:")
+        bases = any(row.get("static_weight") is not None for row in r["trace"])
+        print("learned / true displacement at t* over training"
+              + (" (then the static basis's mean weight: all live Gaussians, each part's):" if bases else ":"))
         names = [o["name"] for o in r["objects"]]
-        print(f"{'step':>6} " + " ".join(f"{n:>12}" for n in names))
+        print(f"{'step':>6} " + " ".join(f"{n:>12}" for n in names)
+              + ("  w0 " + " ".join(f"{n:>12}" for n in ["all", *names]) if bases else ""))
         for row in r["trace"]:
-            print(f"{row['step']:>6} " + " ".join(f"{v:>12.2f}" for v in row["ratios"]))
+            w0 = [row["static_weight"], *row["part_static_weights"]] if row.get("static_weight") is not None else None
+            print(f"{row['step']:>6} " + " ".join(f"{v:>12.2f}" for v in row["ratios"])
+                  + ("" if not bases else "     " + (" ".join(f"{v:>12.3f}" for v in w0) if w0 else "")))
 
 
 def _train(args, data_dir: Path, run_dir: Path) -> list[dict]:
@@ -498,8 +530,11 @@ def _train(args, data_dir: Path, run_dir: Path) -> list[dict]:
         if state.static is None or state.static:
             return
         use = spec if step > cfg.train.warmup_steps else None
-        sc = part_scores(state.params, state.densify.alive, use, gt, norm, times, true)[2]
-        trace.append({"step": step, "ratios": [s["ratio"] for s in sc], "angles": [s["angle_deg"] for s in sc]})
+        parts, _, sc = part_scores(state.params, state.densify.alive, use, gt, norm, times, true)
+        bw = basis_weights(state.params, state.densify.alive, use, parts)
+        trace.append({"step": step, "ratios": [s["ratio"] for s in sc], "angles": [s["angle_deg"] for s in sc],
+                      "static_weight": None if bw is None else bw["static_all"],
+                      "part_static_weights": None if bw is None else [w[0] for w in bw["parts"]]})
 
     run_stage1(cfg, data_dir, run_dir, monitor=monitor)
     return trace

@@ -110,14 +110,46 @@ def test_motion_scores_image_angle_ignores_the_error_along_the_ray():
     assert np.isnan(s["image_ratio"]) and np.isnan(s["image_angle_deg"]) and s["ratio"] == pytest.approx(1.5)
 
 
-def test_bench_motion_trains_traces_and_diagnoses_the_flow(tiny, tmp_path, capsys):
-    """--train records the learned motion over training; --flow measures the dynamic flow on each part's pixels."""
+def test_basis_weights_read_the_bases_weights_that_the_field_applies():
+    """Every moving basis a unit translation along x: the field moves X by 1 - w_0(X) along x (`deform_apply`), an
+    independent read of the static basis's weight; the hash kind has no bases."""
+    import jax
+    import jax.numpy as jnp
+
+    from fgjax.gaussians import Gaussians
+    from fgjax.models.deform import DeformSpec, deform_apply, deform_init
+
+    spec = DeformSpec(kind="bases", depth=2, width=16, hash_levels=2, hash_log2_table=8, bases=4, knots=3)
+    d = deform_init(jax.random.PRNGKey(3), spec)
+    d["head"]["w"] = d["head"]["w"] * 40.0  # weights that differ from point to point
+    d["motion"] = d["motion"].at[:, :, 3].set(1.0)
+    x = jax.random.uniform(jax.random.PRNGKey(4), (50, 3), minval=-0.9, maxval=0.9)
+    n = x.shape[0]
+    g = Gaussians(x, jnp.zeros((n, 3)), jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (n, 1)), jnp.zeros(n), jnp.zeros((n, 1, 3)))
+    alive = np.arange(n) < 40  # the last ten are dead slots
+    parts = [np.arange(0, 10), np.arange(25, 40), np.zeros(0, int)]
+    r = motion.basis_weights({"gaussians": g, "deform": d}, alive, spec, parts)
+    moved = np.asarray(deform_apply(spec, d, x, 0.5)[0])[:, 0]  # 1 - w_0
+    assert moved[:40].std() > 0.05  # the check below is not of a constant
+    assert r["static_all"] == pytest.approx(1.0 - moved[:40].mean(), abs=1e-5)
+    for idx, w in zip(parts[:2], r["parts"][:2]):
+        assert len(w) == 4 and sum(w) == pytest.approx(1.0, abs=1e-5)
+        assert w[0] == pytest.approx(1.0 - moved[idx].mean(), abs=1e-5)
+    assert np.all(np.isnan(r["parts"][2]))
+    assert motion.basis_weights({"gaussians": g, "deform": d}, alive, DeformSpec(kind="hash"), parts) is None
+    assert motion.basis_weights({"gaussians": g}, alive, None, parts) is None
+
+
+@pytest.mark.parametrize("kind", ["hash", "bases"])
+def test_bench_motion_trains_traces_and_diagnoses_the_flow(tiny, tmp_path, capsys, kind):
+    """--train records the learned motion over training (with the bases, where their weights sit); --flow measures
+    the dynamic flow on each part's pixels."""
     _, data = tiny
     run = tmp_path / "run"
     quick = Path(__file__).resolve().parents[2] / "experiments" / "quick.toml"
     sets = ["train.steps=8", "train.warmup_steps=2", "densify.enabled=false", "train.video_frames=0",
             "train.log_every=4", "train.checkpoint_every=0", "static.force=dynamic", "flow.enabled=true",
-            "flow.start=0", "flow.method=dis"]
+            "flow.start=0", "flow.method=dis", f"deform.kind={kind}"]
     args = ["--run", str(run), "--data", str(data), "--train", str(quick), "--flow", "--json", str(tmp_path / "r.json")]
     assert motion.main(args + [a for s in sets for a in ("--set", s)]) == 0
     out = capsys.readouterr().out
@@ -125,6 +157,14 @@ def test_bench_motion_trains_traces_and_diagnoses_the_flow(tiny, tmp_path, capsy
     r = json.loads((tmp_path / "r.json").read_text())
     assert [t["step"] for t in r["trace"]] == [4, 8]
     assert all(len(t["ratios"]) == len(r["objects"]) for t in r["trace"])
+    if kind == "bases":
+        assert "bases' weights" in out and 0.0 < r["static_weight"] < 1.0
+        for t in r["trace"]:
+            assert 0.0 < t["static_weight"] < 1.0 and len(t["part_static_weights"]) == len(r["objects"])
+        for o in r["objects"]:
+            assert len(o["basis_weights"]) == 6 and (o["gaussians"] == 0 or sum(o["basis_weights"]) == pytest.approx(1.0))
+    else:
+        assert r["static_weight"] is None and all(t["static_weight"] is None for t in r["trace"])
     for o in r["objects"]:
         f = o["flow"]
         if f["frames"]:

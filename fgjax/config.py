@@ -18,7 +18,7 @@ from typing import Any
 
 __all__ = [
     "DataConfig", "ModelConfig", "DeformConfig", "TrainConfig", "DensifyConfig", "FlowConfig",
-    "PoseConfig", "StaticConfig", "Stage2Config", "ArticulateConfig", "LABEL_PASSES", "Config", "validate_stage1",
+    "PoseConfig", "StaticConfig", "Stage2Config", "ArticulateConfig", "Config", "validate_stage1",
     "validate_stage2", "validate_articulate", "load_config", "apply_overrides", "to_toml", "from_dict",
     "ConfigError",
 ]
@@ -604,15 +604,6 @@ class ArticulateConfig:
     opacity ~0 (`fgjax.articulate.labels.seen_through`); 0: off (the default, see ``hull_fill``)."""
     hull_refit_steps: int = 100
     """Re-fit steps after the label passes; 0: none."""
-
-    def label_passes_on(self) -> tuple[str, ...]:
-        """The keys of `LABEL_PASSES` that this configuration turns on, in that order."""
-        return tuple(k for k in LABEL_PASSES if getattr(self, k))
-
-
-LABEL_PASSES = ("hull_fill", "hinge_fill", "isolated_factor", "colour_radius", "through_prune")
-"""The `ArticulateConfig` keys that turn on a label pass (`fgjax.articulate.pipeline.label_passes`; a pass is on when
-its key is true or non-zero)."""
 
 
 def _finite(x: float) -> bool:

@@ -24,7 +24,16 @@ from fgjax.render.api import gaussian_weights, rasterization
 
 __all__ = ["posed_geometry", "opaque", "joined", "fill_hulls", "drop_isolated", "refine_by_colour", "settle",
            "fill_hinges", "cap_opacity", "fade_dropped", "TileOverflow", "seen_through", "prune_seen_through",
-           "fade_ghosts"]
+           "fade_ghosts", "LABEL_PASSES", "label_passes_on"]
+
+LABEL_PASSES = ("hull_fill", "hinge_fill", "isolated_factor", "colour_radius", "through_prune")
+"""The `ArticulateConfig` keys that turn on a label pass (`fgjax.articulate.pipeline.label_passes`; a pass is on when
+its key is true or non-zero)."""
+
+
+def label_passes_on(acfg: ArticulateConfig) -> tuple[str, ...]:
+    """The keys of `LABEL_PASSES` that ``acfg`` turns on, in that order."""
+    return tuple(k for k in LABEL_PASSES if getattr(acfg, k))
 
 
 def posed_geometry(base, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"]):

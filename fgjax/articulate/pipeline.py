@@ -32,6 +32,7 @@ from fgjax.articulate.labels import (
     fill_hinges,
     fill_hulls,
     joined,
+    label_passes_on,
     posed_geometry,
     prune_seen_through,
     refine_by_colour,
@@ -356,7 +357,7 @@ def label_passes(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref
     if acfg.through_prune > 0:
         refit, fills["through_pruned"] = prune_seen_through(refit, filled, poses, run, scene, order,
                                                             acfg.through_prune, log)
-    if (acfg.label_passes_on() or fills.get("settled")) and acfg.hull_refit_steps > 0:
+    if (label_passes_on(acfg) or fills.get("settled")) and acfg.hull_refit_steps > 0:
         refit, _ = refit_gaussians(run, scene, order, filled, poses, acfg.hull_refit_steps, seed=seed + rounds,
                                    init=refit, lr_scale=acfg.refit_lr_scale, log=log)
     return refit, filled, poses, fills

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from fgjax.articulate.labels import LABEL_PASSES, label_passes_on
 from fgjax.config import (
-    LABEL_PASSES,
     ArticulateConfig,
     ConfigError,
     Stage2Config,
@@ -88,13 +88,13 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
     assert hand_made < {f.stem for f in named} and "family" in {f.stem for f in named}
     passes = LABEL_PASSES
     assert passes == ("hull_fill", "hinge_fill", "isolated_factor", "colour_radius", "through_prune")
-    assert load_config(None).articulate.label_passes_on() == ()
+    assert label_passes_on(load_config(None).articulate) == ()
     for f in named:
         a = load_config(f).articulate
-        assert a.label_passes_on() == (passes if f.stem in hand_made else ()), (f.name, a)
+        assert label_passes_on(a) == (passes if f.stem in hand_made else ()), (f.name, a)
     # one pass on, by its key's own kind of value
-    assert ArticulateConfig(colour_radius=0.05).label_passes_on() == ("colour_radius",)
-    assert ArticulateConfig(hinge_fill=True, through_prune=0.5).label_passes_on() == ("hinge_fill", "through_prune")
+    assert label_passes_on(ArticulateConfig(colour_radius=0.05)) == ("colour_radius",)
+    assert label_passes_on(ArticulateConfig(hinge_fill=True, through_prune=0.5)) == ("hinge_fill", "through_prune")
 
 
 @pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"), ("flow.photo_motion=1.5", "flow.photo_motion"),

@@ -91,11 +91,12 @@ class DeformConfig:
     knots: int = 16
     """"bases" kind: control times of each motion over the clip."""
     anchor: str = "none"
-    """"first": the field is zero at the first training time (`fgjax.models.deform.DeformSpec.anchor`), so the
-    canonical Gaussians are the scene in its first frame (where ``model.init = "flow"`` puts them) and the field
-    holds only motion: a constant offset of the whole scene, which neither the flow loss (it sees differences
-    between frames) nor the photometric loss (the canonical means can absorb it) pins, cannot drift in it.
-    "none": a canonical space of the network's choosing (Deformable-3DGS)."""
+    """"first": the field is zero at the first training time (`fgjax.models.deform.DeformSpec.anchor`): the canonical
+    Gaussians are the first frame (where ``model.init = "flow"`` puts them) and a constant offset of the whole scene,
+    which neither the flow loss nor the photometric loss pins, cannot drift in. "none": the network's choice."""
+    init: str = "random"
+    """"bases" kind: "random" logits, or "flow": placed on the moving clusters that the flow finds after the
+    warm-up (`fgjax.method.bases_init`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -661,6 +662,7 @@ def validate_stage1(cfg: Config) -> None:
     need(_finite(fl.threshold) and fl.threshold >= 0, "flow.threshold", ">= 0", fl.threshold)
     need(fl.start >= 0, "flow.start", ">= 0", fl.start)
     need(f.anchor in ("none", "first"), "deform.anchor", "'none' or 'first'", f.anchor)
+    need(f.init in ("random", "flow"), "deform.init", "'random' or 'flow'", f.init)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
          fl.gaussian_flow)

@@ -37,6 +37,7 @@ from fgjax.gaussians import Gaussians, activate, init_from_points, knn_graph
 from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
+from fgjax.method.bases_init import place_bases
 from fgjax.method.flows import estimate_training_flows, previous_frames, training_tracks
 from fgjax.method.init_points import (
     depth_point_cloud,
@@ -531,6 +532,10 @@ def train_stage1(
                     + ("static: training without the deformation field" if state.static else "dynamic"))
             else:
                 state.static = False
+            if not state.static and spec.kind == "bases" and cfg.deform.init == "flow":
+                state.params = place_bases(cfg, state.params, state.densify.alive, spec, scene,
+                                           flows if use_flow and fc.loss == "pair" else None, capacity=state.capacity,
+                                           cache_dir=None if out is None else out / "flow_cache", log=log)
         use_deform = s >= t.warmup_steps and not bool(state.static)
         lo = coarse and s < t.coarse_to_fine
         flow_on = use_flow and use_deform and s >= fc.start and not lo

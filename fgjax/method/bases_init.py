@@ -1,0 +1,149 @@
+"""Motion bases placed from the flow before they move (``deform.init = "flow"``; DESIGN.md section 1, steps 3-6).
+
+The "bases" field (`fgjax.models.deform`) blends K rigid motions with weights w(X) = softmax(logits(X)); basis 0
+is the static scene. Started from random logits, the flow loss drives every weight onto basis 0 within its first
+steps (a moving basis's early, random motion only costs on the static pixels, which are most of them), and a
+softmax at w_0 ~ 1 passes almost no gradient to a part's other weights: the parts then stay still (docs/benchmarks.md,
+"Where the bases' weights sit"). Shape of Motion (Wang et al. 2024) starts its bases from clustered 3D tracks
+instead; this is the same idea with the evidence stage 1 already has, at the end of its warm-up:
+
+1. the warm-up model's depth gives each training pair's camera flow u_cam (exact reprojection), and the observed
+   flow u minus u_cam marks the moving pixels (`fgjax.method.discover.discover`, |u - u_cam| > 1 px);
+2. the moving pixels are back-projected onto the canonical Gaussians through the rasterizer's weights and the
+   Gaussians that paint mostly moving pixels are selected; DBSCAN (`fgjax.cluster.cluster_dynamic`, automatic
+   radius) groups them;
+3. the logits network is fitted, by class-balanced cross-entropy with label smoothing, to put cluster j
+   (largest first, j < K - 1) on basis j + 1 and every unselected Gaussian on basis 0; selected Gaussians that
+   DBSCAN calls noise, and clusters beyond K - 1, are left to the training.
+
+The bases' motions stay at the identity; the flow loss then fits each basis's motion to the pixels of the part
+that sits on it. Nothing here encodes a part's shape or motion kind.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from fgjax import cluster
+from fgjax import flow as fl
+from fgjax.config import Config
+from fgjax.gaussians import activate
+from fgjax.geometry import viewmat_to_c2w
+from fgjax.method.discover import discover
+from fgjax.method.flows import estimate_training_flows, previous_frames
+from fgjax.models.deform import DeformSpec, basis_logits
+from fgjax.models.model import render_params
+
+__all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases"]
+
+
+def moving_clusters(
+    params, alive, viewmats, Ks, flows, prev, *, width: int, height: int, capacity: int,
+    background=(0.0, 0.0, 0.0), threshold_px: float = 1.0, min_fraction: float = 0.02,
+) -> np.ndarray:
+    """Label every Gaussian slot: -2 static, -1 dead or moving but DBSCAN noise, j >= 0 moving cluster j (the
+    largest first), from the canonical Gaussians (``params["gaussians"]``, no deformation) and the training flows.
+
+    Args:
+        params, alive: stage-1 parameters and the live-slot mask [N].
+        viewmats [T, 4, 4] (OpenCV world-to-camera), Ks [T, 3, 3]: the training cameras.
+        flows: [T, H, W, 2] optical flow into frame i from frame ``prev[i]``, on that frame's grid (NaN: unknown).
+        prev: [T] the previous frame in time of each frame (-1: none; `fgjax.method.flows.previous_frames`).
+        width, height, capacity, background: rendering of the canonical model's depth.
+        threshold_px: a pixel moves where |u - u_cam| exceeds this many pixels. A fixed floor rather than each pair's
+            Otsu threshold: a fast part's large residual puts Otsu's cut above a slow part's (`fgjax.method.discover`).
+        min_fraction: clusters smaller than this share of the moving Gaussians are noise.
+    """
+    pairs = [i for i in range(len(prev)) if prev[i] >= 0]
+    alive_np = np.asarray(alive, bool)
+    labels = np.where(alive_np, -2, -1).astype(np.int64)
+    if not pairs or not alive_np.any():
+        return labels
+    g = params["gaussians"]
+    quats, scales, opac = activate(g, alive)
+    c2w = viewmat_to_c2w(np.asarray(viewmats, np.float64))
+    bg = jnp.asarray(background, jnp.float32)
+    cam_flows, valid = [], []
+    for i in pairs:
+        a = int(prev[i])
+        _, alpha, info, _ = render_params(params, alive, jnp.asarray(viewmats[a], jnp.float32),
+                                          jnp.asarray(Ks[a], jnp.float32), 0.0, spec=None, sh_degree=0,
+                                          width=width, height=height, background=bg, capacity=capacity,
+                                          render_depth=True)
+        cam, ok = fl.reprojection_flow(np.asarray(info["depth"], np.float64), Ks[a], c2w[a], c2w[i])
+        cam_flows.append(np.asarray(cam, np.float32))
+        valid.append(np.asarray(ok) & (np.asarray(alpha) >= 0.5) & np.all(np.isfinite(flows[i]), axis=-1))
+    src = [int(prev[i]) for i in pairs]
+    u = np.nan_to_num(np.asarray(flows, np.float32)[pairs])
+    found = discover(np.asarray(g.means), np.asarray(quats), np.asarray(scales), np.asarray(opac),
+                     np.asarray(viewmats, np.float32)[src], np.asarray(Ks, np.float32)[src], u,
+                     np.stack(cam_flows), valid=np.stack(valid), threshold_px=threshold_px,
+                     capacity=capacity)
+    dyn = found.dynamic & alive_np
+    if dyn.sum() >= 2:
+        labels[dyn] = cluster.cluster_dynamic(np.asarray(g.means)[dyn], auto_eps=True, min_fraction=min_fraction)
+    return labels
+
+
+def basis_targets(labels: np.ndarray, num_bases: int, smoothing: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Soft targets [N, K] and class-balanced sample weights [N] for `fit_basis_logits` from `moving_clusters`'
+    labels: -2 -> basis 0, cluster j < K - 1 -> basis j + 1 (probability 1 - smoothing, the rest spread evenly),
+    anything else weight 0. Each target basis's samples share a total weight of 1."""
+    labels = np.asarray(labels)
+    basis = np.where(labels == -2, 0, np.where((labels >= 0) & (labels < num_bases - 1), labels + 1, -1))
+    target = np.full((len(labels), num_bases), smoothing / max(num_bases - 1, 1), np.float32)
+    target[np.arange(len(labels)), np.maximum(basis, 0)] = 1.0 - smoothing
+    weight = np.zeros(len(labels), np.float32)
+    for k in np.unique(basis[basis >= 0]):
+        sel = basis == k
+        weight[sel] = 1.0 / sel.sum()
+    return target, weight
+
+
+@functools.partial(jax.jit, static_argnames=("spec", "steps"))
+def fit_basis_logits(spec: DeformSpec, deform_params, x, target, weight, *, steps: int = 300, lr: float = 1e-2):
+    """Fit the logits network (hash grid and MLP; the bases' motions and pivots untouched) so that
+    softmax(logits(x)) matches ``target`` [N, K] at the canonical centres ``x`` [N, 3]: Adam on the weighted
+    cross-entropy sum_i weight_i H(target_i, softmax(logits(x_i))). Returns (the new deform params, the final
+    loss)."""
+    net = {k: v for k, v in deform_params.items() if k not in ("motion", "pivot")}
+    fixed = {k: v for k, v in deform_params.items() if k in ("motion", "pivot")}
+    opt = optax.adam(lr)
+
+    def loss_fn(p):
+        logp = jax.nn.log_softmax(basis_logits(spec, {**p, **fixed}, x), axis=-1)
+        return -jnp.sum(weight * jnp.sum(target * logp, axis=-1)) / jnp.maximum(jnp.sum(weight), 1e-12)
+
+    def body(carry, _):
+        p, s = carry
+        loss, g = jax.value_and_grad(loss_fn)(p)
+        upd, s = opt.update(g, s, p)
+        return (optax.apply_updates(p, upd), s), loss
+
+    (net, _), losses = jax.lax.scan(body, (net, opt.init(net)), None, length=steps)
+    return {**net, **fixed}, losses[-1]
+
+
+def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None, *, capacity: int, cache_dir=None,
+                log=print):
+    """Steps 1-3 of the module docstring on a stage-1 model at the end of its warm-up; returns the new params.
+    ``flows``: the pair flows of `fgjax.method.flows.estimate_training_flows` (None: estimated, cached in
+    ``cache_dir``)."""
+    if flows is None:
+        flows = estimate_training_flows(scene, cfg.flow.method, cache_dir, log=log)
+    labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, flows, previous_frames(scene.times),
+                             width=scene.width, height=scene.height, capacity=capacity,
+                             background=tuple(cfg.model.background))
+    sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
+    target, weight = basis_targets(labels, spec.bases)
+    deform, loss = fit_basis_logits(spec, params["deform"], params["gaussians"].means, jnp.asarray(target),
+                                    jnp.asarray(weight))
+    moving = int(np.sum((labels >= 0) | ((labels == -1) & np.asarray(alive, bool))))
+    log(f"bases placed from the flow: {moving} moving Gaussians, clusters {sizes.tolist()[:spec.bases - 1]} on bases 1..{min(len(sizes), spec.bases - 1)}"
+        f" (cross-entropy {float(loss):.3f})")
+    return {**params, "deform": deform}

@@ -1,0 +1,136 @@
+"""Motion bases placed from the flow (`fgjax.method.bases_init`): labels from flow, targets, the logits fit."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from conftest import look_at
+
+from fgjax.gaussians import Gaussians
+from fgjax.method.bases_init import basis_targets, fit_basis_logits, moving_clusters
+from fgjax.method.flows import previous_frames
+from fgjax.models.deform import DeformSpec, basis_logits, deform_init
+from fgjax.render.api import rasterization
+
+
+def test_basis_targets_map_clusters_to_moving_bases_and_balance_them():
+    labels = np.array([-2, -2, -2, 0, 0, 1, 2, -1])  # static x3, cluster 0 x2, cluster 1, cluster 2 (no basis), noise
+    target, weight = basis_targets(labels, num_bases=3, smoothing=0.1)
+    np.testing.assert_array_equal(target.argmax(1)[:6], [0, 0, 0, 1, 1, 2])
+    np.testing.assert_allclose(target.sum(1), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(target[3], [0.05, 0.9, 0.05], rtol=1e-6)
+    np.testing.assert_allclose(weight, [1 / 3, 1 / 3, 1 / 3, 0.5, 0.5, 1.0, 0.0, 0.0], rtol=1e-6)
+
+
+def test_fit_basis_logits_puts_each_group_on_its_basis_and_leaves_the_motions():
+    rng = np.random.default_rng(0)
+    spec = DeformSpec(kind="bases", depth=2, width=32, hash_levels=4, hash_log2_table=10, bases=3, knots=3,
+                      aabb=(-1.0, -1.0, -1.0, 1.0, 1.0, 1.0))
+    params = deform_init(jax.random.key(0), spec)
+    params = {**params, "motion": params["motion"] + 0.3, "pivot": params["pivot"] + 0.1}
+    x = np.concatenate([rng.uniform(-1, 1, (300, 3)), rng.normal([0.6, 0.6, 0.0], 0.05, (40, 3)),
+                        rng.normal([-0.6, 0.0, 0.5], 0.05, (20, 3))]).astype(np.float32)
+    labels = np.concatenate([np.full(300, -2), np.zeros(40, int), np.ones(20, int)])
+    labels[:300][np.linalg.norm(x[:300] - [0.6, 0.6, 0.0], axis=1) < 0.25] = -1  # static points inside a part: unknown
+    labels[:300][np.linalg.norm(x[:300] - [-0.6, 0.0, 0.5], axis=1) < 0.25] = -1
+    target, weight = basis_targets(labels, spec.bases)
+    before = jax.nn.softmax(basis_logits(spec, params, x), -1)
+    fitted, loss = fit_basis_logits(spec, params, jnp.asarray(x), jnp.asarray(target), jnp.asarray(weight))
+    w = np.asarray(jax.nn.softmax(basis_logits(spec, fitted, x), -1))
+    assert np.isfinite(float(loss))
+    known = labels >= -2
+    want = np.where(labels == -2, 0, labels + 1)
+    assert np.mean(w.argmax(1)[labels != -1] == want[labels != -1]) > 0.97
+    assert np.mean(np.asarray(before).argmax(1)[known & (labels != -1)] == want[known & (labels != -1)]) < 0.8
+    assert w[labels == 0, 1].mean() > 0.8 and w[labels == 1, 2].mean() > 0.8 and w[labels == -2, 0].mean() > 0.8
+    for k in ("motion", "pivot"):
+        np.testing.assert_array_equal(np.asarray(fitted[k]), np.asarray(params[k]))
+
+
+def _pair_flow(means0, means1, quats, scales, opac, vm0, vm1, K, w, h):
+    """Flow of frame 0 to frame 1 rendered as colour: each Gaussian paints its centre's image displacement
+    (an independent construction from the rasterizer, not the camera-flow code under test)."""
+
+    def proj(m, vm):
+        c = m @ vm[:3, :3].T + vm[:3, 3]
+        p = c @ K.T
+        return p[:, :2] / p[:, 2:]
+
+    d = proj(means1, vm1) - proj(means0, vm0)
+    col = np.concatenate([d, np.zeros((len(d), 1))], 1)
+    img, alpha, _ = rasterization(means0, quats, scales, opac, col, vm0, K, w, h, background=np.zeros(3))
+    a = np.asarray(alpha)[..., None]
+    return np.where(a > 0.5, np.asarray(img)[..., :2] / np.maximum(a, 1e-6), np.nan).astype(np.float32)
+
+
+def test_moving_clusters_find_the_moving_blob_from_the_flow():
+    """200 Gaussians seen by a camera on an arc; 30 of them (a blob in front of a wall) slide by 0.3 over the clip. From the exact
+    flow of every pair and the Gaussians in their first state, the blob's Gaussians are the moving cluster."""
+    rng = np.random.default_rng(0)
+    n, w, h, frames = 200, 48, 36, 6
+    means = np.stack([rng.uniform(-1.0, 1.0, n), rng.uniform(0.4, 0.6, n), rng.uniform(-0.8, 0.8, n)], 1)  # a wall
+    means[:30] = rng.normal([-0.1, -0.2, 0.1], 0.06, (30, 3))  # the blob, in front of it
+    quats = np.tile([1.0, 0, 0, 0], (n, 1))
+    scales = np.full((n, 3), 0.08)
+    opac = np.full(n, 0.9)
+    K = np.array([[45.0, 0, w / 2], [0, 45.0, h / 2], [0, 0, 1]])
+    times = np.linspace(0, 1, frames)
+    vms = np.stack([look_at(np.array([2.0 * np.sin(a), -2.0 * np.cos(a), 0.3]))
+                    for a in 0.4 * (np.arange(frames) / (frames - 1) - 0.5)])
+    at = [means + np.where(np.arange(n)[:, None] < 30, [0.3 * t, 0.0, 0.0], 0.0) for t in times]
+    prev = previous_frames(times)
+    flows = np.full((frames, h, w, 2), np.nan, np.float32)
+    for i in range(1, frames):
+        flows[i] = _pair_flow(at[i - 1], at[i], quats, scales, opac, vms[i - 1], vms[i], K, w, h)
+    g = Gaussians(means=jnp.asarray(means, jnp.float32), log_scales=jnp.log(jnp.asarray(scales, jnp.float32)),
+                  quats=jnp.asarray(quats, jnp.float32), opacity_logits=jnp.full((n,), 2.2, jnp.float32),
+                  sh=jnp.full((n, 1, 3), 0.5, jnp.float32))
+    alive = np.ones(n, bool)
+    alive[-5:] = False
+    labels = moving_clusters({"gaussians": g}, jnp.asarray(alive), vms.astype(np.float32),
+                             np.stack([K] * frames).astype(np.float32), flows, prev, width=w, height=h,
+                             capacity=1 << 15)
+    assert np.all(labels[-5:] == -1)  # dead slots: no target
+    blob = np.arange(n) < 30
+    assert np.mean(labels[blob] == 0) > 0.8, labels[blob]  # found, and one cluster
+    assert np.mean(labels[~blob & alive] == -2) > 0.9  # the wall is static
+    assert np.sum(labels == 0) <= 1.15 * np.sum(labels[blob] == 0)  # the cluster is the blob
+
+
+def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path):
+    """``deform.init = "flow"``: at the end of the warm-up stage 1 puts the moving Gaussians of a 64x48 synthetic
+    scene (three parts) on moving bases and the rest on the static basis; resuming after it does not place them
+    again, and ``deform.init = "random"`` never does."""
+    import pathlib
+
+    from conftest import synth
+
+    from fgjax import config as C
+    from fgjax.data.loaders import load_scene
+    from fgjax.method import stage1
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=8), tmp_path / "scene", overwrite=True,
+                   progress=None)
+    scene = load_scene(tmp_path / "scene", "train")
+    quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
+    over = ["train.steps=104", "densify.enabled=false", "train.video_frames=0", "deform.kind=bases",
+            "deform.init=flow", "train.checkpoint_every=102"]
+    said = []
+    res = stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", stop_at=102, progress=False,
+                              log=said.append)
+    placed = [m for m in said if m.startswith("bases placed from the flow")]
+    assert len(placed) == 1 and res["static"] is False, said
+    st, spec = res["state"], res["spec"]
+    w = np.asarray(jax.nn.softmax(basis_logits(spec, st.params["deform"], st.params["gaussians"].means), -1))
+    alive = np.asarray(st.densify.alive)
+    moving = w[alive, 1:].sum(1) > 0.5
+    assert 0 < moving.sum() < 0.5 * alive.sum() and w[alive][~moving, 0].mean() > 0.8, placed
+    said.clear()
+    stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", resume=True, progress=False,
+                        log=said.append)
+    assert not any(m.startswith("bases placed") for m in said), said
+    said.clear()
+    stage1.train_stage1(C.load_config(quick, [*over[:-2], "deform.init=random"]), scene, None, stop_at=101,
+                        progress=False, log=said.append)
+    assert not any(m.startswith("bases placed") for m in said), said

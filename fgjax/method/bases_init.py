@@ -133,7 +133,8 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
                 log=print):
     """Steps 1-3 of the module docstring on a stage-1 model at the end of its warm-up; returns the new params.
     ``flows``: the pair flows of `fgjax.method.flows.estimate_training_flows` (None: estimated, cached in
-    ``cache_dir``)."""
+    ``cache_dir``). Where the flow shows no moving cluster every live Gaussian goes to the static basis, which is
+    what that evidence says."""
     if flows is None:
         flows = estimate_training_flows(scene, cfg.flow.method, cache_dir, log=log)
     labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, flows, previous_frames(scene.times),
@@ -144,6 +145,7 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
     deform, loss = fit_basis_logits(spec, params["deform"], params["gaussians"].means, jnp.asarray(target),
                                     jnp.asarray(weight))
     moving = int(np.sum((labels >= 0) | ((labels == -1) & np.asarray(alive, bool))))
-    log(f"bases placed from the flow: {moving} moving Gaussians, clusters {sizes.tolist()[:spec.bases - 1]} on bases 1..{min(len(sizes), spec.bases - 1)}"
+    placed = sizes.tolist()[:spec.bases - 1]
+    log(f"bases placed from the flow: {moving} moving Gaussians, clusters of {placed} on bases 1..{len(placed)}"
         f" (cross-entropy {float(loss):.3f})")
     return {**params, "deform": deform}

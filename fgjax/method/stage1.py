@@ -532,10 +532,12 @@ def train_stage1(
                     + ("static: training without the deformation field" if state.static else "dynamic"))
             else:
                 state.static = False
-            if not state.static and spec.kind == "bases" and cfg.deform.init == "flow":
-                state.params = place_bases(cfg, state.params, state.densify.alive, spec, scene,
-                                           flows if use_flow and fc.loss == "pair" else None, capacity=state.capacity,
-                                           cache_dir=None if out is None else out / "flow_cache", log=log)
+        if s == t.warmup_steps and not state.static and spec.kind == "bases" and cfg.deform.init == "flow":
+            state.params = place_bases(cfg, state.params, state.densify.alive, spec, scene,
+                                       flows if use_flow and fc.loss == "pair" else None, capacity=state.capacity,
+                                       cache_dir=None if out is None else out / "flow_cache", log=log)
+            if repl_sh is not None:  # the new logits network, replicated like the rest of the parameters
+                state.params = jax.device_put(state.params, repl_sh)
         use_deform = s >= t.warmup_steps and not bool(state.static)
         lo = coarse and s < t.coarse_to_fine
         flow_on = use_flow and use_deform and s >= fc.start and not lo

@@ -101,7 +101,7 @@ def test_moving_clusters_find_the_moving_blob_from_the_flow():
 def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path):
     """``deform.init = "flow"``: at the end of the warm-up stage 1 puts the moving Gaussians of a 64x48 synthetic
     scene (three parts) on moving bases and the rest on the static basis; resuming after it does not place them
-    again, and ``deform.init = "random"`` never does."""
+    again, ``deform.init = "random"`` never does, and a scene forced dynamic (no static-scene check) does too."""
     import pathlib
 
     from conftest import synth
@@ -134,3 +134,7 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path):
     stage1.train_stage1(C.load_config(quick, [*over[:-2], "deform.init=random"]), scene, None, stop_at=101,
                         progress=False, log=said.append)
     assert not any(m.startswith("bases placed") for m in said), said
+    said.clear()  # a scene forced dynamic skips the static-scene check, not the placing
+    stage1.train_stage1(C.load_config(quick, [*over[:-1], "static.force=dynamic"]), scene, None, stop_at=101,
+                        progress=False, log=said.append)
+    assert sum(m.startswith("bases placed") for m in said) == 1, said

@@ -30,11 +30,10 @@ import numpy as np
 import optax
 
 from fgjax import cluster
-from fgjax import flow as fl
 from fgjax.config import Config
 from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
-from fgjax.method.discover import discover
+from fgjax.method.discover import camera_flow_from_depth, discover
 from fgjax.method.flows import estimate_training_flows, previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits
 from fgjax.models.model import render_params
@@ -75,9 +74,9 @@ def moving_clusters(
                                           jnp.asarray(Ks[a], jnp.float32), 0.0, spec=None, sh_degree=0,
                                           width=width, height=height, background=bg, capacity=capacity,
                                           render_depth=True)
-        cam, ok = fl.reprojection_flow(np.asarray(info["depth"], np.float64), Ks[a], c2w[a], c2w[i])
-        cam_flows.append(np.asarray(cam, np.float32))
-        valid.append(np.asarray(ok) & (np.asarray(alpha) >= 0.5) & np.all(np.isfinite(flows[i]), axis=-1))
+        cam, ok = camera_flow_from_depth(np.asarray(info["depth"]), Ks[a], c2w[a], c2w[i])
+        cam_flows.append(cam)
+        valid.append(ok & (np.asarray(alpha) >= 0.5) & np.all(np.isfinite(flows[i]), axis=-1))
     src = [int(prev[i]) for i in pairs]
     u = np.nan_to_num(np.asarray(flows, np.float32)[pairs])
     found = discover(np.asarray(g.means), np.asarray(quats), np.asarray(scales), np.asarray(opac),

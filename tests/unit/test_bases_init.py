@@ -65,8 +65,9 @@ def _pair_flow(means0, means1, quats, scales, opac, vm0, vm1, K, w, h):
 
 
 def test_moving_clusters_find_the_moving_blob_from_the_flow():
-    """200 Gaussians seen by a camera on an arc; 30 of them (a blob in front of a wall) slide by 0.3 over the clip. From the exact
-    flow of every pair and the Gaussians in their first state, the blob's Gaussians are the moving cluster."""
+    """200 Gaussians seen by a camera on an arc; 30 of them (a blob in front of a wall) slide by 0.3 over the clip.
+    From the exact flow of every pair and the Gaussians in their first state, the blob's Gaussians are the moving
+    cluster."""
     rng = np.random.default_rng(0)
     n, w, h, frames = 200, 48, 36, 6
     means = np.stack([rng.uniform(-1.0, 1.0, n), rng.uniform(0.4, 0.6, n), rng.uniform(-0.8, 0.8, n)], 1)  # a wall

@@ -48,8 +48,7 @@ class ModelConfig:
     (`fgjax.method.init_points.depth_point_cloud`; an RGB-D capture), topped up the same way, and "flow" on a
     scene without depth maps; "random": random points in the scene box that some camera sees."""
     init_random_fraction: float = 0.2
-    """With init = "flow" or "depth": this fraction of the initial points is random (covers what the flow or the
-    sensor misses)."""
+    """With init = "flow" or "depth": this fraction of the initial points is random (what the flow or sensor misses)."""
     init_flow_gap: int = 4
     """With init = "flow": frame offset of the triangulated pairs."""
     capacity: int = 60000
@@ -97,6 +96,9 @@ class DeformConfig:
     init: str = "random"
     """"bases" kind: "random" logits, or "flow": placed on the moving clusters that the flow finds after the
     warm-up (`fgjax.method.bases_init`)."""
+    hold: int = 150
+    """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
+    held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,9 +138,8 @@ class TrainConfig:
     """Saturation of one neighbour pair's relative stretch in that regulariser (cap tanh(stretch / cap)), so
     that pairs spanning a moving part's boundary break instead of holding the part in place (0: linear)."""
     depth_weight: float = 0.0
-    """Weight of ``fgjax.train.losses.depth_loss`` (the rendered depth against the scene's measured depth, on the
-    pixels that have one) where the scene has depth maps (an RGB-D capture); ignored, with one log line, where it
-    has none (0: off)."""
+    """Weight of ``fgjax.train.losses.depth_loss`` (rendered against measured depth, on the pixels that have one)
+    where the scene has depth maps (an RGB-D capture); ignored, with one log line, where it has none (0: off)."""
     rigid_neighbours: int = 8
     """Neighbours per Gaussian in that regulariser (graph rebuilt after each densification)."""
     coarse_to_fine: int = 0
@@ -249,9 +250,8 @@ class PoseConfig:
     bundle_cauchy_px: float = 0.25
     """Final Cauchy scale of the reprojection residuals (pixels)."""
     bundle_fb_px: float = 0.0
-    """> 0: the bundle adjustment's flow tracks stop where the forward flow fails the round trip through the backward
-    flow by this many pixels or more (`fgjax.data.opticalflow.forward_backward_mask`: occlusions, flow smoothed across
-    depth edges); 0: off."""
+    """> 0: the bundle adjustment's flow tracks stop where the forward-backward round trip misses by this many
+    pixels or more (`fgjax.data.opticalflow.forward_backward_mask`: occlusions, flow smoothed across edges); 0: off."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -442,8 +442,8 @@ class Stage2Config:
     min_score: float = 0.05
     """Scores below this are never dynamic."""
     camera_correction: str = "auto"
-    """Correct each pair's relative camera pose from the flow of the static majority of pixels before |u - u_cam|
-    is thresholded (`fgjax.method.camera.camera_correction`): "on", "off", or "auto" (on when stage 1 refined the
+    """Correct each pair's relative camera pose from the flow of the static majority of pixels before |u - u_cam| is
+    thresholded (`fgjax.method.camera.camera_correction`): "on", "off", or "auto" (on when stage 1 refined the
     poses)."""
     cluster_method: str = "dbscan"
     """"dbscan" or "hdbscan" (`fgjax.cluster.cluster_dynamic`)."""
@@ -663,6 +663,7 @@ def validate_stage1(cfg: Config) -> None:
     need(fl.start >= 0, "flow.start", ">= 0", fl.start)
     need(f.anchor in ("none", "first"), "deform.anchor", "'none' or 'first'", f.anchor)
     need(f.init in ("random", "flow"), "deform.init", "'random' or 'flow'", f.init)
+    need(f.hold >= 0, "deform.hold", ">= 0", f.hold)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
          fl.gaussian_flow)

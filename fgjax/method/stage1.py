@@ -174,6 +174,7 @@ class StepSpec:
     depth_weight: float = 0.0  # weight of the measured-depth term (0: none; the step then takes no depth batch)
     flow_norm: str = "l1"  # the flow loss's per-pixel penalty, "l1" or "charbonnier" (fgjax.flow.flow_loss, .track)
     flow_scale: float = 10.0  # c of "charbonnier" (pixels)
+    freeze_weights: bool = False  # "bases" field: only the bases' motions and pivots update, the weights' network stays
 
 
 class FlowBatch(NamedTuple):
@@ -275,6 +276,9 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         updates, new_opt = optimizer.update(grads, opt_state, params)
         if ss.freeze_gaussians:  # masked updates (zero gradients alone would still move them by momentum)
             updates = {**updates, "gaussians": jax.tree_util.tree_map(jnp.zeros_like, updates["gaussians"])}
+        if ss.freeze_weights:
+            updates = {**updates, "deform": {k: v if k in ("motion", "pivot") else jax.tree_util.tree_map(
+                jnp.zeros_like, v) for k, v in updates["deform"].items()}}
         new_params = optax.apply_updates(params, updates)
         # An overflowing (or non-finite) step is dropped, and reported to the host loop.
         keep = lambda new, old: jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), new, old)
@@ -488,7 +492,8 @@ def train_stage1(
     elif t.coarse_to_fine > 0:
         log(f"coarse-to-fine skipped: {w}x{h} images are too small to halve")
 
-    def get_step(use_deform: bool, sh_deg: int, flow_on: bool = False, lo: bool = False, freeze: bool = False):
+    def get_step(use_deform: bool, sh_deg: int, flow_on: bool = False, lo: bool = False, freeze: bool = False,
+                 hold: bool = False):
         sw, sh_ = (w2, h2) if lo else (w, h)
         ss = StepSpec(spec if use_deform else None, sh_deg, sw, sh_, state.capacity, t.tile_size, t.lambda_dssim,
                       t.scale_reg, t.scale_reg_max, "pose" in state.params,
@@ -496,7 +501,7 @@ def train_stage1(
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
                       fc.photo_motion if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth,
-                      t.depth_weight if depths is not None else 0.0, fc.norm, fc.charbonnier_px)
+                      t.depth_weight if depths is not None else 0.0, fc.norm, fc.charbonnier_px, hold)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
@@ -542,7 +547,9 @@ def train_stage1(
         lo = coarse and s < t.coarse_to_fine
         flow_on = use_flow and use_deform and s >= fc.start and not lo
         freeze = use_deform and s < t.warmup_steps + t.field_only_steps
-        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze)
+        hold = (use_deform and spec.kind == "bases" and cfg.deform.init == "flow"
+                and s < t.warmup_steps + cfg.deform.hold)  # the placed weights stay while the motions fit them
+        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze, hold)
         sh_mask = active_sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)
                   if t.time_curriculum > 0 else None)

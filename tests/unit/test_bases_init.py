@@ -99,10 +99,12 @@ def test_moving_clusters_find_the_moving_blob_from_the_flow():
     assert np.sum(labels == 0) <= 1.15 * np.sum(labels[blob] == 0)  # the cluster is the blob
 
 
-def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path):
+def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monkeypatch):
     """``deform.init = "flow"``: at the end of the warm-up stage 1 puts the moving Gaussians of a 64x48 synthetic
-    scene (three parts) on moving bases and the rest on the static basis; resuming after it does not place them
-    again, ``deform.init = "random"`` never does, and a scene forced dynamic (no static-scene check) does too."""
+    scene (three parts) on moving bases and the rest on the static basis, and for ``deform.hold`` steps only the
+    bases' motions train (the weights' network stays bit-identical; with ``deform.hold = 0`` it moves at once);
+    resuming after it does not place them again, ``deform.init = "random"`` never does, and a scene forced dynamic
+    (no static-scene check) does too."""
     import pathlib
 
     from conftest import synth
@@ -117,12 +119,24 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path):
     quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
     over = ["train.steps=104", "densify.enabled=false", "train.video_frames=0", "deform.kind=bases",
             "deform.init=flow", "train.checkpoint_every=102"]
-    said = []
+    said, placed_params = [], []
+    place = stage1.place_bases
+
+    def place_and_keep(*args, **kwargs):  # a host copy: the step donates the parameters' buffers
+        new = place(*args, **kwargs)
+        placed_params.append(jax.tree_util.tree_map(np.array, new))
+        return new
+
+    monkeypatch.setattr(stage1, "place_bases", place_and_keep)
     res = stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", stop_at=102, progress=False,
                               log=said.append)
     placed = [m for m in said if m.startswith("bases placed from the flow")]
-    assert len(placed) == 1 and res["static"] is False, said
+    assert len(placed) == 1 and len(placed_params) == 1 and res["static"] is False, said
     st, spec = res["state"], res["spec"]
+    moved = {k: any(not np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(st.params["deform"][k]),
+                                                          jax.tree_util.tree_leaves(placed_params[0]["deform"][k])))
+             for k in st.params["deform"]}
+    assert moved["motion"] and not any(v for k, v in moved.items() if k not in ("motion", "pivot")), moved
     w = np.asarray(jax.nn.softmax(basis_logits(spec, st.params["deform"], st.params["gaussians"].means), -1))
     alive = np.asarray(st.densify.alive)
     moving = w[alive, 1:].sum(1) > 0.5
@@ -139,3 +153,6 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path):
     stage1.train_stage1(C.load_config(quick, [*over[:-1], "static.force=dynamic"]), scene, None, stop_at=101,
                         progress=False, log=said.append)
     assert sum(m.startswith("bases placed") for m in said) == 1, said
+    res = stage1.train_stage1(C.load_config(quick, [*over[1:-1], "train.steps=110", "deform.hold=0"]), scene, None,
+                              progress=False, log=said.append)  # the weights' network moves within 10 steps
+    assert not np.array_equal(res["state"].params["deform"]["grid"], placed_params[-1]["deform"]["grid"])

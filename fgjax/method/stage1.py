@@ -527,6 +527,7 @@ def train_stage1(
         losses.extend(float(l) for l, _, _, _ in vals)
         return vals
 
+    placed = spec.kind == "bases" and cfg.deform.init == "flow"  # bases placed from the flow after the warm-up
     while state.step < end:
         s = state.step
         if state.static is None and s >= t.warmup_steps:
@@ -537,7 +538,7 @@ def train_stage1(
                     + ("static: training without the deformation field" if state.static else "dynamic"))
             else:
                 state.static = False
-        if s == t.warmup_steps and not state.static and spec.kind == "bases" and cfg.deform.init == "flow":
+        if s == t.warmup_steps and not state.static and placed:
             state.params = place_bases(cfg, state.params, state.densify.alive, spec, scene,
                                        flows if use_flow and fc.loss == "pair" else None, capacity=state.capacity,
                                        cache_dir=None if out is None else out / "flow_cache", log=log)
@@ -547,8 +548,7 @@ def train_stage1(
         lo = coarse and s < t.coarse_to_fine
         flow_on = use_flow and use_deform and s >= fc.start and not lo
         freeze = use_deform and s < t.warmup_steps + t.field_only_steps
-        hold = (use_deform and spec.kind == "bases" and cfg.deform.init == "flow"
-                and s < t.warmup_steps + cfg.deform.hold)  # the placed weights stay while the motions fit them
+        hold = use_deform and placed and s < t.warmup_steps + cfg.deform.hold  # placed weights stay, motions fit
         step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze, hold)
         sh_mask = active_sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)

@@ -165,7 +165,7 @@ def fit_basis_logits(spec: DeformSpec, deform_params, x, target, weight, *, step
 
 def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None, *, capacity: int, cache_dir=None,
                 log=print):
-    """Steps 1-4 of the module docstring on a stage-1 model at the end of its warm-up; returns the new params.
+    """Steps 1-3 of the module docstring on a stage-1 model at the end of its warm-up; returns the new params.
     ``flows``: the pair flows of `fgjax.method.flows.estimate_training_flows` (None: estimated, cached in
     ``cache_dir``). Where the flow shows no moving cluster every live Gaussian goes to the static basis, which is
     what that evidence says."""
@@ -178,11 +178,9 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
     target, weight = basis_targets(labels, spec.bases)
     deform, loss = fit_basis_logits(spec, params["deform"], params["gaussians"].means, jnp.asarray(target),
                                     jnp.asarray(weight))
-    used = bases_in_use(labels, spec.bases)
-    deform = switch_off_bases(deform, used)
+    deform = switch_off_bases(deform, bases_in_use(labels, spec.bases))
     moving = int(np.sum((labels >= 0) | ((labels == -1) & np.asarray(alive, bool))))
     placed = sizes.tolist()[:spec.bases - 1]
-    off = f", bases {used}..{spec.bases - 1} off" if used < spec.bases else ""
     log(f"bases placed from the flow: {moving} moving Gaussians, clusters of {placed} on bases 1..{len(placed)}"
-        f"{off} (cross-entropy {float(loss):.3f})")
+        f" (cross-entropy {float(loss):.3f})")
     return {**params, "deform": deform}

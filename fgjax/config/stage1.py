@@ -104,8 +104,6 @@ class TrainConfig:
     """SH DC learning rate; higher orders use lr_sh / 20."""
     lr_hash_factor: float = 10.0
     """Multiplier on lr_deform for the hash tables (grids train faster at higher rates)."""
-    lr_motion_factor: float = 1.0
-    """Multiplier on lr_deform for the "bases" field's motions and pivots (`fgjax.models.deform.basis_motions`)."""
     sh_increase_every: int = 1000
     """Raise the active SH degree by one every n steps (up to model.sh_degree)."""
     lambda_dssim: float = 0.2

@@ -14,9 +14,7 @@ instead; this is the same idea with the evidence stage 1 already has, at the end
    radius) groups them;
 3. the logits network is fitted, by class-balanced cross-entropy with label smoothing, to put cluster j
    (largest first, j < K - 1) on basis j + 1 and every unselected Gaussian on basis 0; selected Gaussians that
-   DBSCAN calls noise, and clusters beyond K - 1, are left to the training;
-4. the bases that no cluster took are switched off (`switch_off_bases`: weight exactly 0, no gradient), so only
-   the bases with evidence can move Gaussians.
+   DBSCAN calls noise, and clusters beyond K - 1, are left to the training.
 
 The bases' motions stay at the identity; the flow loss then fits each basis's motion to the pixels of the part
 that sits on it. For ``deform.hold`` steps after the placement only the motions and pivots train
@@ -45,8 +43,7 @@ from fgjax.method.flows import estimate_training_flows, previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits
 from fgjax.models.model import render_params
 
-__all__ = ["moving_clusters", "basis_targets", "bases_in_use", "switch_off_bases", "OFF_LOGIT",
-           "fit_basis_logits", "place_bases"]
+__all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases"]
 
 
 def moving_clusters(
@@ -98,45 +95,18 @@ def moving_clusters(
 
 
 def basis_targets(labels: np.ndarray, num_bases: int, smoothing: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
-    """Soft targets [N, K] and class-balanced sample weights [N] for `fit_basis_logits` from `moving_clusters'`
-    labels: -2 -> basis 0, cluster j < K - 1 -> basis j + 1 (probability 1 - smoothing, the rest spread evenly over
-    the other bases in use: basis 0 and one per cluster), anything else weight 0. Each target basis's samples
-    share a total weight of 1. Bases beyond the clusters get target 0 (`switch_off_bases`)."""
+    """Soft targets [N, K] and class-balanced sample weights [N] for `fit_basis_logits` from `moving_clusters`'
+    labels: -2 -> basis 0, cluster j < K - 1 -> basis j + 1 (probability 1 - smoothing, the rest spread evenly),
+    anything else weight 0. Each target basis's samples share a total weight of 1."""
     labels = np.asarray(labels)
     basis = np.where(labels == -2, 0, np.where((labels >= 0) & (labels < num_bases - 1), labels + 1, -1))
-    used = bases_in_use(labels, num_bases)
-    target = np.zeros((len(labels), num_bases), np.float32)
-    target[:, :used] = smoothing / max(used - 1, 1) if used > 1 else 0.0
-    target[np.arange(len(labels)), np.maximum(basis, 0)] = 1.0 - smoothing if used > 1 else 1.0
+    target = np.full((len(labels), num_bases), smoothing / max(num_bases - 1, 1), np.float32)
+    target[np.arange(len(labels)), np.maximum(basis, 0)] = 1.0 - smoothing
     weight = np.zeros(len(labels), np.float32)
     for k in np.unique(basis[basis >= 0]):
         sel = basis == k
         weight[sel] = 1.0 / sel.sum()
     return target, weight
-
-
-def bases_in_use(labels: np.ndarray, num_bases: int) -> int:
-    """How many bases `moving_clusters'` labels fill: the static basis and one per cluster, at most ``num_bases``."""
-    labels = np.asarray(labels)
-    clusters = int(labels.max()) + 1 if labels.size and labels.max() >= 0 else 0
-    return min(1 + clusters, num_bases)
-
-
-OFF_LOGIT = -1e4
-"""The head bias of a switched-off basis: exp(OFF_LOGIT - max) is exactly 0 in float32, and so are that basis's
-weight, the gradient to its logit and the gradient to its motion."""
-
-
-def switch_off_bases(deform_params, used: int):
-    """The "bases" field's parameters with every basis k >= ``used`` switched off: its head bias set to `OFF_LOGIT`,
-    so its weight is exactly zero everywhere and no gradient reaches its logit or its motion (Adam's update of an
-    always-zero gradient is zero), for the rest of the training.
-
-    Why: with a small weight on every Gaussian, a basis that no cluster took fits a rigid motion of the whole scene
-    per frame, which in a monocular video acts as a per-frame camera correction; the scene's weights then drift onto
-    it (docs/benchmarks.md, "Bases without a cluster")."""
-    head = deform_params["head"]
-    return {**deform_params, "head": {**head, "b": head["b"].at[used:].set(OFF_LOGIT)}}
 
 
 @functools.partial(jax.jit, static_argnames=("spec", "steps"))
@@ -178,7 +148,6 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
     target, weight = basis_targets(labels, spec.bases)
     deform, loss = fit_basis_logits(spec, params["deform"], params["gaussians"].means, jnp.asarray(target),
                                     jnp.asarray(weight))
-    deform = switch_off_bases(deform, bases_in_use(labels, spec.bases))
     moving = int(np.sum((labels >= 0) | ((labels == -1) & np.asarray(alive, bool))))
     placed = sizes.tolist()[:spec.bases - 1]
     log(f"bases placed from the flow: {moving} moving Gaussians, clusters of {placed} on bases 1..{len(placed)}"

@@ -2,7 +2,7 @@
 
 Trainable parameters are one pytree ``{"gaussians": Gaussians, "deform": {...}, "pose": [T, 6]?}``.
 Groups (3DGS / Deformable-3DGS defaults): means 1.6e-4 -> 1.6e-6 times the scene extent, deformation
-1.6e-4 -> 1.6e-5 (hash tables x `lr_hash_factor`, the "bases" field's motions and pivots x `lr_motion_factor`), opacity 0.05, scales 5e-3, rotations 1e-3, SH DC 2.5e-3
+1.6e-4 -> 1.6e-5 (hash tables x `hash_factor`), opacity 0.05, scales 5e-3, rotations 1e-3, SH DC 2.5e-3
 and higher orders 2.5e-3 / 20, pose deltas 1e-4 -> 1e-6. Adam eps = 1e-15 as in 3DGS.
 """
 
@@ -28,7 +28,6 @@ class OptimSpec:
     lr_deform: float = 1.6e-4
     lr_deform_final: float = 1.6e-5
     lr_hash_factor: float = 10.0
-    lr_motion_factor: float = 1.0
     lr_opacity: float = 0.05
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
@@ -59,8 +58,7 @@ def param_labels(params: dict[str, Any]) -> dict[str, Any]:
         ),
     }
     if "deform" in params:
-        group = {"grid": "hash", "motion": "motion", "pivot": "motion"}  # the rest: "deform"
-        labels["deform"] = {k: jax.tree_util.tree_map(lambda _, k=k: group.get(k, "deform"), v)
+        labels["deform"] = {k: jax.tree_util.tree_map(lambda _: "hash" if k == "grid" else "deform", v)
                             for k, v in params["deform"].items()}
     if "pose" in params:
         labels["pose"] = "pose"
@@ -94,8 +92,6 @@ def make_optimizer(spec: OptimSpec, num_sh_coeffs: int) -> optax.GradientTransfo
         "deform": _adam(exp_decay(spec.lr_deform, spec.lr_deform_final, spec.steps, delay=d)),
         "hash": _adam(exp_decay(spec.lr_deform * spec.lr_hash_factor, spec.lr_deform_final * spec.lr_hash_factor,
                                 spec.steps, delay=d)),
-        "motion": _adam(exp_decay(spec.lr_deform * spec.lr_motion_factor,
-                                  spec.lr_deform_final * spec.lr_motion_factor, spec.steps, delay=d)),
         "pose": _adam(exp_decay(spec.lr_pose, spec.lr_pose_final, spec.steps)),
     }
     return optax.multi_transform(transforms, param_labels)

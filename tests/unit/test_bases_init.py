@@ -8,16 +8,9 @@ import numpy as np
 from conftest import look_at
 
 from fgjax.gaussians import Gaussians
-from fgjax.method.bases_init import (
-    OFF_LOGIT,
-    bases_in_use,
-    basis_targets,
-    fit_basis_logits,
-    moving_clusters,
-    switch_off_bases,
-)
+from fgjax.method.bases_init import basis_targets, fit_basis_logits, moving_clusters
 from fgjax.method.flows import previous_frames
-from fgjax.models.deform import DeformSpec, basis_logits, deform_apply, deform_init
+from fgjax.models.deform import DeformSpec, basis_logits, deform_init
 from fgjax.render.api import rasterization
 
 
@@ -28,38 +21,6 @@ def test_basis_targets_map_clusters_to_moving_bases_and_balance_them():
     np.testing.assert_allclose(target.sum(1), 1.0, rtol=1e-6)
     np.testing.assert_allclose(target[3], [0.05, 0.9, 0.05], rtol=1e-6)
     np.testing.assert_allclose(weight, [1 / 3, 1 / 3, 1 / 3, 0.5, 0.5, 1.0, 0.0, 0.0], rtol=1e-6)
-
-    # one cluster and four bases: the smoothing spreads over the two bases in use, the others get nothing
-    target, weight = basis_targets(np.array([-2, -2, 0, 0, -1]), num_bases=4, smoothing=0.1)
-    assert bases_in_use(np.array([-2, -2, 0, 0, -1]), 4) == 2
-    np.testing.assert_allclose(target[:4], [[0.9, 0.1, 0, 0]] * 2 + [[0.1, 0.9, 0, 0]] * 2, rtol=1e-6)
-    target, _ = basis_targets(np.array([-2, -2, -1]), num_bases=4)  # no cluster: everything static, no smoothing
-    np.testing.assert_array_equal(target[:2], [[1, 0, 0, 0]] * 2)
-    assert bases_in_use(np.array([-2, -1]), 4) == 1 and bases_in_use(np.arange(9), 4) == 4
-
-
-def test_switched_off_bases_have_zero_weight_and_receive_no_gradient():
-    """A basis switched off (`switch_off_bases`) has weight exactly 0 at every point, its logit and its motion get
-    exactly zero gradient, and values and gradients stay finite; the bases in use keep theirs."""
-    spec = DeformSpec(kind="bases", depth=2, width=16, hash_levels=2, hash_log2_table=8, bases=4, knots=3)
-    params = deform_init(jax.random.key(1), spec)
-    params = {**params, "motion": params["motion"] + 0.2, "pivot": params["pivot"] + 0.1}
-    off = switch_off_bases(params, 2)
-    np.testing.assert_array_equal(np.asarray(off["head"]["b"][2:]), OFF_LOGIT)
-    x = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (50, 3)), jnp.float32)
-    w = np.asarray(jax.nn.softmax(basis_logits(spec, off, x), -1))
-    assert np.all(w[:, 2:] == 0.0) and np.all(w[:, :2] > 0) and np.allclose(w.sum(1), 1.0)
-    quats = jnp.tile(jnp.asarray([[1.0, 0.0, 0.0, 0.0]]), (50, 1))
-
-    def loss(p):
-        dx, dq, _ = deform_apply(spec, p, x, 0.7, quats)
-        return jnp.sum(dx ** 2) + jnp.sum(dq ** 2)
-
-    g = jax.grad(loss)(off)
-    assert all(np.all(np.isfinite(np.asarray(v))) for v in jax.tree_util.tree_leaves(g))
-    assert np.all(np.asarray(g["motion"][1:]) == 0.0) and np.any(np.asarray(g["motion"][0]) != 0.0)
-    assert np.all(np.asarray(g["head"]["b"][2:]) == 0.0) and np.all(np.asarray(g["head"]["w"][:, 2:]) == 0.0)
-    assert np.any(np.asarray(g["head"]["b"][:2]) != 0.0)
 
 
 def test_fit_basis_logits_puts_each_group_on_its_basis_and_leaves_the_motions():
@@ -142,7 +103,6 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     """``deform.init = "flow"``: at the end of the warm-up stage 1 puts the moving Gaussians of a 64x48 synthetic
     scene (three parts) on moving bases and the rest on the static basis, and for ``deform.hold`` steps only the
     bases' motions train (the weights' network stays bit-identical; with ``deform.hold = 0`` it moves at once);
-    the bases that no cluster took keep weight 0 and the identity motion;
     resuming after it does not place them again, ``deform.init = "random"`` never does, and a scene forced dynamic
     (no static-scene check) does too."""
     import pathlib
@@ -181,10 +141,6 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     alive = np.asarray(st.densify.alive)
     moving = w[alive, 1:].sum(1) > 0.5
     assert 0 < moving.sum() < 0.5 * alive.sum() and w[alive][~moving, 0].mean() > 0.8, placed
-    sizes = placed[0].split("clusters of [")[1].split("]")[0]
-    used = 1 + len([c for c in sizes.split(",") if c.strip()])  # the bases without a cluster are off
-    assert used < spec.bases and np.all(w[:, used:] == 0.0), placed
-    np.testing.assert_array_equal(np.asarray(st.params["deform"]["motion"][used - 1:]), 0.0)
     said.clear()
     stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", resume=True, progress=False,
                         log=said.append)
@@ -200,22 +156,3 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     res = stage1.train_stage1(C.load_config(quick, [*over[1:-1], "train.steps=110", "deform.hold=0"]), scene, None,
                               progress=False, log=said.append)  # the weights' network moves within 10 steps
     assert not np.array_equal(res["state"].params["deform"]["grid"], placed_params[-1]["deform"]["grid"])
-
-
-def test_the_bases_motions_train_at_their_own_rate():
-    """`OptimSpec.lr_motion_factor` scales the first Adam step (lr x sign of the gradient) of the "bases" field's
-    motions and pivots only; the hash grid keeps `lr_hash_factor`, the MLP the field's rate."""
-    from fgjax.gaussians import init_random
-    from fgjax.train.optim import OptimSpec, make_optimizer
-
-    spec = DeformSpec(kind="bases", depth=1, width=8, hash_levels=2, hash_log2_table=6, bases=3, knots=2)
-    g, _ = init_random(jax.random.key(0), 4, -np.ones(3), np.ones(3), capacity=4, sh_degree=0)
-    params = {"gaussians": g, "deform": deform_init(jax.random.key(1), spec)}
-    grads = jax.tree_util.tree_map(jnp.ones_like, params)
-    for f in (1.0, 10.0):
-        opt = make_optimizer(OptimSpec(steps=10, lr_deform=1e-3, lr_motion_factor=f), 1)
-        up, _ = opt.update(grads, opt.init(params), params)
-        d = up["deform"]
-        for k, want in (("motion", 1e-3 * f), ("pivot", 1e-3 * f), ("grid", 1e-2)):
-            np.testing.assert_allclose(np.asarray(d[k]), -want, rtol=1e-5, err_msg=k)
-        np.testing.assert_allclose(np.asarray(d["head"]["w"]), -1e-3, rtol=1e-5)

@@ -43,7 +43,7 @@ from fgjax.method.flows import estimate_training_flows, previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits
 from fgjax.models.model import render_params
 
-__all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases"]
+__all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases", "static_points"]
 
 
 def moving_clusters(
@@ -138,7 +138,7 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
     """Steps 1-3 of the module docstring on a stage-1 model at the end of its warm-up; returns the new params.
     ``flows``: the pair flows of `fgjax.method.flows.estimate_training_flows` (None: estimated, cached in
     ``cache_dir``). Where the flow shows no moving cluster every live Gaussian goes to the static basis, which is
-    what that evidence says."""
+    what that evidence says. Returns (params, labels) with the labels of `moving_clusters`."""
     if flows is None:
         flows = estimate_training_flows(scene, cfg.flow.method, cache_dir, log=log)
     labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, flows, previous_frames(scene.times),
@@ -152,4 +152,17 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
     placed = sizes.tolist()[:spec.bases - 1]
     log(f"bases placed from the flow: {moving} moving Gaussians, clusters of {placed} on bases 1..{len(placed)}"
         f" (cross-entropy {float(loss):.3f})")
-    return {**params, "deform": deform}
+    return {**params, "deform": deform}, labels
+
+
+def static_points(means, labels: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """Up to ``count`` canonical centres of the Gaussians that `moving_clusters` labelled static (-2), drawn without
+    replacement (seeded); returns [count, 4]: xyz and 1, rows past the static Gaussians' number zero (fixed shape
+    for the jitted step). The points `fgjax.train.losses.rigid_drift_loss` keeps still (``deform.gauge``)."""
+    idx = np.flatnonzero(np.asarray(labels) == -2)
+    if idx.size > count:
+        idx = np.sort(np.random.default_rng(seed).choice(idx, count, replace=False))
+    out = np.zeros((count, 4), np.float32)
+    out[:idx.size, :3] = np.asarray(means, np.float32)[idx]
+    out[:idx.size, 3] = 1.0
+    return out

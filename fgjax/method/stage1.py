@@ -31,13 +31,14 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from fgjax import metrics
 from fgjax.config import Config, ConfigError, load_config, to_toml, validate_stage1
 from fgjax.data.loaders import load_scene
+from fgjax.data.testviews import load_test_views
 from fgjax.flow import gaussian_flow_loss
 from fgjax.flow.track import gaussian_track_loss
 from fgjax.gaussians import Gaussians, activate, init_from_points, knn_graph
 from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
-from fgjax.method.bases_init import place_bases
+from fgjax.method.bases_init import place_bases, static_points
 from fgjax.method.flows import estimate_training_flows, previous_frames, training_tracks
 from fgjax.method.init_points import (
     depth_point_cloud,
@@ -48,7 +49,7 @@ from fgjax.method.init_points import (
 )
 from fgjax.method.poses import bundle_adjust
 from fgjax.method.static import detect_static
-from fgjax.models.deform import DeformSpec, deform_init
+from fgjax.models.deform import DeformSpec, deform_apply, deform_init
 from fgjax.models.model import deformed_gaussians, refined_viewmats, render_params, scene_extent
 from fgjax.provenance import PROVENANCE_NAME, read_provenance, scene_fingerprint, write_provenance
 from fgjax.render.api import count_intersections, round_capacity
@@ -58,6 +59,7 @@ from fgjax.train.losses import (
     depth_loss,
     isometry_loss,
     photometric_loss,
+    rigid_drift_loss,
     scale_change_loss,
     scale_regularizer,
 )
@@ -87,6 +89,7 @@ class TrainState:
     capacity: int
     static: bool | None  # None: not decided yet (before the end of warm-up)
     frame_err: np.ndarray | None = None  # [T] last measured MSE per frame (NaN: not yet), with train.error_sampling
+    static_points: np.ndarray | None = None  # [M, 4] the placement's static points and 1 (0: none), deform.gauge > 0
 
 
 def init_gaussians(cfg: Config, scene, key, log=print, cache_dir=None) -> tuple[Gaussians, jax.Array]:
@@ -175,6 +178,7 @@ class StepSpec:
     flow_norm: str = "l1"  # the flow loss's per-pixel penalty, "l1" or "charbonnier" (fgjax.flow.flow_loss, .track)
     flow_scale: float = 10.0  # c of "charbonnier" (pixels)
     freeze_weights: bool = False  # "bases" field: only the bases' motions and pivots update, the weights' network stays
+    gauge: float = 0.0  # weight of the static points' rigid drift (the step then takes them)
 
 
 class FlowBatch(NamedTuple):
@@ -220,7 +224,7 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
     optimizer = make_optimizer(ospec, num_sh)
     bg = jnp.asarray(background, jnp.float32)
 
-    def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx, fl, depth, nbr):
+    def cam_loss(params, alive, sh_mask, delta2d, image, viewmat, K, t, idx, fl, depth, nbr, pts):
         if ss.pose:
             viewmat = matmul(se3_exp(params["pose"][idx]), viewmat)
         img, _, info, geo = render_params(
@@ -239,6 +243,9 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         if ss.rigid_scale_weight > 0 and ss.spec is not None:  # ... and Gaussian sizes their canonical values
             loss = loss + ss.rigid_scale_weight * scale_change_loss(geo["log_scales"], params["gaussians"].log_scales,
                                                                     alive)
+        if pts is not None:  # gauge: the static scene keeps the world frame (fgjax.train.losses.rigid_drift_loss)
+            drift = deform_apply(ss.spec, params["deform"], pts[:, :3], t)[0]
+            loss = loss + ss.gauge * rigid_drift_loss(pts[:, :3], drift, pts[:, 3], ospec.scene_extent)
         overflow = info["overflow"]
         if fl is not None:
             lf, of = flow_term(ss, params, alive, viewmat, K, t, fl)
@@ -247,31 +254,32 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         mse = jnp.mean((img - image) ** 2)
         return loss, (mse, overflow, info["valid"])
 
-    def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx, fl, depths, nbr):
+    def batch_loss(params, delta2d, alive, sh_mask, images, viewmats, Ks, times, idx, fl, depths, nbr, pts):
         per_cam = (delta2d, images, viewmats, Ks, times, idx, fl, depths)  # leading axis: the batch's cameras
         if ss.vmap_cameras:  # a data-parallel mesh: the partitioner splits the vmapped cameras over devices
-            losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0, 0, None))(
-                params, alive, sh_mask, *per_cam, nbr)
+            losses, aux = jax.vmap(cam_loss, in_axes=(None, None, None, 0, 0, 0, 0, 0, 0, 0, 0, None, None))(
+                params, alive, sh_mask, *per_cam, nbr, pts)
         elif images.shape[0] == 1:
             # One device: no vmap. Under vmap the compositor's lax.cond (skip the unused chunk batches)
             # becomes a select that computes every batch: 1.4x the step at 20k Gaussians (docs/benchmarks.md).
             losses, aux = jax.tree_util.tree_map(
                 lambda x: x[None], cam_loss(params, alive, sh_mask, *jax.tree_util.tree_map(lambda x: x[0], per_cam),
-                                            nbr))
+                                            nbr, pts))
         else:
-            losses, aux = jax.lax.map(lambda a: cam_loss(params, alive, sh_mask, *a, nbr), per_cam)
+            losses, aux = jax.lax.map(lambda a: cam_loss(params, alive, sh_mask, *a, nbr, pts), per_cam)
         return jnp.mean(losses), aux
 
     def step(params, opt_state, dstate: DensifyState, sh_mask, images, viewmats, Ks, times, idx, flow_batch=None,
-             nbr=None, depths=None):
+             nbr=None, depths=None, pts=None):
         b = images.shape[0]
         n = params["gaussians"].means.shape[0]
         delta2d = jnp.zeros((b, n, 2), jnp.float32)
         fl = flow_batch if (ss.flow_weight > 0 and ss.spec is not None) else None
         nbr = nbr if (ss.rigid_weight > 0 and ss.spec is not None) else None
         depths = depths if ss.depth_weight > 0 else None
+        pts = pts if (ss.gauge > 0 and ss.spec is not None) else None
         (loss, (mse, overflow, valid)), (grads, g2d) = jax.value_and_grad(batch_loss, argnums=(0, 1), has_aux=True)(
-            params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx, fl, depths, nbr)
+            params, delta2d, dstate.alive, sh_mask, images, viewmats, Ks, times, idx, fl, depths, nbr, pts)
         bad = jnp.any(overflow) | ~jnp.isfinite(loss)
         updates, new_opt = optimizer.update(grads, opt_state, params)
         if ss.freeze_gaussians:  # masked updates (zero gradients alone would still move them by momentum)
@@ -361,7 +369,8 @@ def initial_state(cfg: Config, scene, log=print, cache_dir=None) -> tuple[TrainS
     )
     opt = make_optimizer(ospec, g.sh.shape[1])
     state = TrainState(params, opt.init(params), densify_init(alive), 0, key, 0, None,
-                       np.full(scene.num_frames, np.nan, np.float32) if cfg.train.error_sampling > 0 else None)
+                       np.full(scene.num_frames, np.nan, np.float32) if cfg.train.error_sampling > 0 else None,
+                       _no_static_points(cfg))
     if cfg.static.force in ("static", "dynamic"):
         state.static = cfg.static.force == "static"
     return state, spec, ospec
@@ -380,7 +389,13 @@ def template_state(cfg: Config, spec: DeformSpec, num_frames: int, scene_extent_
     ospec = OptimSpec(steps=t.steps, scene_extent=scene_extent_, warmup_steps=t.warmup_steps)
     opt = make_optimizer(ospec, k)
     return TrainState(params, opt.init(params), densify_init(jnp.zeros((n,), bool)), 0, jax.random.key(0), 0, None,
-                      np.zeros(num_frames, np.float32) if t.error_sampling > 0 else None)
+                      np.zeros(num_frames, np.float32) if t.error_sampling > 0 else None, _no_static_points(cfg))
+
+
+def _no_static_points(cfg: Config) -> np.ndarray | None:
+    """The static points' array before the placement fills it (deform.gauge > 0 with flow-placed bases), else None."""
+    on = cfg.deform.gauge > 0 and cfg.deform.kind == "bases" and cfg.deform.init == "flow"
+    return np.zeros((4096, 4), np.float32) if on else None
 
 
 def load_run(run_dir: str | Path) -> tuple[Config, TrainState, DeformSpec, dict[str, Any]]:
@@ -501,7 +516,8 @@ def train_stage1(
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
                       fc.photo_motion if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth,
-                      t.depth_weight if depths is not None else 0.0, fc.norm, fc.charbonnier_px, hold)
+                      t.depth_weight if depths is not None else 0.0, fc.norm, fc.charbonnier_px, hold,
+                      cfg.deform.gauge if use_deform and state.static_points is not None else 0.0)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]
@@ -539,9 +555,13 @@ def train_stage1(
             else:
                 state.static = False
         if s == t.warmup_steps and not state.static and placed:
-            state.params = place_bases(cfg, state.params, state.densify.alive, spec, scene,
-                                       flows if use_flow and fc.loss == "pair" else None, capacity=state.capacity,
-                                       cache_dir=None if out is None else out / "flow_cache", log=log)
+            state.params, labels = place_bases(cfg, state.params, state.densify.alive, spec, scene,
+                                               flows if use_flow and fc.loss == "pair" else None,
+                                               capacity=state.capacity,
+                                               cache_dir=None if out is None else out / "flow_cache", log=log)
+            if state.static_points is not None:
+                state.static_points = static_points(state.params["gaussians"].means, labels,
+                                                    len(state.static_points), cfg.model.seed)
             if repl_sh is not None:  # the new logits network, replicated like the rest of the parameters
                 state.params = jax.device_put(state.params, repl_sh)
         use_deform = s >= t.warmup_steps and not bool(state.static)
@@ -569,7 +589,8 @@ def train_stage1(
                     graph = jax.device_put(graph, repl_sh)
             nbr = graph
         state.params, state.opt_state, state.densify, loss, mse, bad = step_fn(
-            state.params, state.opt_state, state.densify, sh_mask, *batch, nbr=nbr, depths=dbatch)
+            state.params, state.opt_state, state.densify, sh_mask, *batch, nbr=nbr, depths=dbatch,
+            pts=None if state.static_points is None else jnp.asarray(state.static_points))
         pending.append((loss, mse, bad, idx))
         if state.frame_err is not None:  # error sampling: the next step's draw needs this one's error (a sync)
             m_host, bad_host = jax.device_get((mse, bad))
@@ -700,36 +721,6 @@ def evaluate(state: TrainState, spec, cfg: Config, test_scene, masks=None, out_d
         res["depth_error"] = {"median_relative": float(np.median(r)), "mean_relative": float(np.mean(r)),
                               "median": float(np.median(np.concatenate(absw))), "pixels": int(len(r))}
     return res
-
-
-def load_test_views(data_dir: Path, cfg: Config, normalization):
-    """Held-out test views evaluated by time (the synthetic scenes' "state" frames are skipped), plus
-    dynamic-region masks where the dataset has them (scene masks, or the synthetic gt object ids). (None, None,
-    None) where the dataset has no test split; a test split that exists but cannot be read raises, naming its file."""
-    try:
-        test = load_scene(data_dir, "test", normalize=normalization, downscale=cfg.data.downscale)
-    except (FileNotFoundError, ValueError):
-        if (Path(data_dir) / "transforms_test.json").exists():
-            raise
-        return None, None, None
-    keep = list(range(test.num_frames))
-    masks = None if test.masks is None else (np.asarray(test.masks) > 0)
-    meta_p = data_dir / "gt" / "meta.json"
-    if meta_p.exists():
-        meta = json.loads(meta_p.read_text())
-        kinds = [f.get("kind", "view") for f in meta.get("test_frames", [])]
-        if len(kinds) == test.num_frames:
-            keep = [i for i, k in enumerate(kinds) if k == "view"]
-        oid = data_dir / "gt" / "test" / "object_id.npy"
-        if masks is None and oid.exists():
-            ids = np.load(oid)
-            if ids.shape[:1] == (test.num_frames,) and ids.shape[1:3] == (test.height, test.width):
-                masks = ids > 0
-    test = test.subset(keep)
-    names = test.frame_names
-    if masks is not None:
-        masks = masks[keep]
-    return test, masks, names
 
 
 def write_video(state, spec, cfg: Config, scene, path: Path, frames: int) -> Path:

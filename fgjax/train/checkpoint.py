@@ -37,6 +37,8 @@ def _state_tree(state) -> dict[str, Any]:
             "key": jax.random.key_data(state.key)}
     if getattr(state, "frame_err", None) is not None:  # only with train.error_sampling (older runs load as before)
         tree["frame_err"] = state.frame_err
+    if getattr(state, "static_points", None) is not None:  # only with deform.gauge > 0
+        tree["static_points"] = state.static_points
     return tree
 
 
@@ -101,4 +103,5 @@ def load_checkpoint(path: str | Path, template):
         key=jax.random.wrap_key_data(tree["key"]), step=int(meta["step"]), capacity=int(meta["capacity"]),
         static=meta["static"],
         frame_err=np.array(tree["frame_err"], np.float32) if "frame_err" in tree else None,
+        static_points=np.array(tree["static_points"], np.float32) if "static_points" in tree else None,
     )

@@ -10,7 +10,8 @@ from jaxtyping import Array, ArrayLike, Float
 from fgjax.geometry import abs0, safe_norm
 from fgjax.metrics import ssim
 
-__all__ = ["l1", "photometric_loss", "depth_loss", "scale_regularizer", "isometry_loss", "scale_change_loss"]
+__all__ = ["l1", "photometric_loss", "depth_loss", "scale_regularizer", "isometry_loss", "scale_change_loss",
+           "rigid_drift_loss"]
 
 
 def l1(a: Float[ArrayLike, "H W C"], b: Float[ArrayLike, "H W C"]) -> Float[Array, ""]:
@@ -92,3 +93,33 @@ def scale_change_loss(
     d = jnp.mean(abs0(jnp.asarray(log_scales_t) - jax.lax.stop_gradient(jnp.asarray(log_scales_c))), axis=-1)
     w = jnp.asarray(weights).astype(d.dtype)
     return jnp.sum(w * d) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def rigid_drift_loss(
+    points: Float[ArrayLike, "M 3"], disp: Float[ArrayLike, "M 3"], mask: Float[ArrayLike, " M"], scale: float,
+    eps: float = 1e-3,
+) -> Float[Array, ""]:
+    """The rigid part of a deformation at points that must not move, as one smooth length.
+
+    With c the masked centroid of ``points`` X_i, r^2 = mean_i |X_i - c|^2, a = mean_i d_i (the mean displacement)
+    and L = mean_i (X_i - c) x d_i (a rigid motion a + w x (X - c) has L = (tr S - S) w, S the points' covariance,
+    so |L| / r is about the displacement that the rotation w gives at distance r), the loss is
+    sqrt((|a|^2 + |L|^2 / r^2) / scale^2 + eps^2) - eps: 0 for no motion, |a| / scale for a pure translation large
+    against eps, and a bounded gradient everywhere. Only the rigid component is measured: a few of the points that
+    do move shift a and L by their share only, unlike a per-point pin.
+
+    In a monocular video a rigid motion of the whole static scene at time t is a change of camera; a deformation
+    field that blends rigid motions can fit such a per-frame camera correction with the static scene's weight on a
+    moving basis, which this term prices (gauge fixing: the static scene defines the world frame). ``mask`` [M]
+    (1: a point, 0: padding), ``scale``: the scene's extent (the loss is then unitless)."""
+    x = jax.lax.stop_gradient(jnp.asarray(points))
+    d = jnp.asarray(disp)
+    m = jnp.asarray(mask).astype(d.dtype)[:, None]
+    n = jnp.maximum(jnp.sum(m), 1.0)
+    c = jnp.sum(m * x, axis=0) / n
+    xc = x - c
+    r2 = jnp.maximum(jnp.sum(m * xc**2) / n, 1e-12)
+    a = jnp.sum(m * d, axis=0) / n
+    ang = jnp.sum(m * jnp.cross(xc, d), axis=0) / n
+    q = (jnp.sum(a**2) + jnp.sum(ang**2) / r2) / (scale * scale)
+    return jnp.sqrt(q + eps * eps) - eps

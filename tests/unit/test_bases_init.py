@@ -8,7 +8,7 @@ import numpy as np
 from conftest import look_at
 
 from fgjax.gaussians import Gaussians
-from fgjax.method.bases_init import basis_targets, fit_basis_logits, moving_clusters
+from fgjax.method.bases_init import basis_targets, fit_basis_logits, moving_clusters, static_points
 from fgjax.method.flows import previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits, deform_init
 from fgjax.render.api import rasterization
@@ -117,15 +117,15 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
                    progress=None)
     scene = load_scene(tmp_path / "scene", "train")
     quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
-    over = ["train.steps=104", "densify.enabled=false", "train.video_frames=0", "deform.kind=bases",
+    over = ["train.steps=104", "densify.enabled=false", "train.video_frames=0", "deform.gauge=1", "deform.kind=bases",
             "deform.init=flow", "train.checkpoint_every=102"]
     said, placed_params = [], []
     place = stage1.place_bases
 
     def place_and_keep(*args, **kwargs):  # a host copy: the step donates the parameters' buffers
-        new = place(*args, **kwargs)
+        new, labels = place(*args, **kwargs)
         placed_params.append(jax.tree_util.tree_map(np.array, new))
-        return new
+        return new, labels
 
     monkeypatch.setattr(stage1, "place_bases", place_and_keep)
     res = stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", stop_at=102, progress=False,
@@ -141,10 +141,13 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     alive = np.asarray(st.densify.alive)
     moving = w[alive, 1:].sum(1) > 0.5
     assert 0 < moving.sum() < 0.5 * alive.sum() and w[alive][~moving, 0].mean() > 0.8, placed
+    pts = st.static_points  # deform.gauge: the placement's static points, kept by the checkpoint
+    assert pts is not None and pts.shape == (4096, 4) and 0 < pts[:, 3].sum() < alive.sum()
     said.clear()
-    stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", resume=True, progress=False,
-                        log=said.append)
+    res = stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", resume=True, progress=False,
+                              log=said.append)
     assert not any(m.startswith("bases placed") for m in said), said
+    np.testing.assert_array_equal(res["state"].static_points, pts)
     said.clear()
     stage1.train_stage1(C.load_config(quick, [*over[:-2], "deform.init=random"]), scene, None, stop_at=101,
                         progress=False, log=said.append)
@@ -156,3 +159,17 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     res = stage1.train_stage1(C.load_config(quick, [*over[1:-1], "train.steps=110", "deform.hold=0"]), scene, None,
                               progress=False, log=said.append)  # the weights' network moves within 10 steps
     assert not np.array_equal(res["state"].params["deform"]["grid"], placed_params[-1]["deform"]["grid"])
+
+
+def test_static_points_draws_the_static_gaussians_into_a_fixed_shape():
+    means = np.arange(30, dtype=np.float32).reshape(10, 3)
+    labels = np.array([-2, 0, -2, -1, -2, 1, -2, -2, 0, -2])
+    few = static_points(means, labels, 8)
+    assert few.shape == (8, 4) and few[:, 3].tolist() == [1] * 6 + [0] * 2
+    np.testing.assert_array_equal(few[:6, :3], means[labels == -2])
+    np.testing.assert_array_equal(few[6:], 0.0)
+    some = static_points(means, labels, 4, seed=1)
+    assert some[:, 3].tolist() == [1] * 4
+    assert all(any(np.array_equal(p, q) for q in means[labels == -2]) for p in some[:, :3])
+    np.testing.assert_array_equal(some, static_points(means, labels, 4, seed=1))
+    assert static_points(means, np.full(10, 0), 4)[:, 3].sum() == 0

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from fgjax.gaussians import knn_graph
-from fgjax.train.losses import depth_loss, isometry_loss, photometric_loss, scale_regularizer
+from fgjax.geometry import so3_exp
+from fgjax.train.losses import depth_loss, isometry_loss, photometric_loss, rigid_drift_loss, scale_regularizer
 
 
 def _cloud(seed=0, n=60):
@@ -155,3 +156,53 @@ def test_depth_loss_is_the_relative_l1_on_measured_pixels_with_exact_gradients()
     # an exact match costs nothing and pushes nothing (|x| with a zero derivative at 0)
     assert float(depth_loss(d[1:], d[1:])) == 0.0
     assert np.all(np.asarray(jax.grad(depth_loss)(jnp.asarray(d[1:]), jnp.asarray(d[1:]))) == 0)
+
+
+def _cube():
+    """The 8 corners of [-1, 1]^3 shifted to (2, -1, 0.5): covariance exactly the identity about the centroid."""
+    c = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+    return c + np.array([2.0, -1.0, 0.5])
+
+
+def test_rigid_drift_loss_measures_the_rigid_part_only():
+    x = _cube()
+    one = np.ones(8)
+    eps, scale = 1e-3, 2.0
+    ref = lambda q: np.sqrt(q / scale**2 + eps**2) - eps
+    assert float(rigid_drift_loss(x, np.zeros_like(x), one, scale)) == 0.0
+    a = np.array([0.3, -0.1, 0.2])
+    assert float(rigid_drift_loss(x, np.broadcast_to(a, x.shape), one, scale)) == pytest.approx(ref(a @ a), rel=1e-5)
+    # a rotation w about the centroid, linearised: d = w x (X - c); S = I, so L = (tr S - S) w = 2 w and r^2 = 3
+    w = np.array([0.02, -0.05, 0.01])
+    xc = x - x.mean(0)
+    d = np.cross(w, xc)
+    assert float(rigid_drift_loss(x, d, one, scale)) == pytest.approx(ref(4 * (w @ w) / 3), rel=1e-4)
+    # the same rotation, exact (not linearised), measured about as large
+    rot = np.asarray(so3_exp(jnp.asarray(w)))
+    d_exact = xc @ rot.T - xc
+    assert float(rigid_drift_loss(x, d_exact, one, scale)) == pytest.approx(ref(4 * (w @ w) / 3), rel=2e-2)
+    # a pure stretch (symmetric, trace-free) has no rigid part
+    stretch = xc @ np.diag([0.1, -0.1, 0.0])
+    assert float(rigid_drift_loss(x, stretch, one, scale)) < 1e-6
+    # padding rows (mask 0) do not count, whatever they hold
+    xp = np.concatenate([x, np.full((3, 3), 50.0)])
+    dp = np.concatenate([np.broadcast_to(a, x.shape), np.full((3, 3), 7.0)])
+    assert float(rigid_drift_loss(xp, dp, np.r_[one, np.zeros(3)], scale)) == pytest.approx(ref(a @ a), rel=1e-5)
+
+
+def test_rigid_drift_loss_gradients_match_finite_differences_and_stay_finite():
+    rng = np.random.default_rng(3)
+    x = jnp.asarray(rng.normal(size=(12, 3)), jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+    d = jnp.asarray(rng.normal(scale=0.05, size=(12, 3)), x.dtype)
+    m = jnp.asarray((rng.random(12) > 0.2).astype(np.float32))
+    f = lambda dd: rigid_drift_loss(x, dd, m, 1.5)
+    g = jax.grad(f)(d)
+    v = jnp.asarray(rng.normal(size=(12, 3)), x.dtype)
+    h = 1e-3
+    fd = (f(d + h * v) - f(d - h * v)) / (2 * h)
+    assert float(jnp.sum(g * v)) == pytest.approx(float(fd), rel=2e-2, abs=1e-5)
+    # degenerate input: no displacement, every point masked off, all points at one place
+    for xx, dd, mm in [(x, jnp.zeros_like(d), m), (x, d, jnp.zeros(12)), (jnp.zeros_like(x), d, m)]:
+        val, gr = jax.value_and_grad(lambda q: rigid_drift_loss(xx, q, mm, 1.5))(dd)
+        assert np.isfinite(float(val)) and bool(jnp.all(jnp.isfinite(gr)))
+    assert float(jnp.max(jnp.abs(jax.grad(lambda q: rigid_drift_loss(x, q, jnp.zeros(12), 1.5))(d)))) == 0.0

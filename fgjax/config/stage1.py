@@ -82,9 +82,10 @@ class DeformConfig:
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""
-    gauge: float = 0.0
+    gauge: float = 1.0
     """With init = "flow": weight of the static scene's rigid drift (`fgjax.train.losses.rigid_drift_loss`) at up to
-    4096 canonical points that the placement found static, each training step (0: off)."""
+    4096 canonical points that the placement found static, each training step (0: off; 1 chosen on the family's
+    tuning seeds: docs/benchmarks.md, "The static scene's drift priced")."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -51,7 +51,7 @@ def save_checkpoint(path: str | Path, state, *, config_toml: str = "") -> Path:
         "format_version": FORMAT_VERSION, "step": int(state.step), "capacity": int(state.capacity),
         "static": None if state.static is None else bool(state.static), "num_leaves": len(leaves),
         "shapes": [list(a.shape) for a in arrays.values()], "dtypes": [str(a.dtype) for a in arrays.values()],
-        "config_toml": config_toml,
+        "config_toml": config_toml, "static_points": getattr(state, "static_points", None) is not None,
     }
     arrays["__meta__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -77,6 +77,10 @@ def load_checkpoint(path: str | Path, template):
     if meta.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"checkpoint {path} has format version {meta.get('format_version')}; "
                               f"this fgjax reads version {FORMAT_VERSION}")
+    if getattr(template, "static_points", None) is not None and not meta.get("static_points", False):
+        template = dataclasses.replace(template, static_points=None)  # saved without deform.gauge: it stays off
+    elif getattr(template, "static_points", 1) is None and meta.get("static_points", False):
+        template = dataclasses.replace(template, static_points=np.zeros(meta["shapes"][-1], np.float32))
     t_leaves, treedef = jax.tree_util.tree_flatten(_state_tree(template))
     if meta["num_leaves"] != len(t_leaves):
         raise CheckpointError(

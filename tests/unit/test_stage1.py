@@ -106,6 +106,16 @@ def test_checkpoint_errors(tmp_path):
         ckpt.load_checkpoint(bad, state)
     with pytest.raises(ckpt.CheckpointError, match="does not exist"):
         ckpt.load_checkpoint(tmp_path / "nope.npz", state)
+    # a run saved without the static points (deform.gauge off) loads into a state that has them: the gauge stays
+    # off; and the other way round, the stored points come back
+    bases = C.apply_overrides(cfg, ["deform.kind=bases", "deform.init=flow", "deform.gauge=1", "deform.hold=0"])
+    b_state, _, _ = stage1.initial_state(bases, scene)
+    no_gauge = dataclasses.replace(b_state, static_points=None)
+    ckpt.save_checkpoint(tmp_path / "no_gauge.npz", no_gauge)
+    assert ckpt.load_checkpoint(tmp_path / "no_gauge.npz", b_state).static_points is None
+    pts = np.arange(4096 * 4, dtype=np.float32).reshape(4096, 4)
+    ckpt.save_checkpoint(tmp_path / "gauge.npz", dataclasses.replace(b_state, static_points=pts))
+    np.testing.assert_array_equal(ckpt.load_checkpoint(tmp_path / "gauge.npz", no_gauge).static_points, pts)
 
 
 def test_densify_clone_split_prune_and_capacity_flag(key):

@@ -77,9 +77,13 @@ def load_checkpoint(path: str | Path, template):
     if meta.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"checkpoint {path} has format version {meta.get('format_version')}; "
                               f"this fgjax reads version {FORMAT_VERSION}")
-    if getattr(template, "static_points", None) is not None and not meta.get("static_points", False):
+    n_template = len(jax.tree_util.tree_leaves(_state_tree(template)))
+    has_points = getattr(template, "static_points", None) is not None
+    saved_points = meta.get("static_points",  # files written before the flag: by their number of arrays
+                            meta["num_leaves"] == n_template + (0 if has_points else 1))
+    if has_points and not saved_points:
         template = dataclasses.replace(template, static_points=None)  # saved without deform.gauge: it stays off
-    elif getattr(template, "static_points", 1) is None and meta.get("static_points", False):
+    elif getattr(template, "static_points", 1) is None and saved_points:
         template = dataclasses.replace(template, static_points=np.zeros(meta["shapes"][-1], np.float32))
     t_leaves, treedef = jax.tree_util.tree_flatten(_state_tree(template))
     if meta["num_leaves"] != len(t_leaves):

@@ -116,6 +116,16 @@ def test_checkpoint_errors(tmp_path):
     pts = np.arange(4096 * 4, dtype=np.float32).reshape(4096, 4)
     ckpt.save_checkpoint(tmp_path / "gauge.npz", dataclasses.replace(b_state, static_points=pts))
     np.testing.assert_array_equal(ckpt.load_checkpoint(tmp_path / "gauge.npz", no_gauge).static_points, pts)
+    for name, want in (("no_gauge.npz", None), ("gauge.npz", pts)):  # files from before the flag: by their count
+        with np.load(tmp_path / name) as z:
+            arrays = dict(z)
+        meta = json.loads(bytes(arrays["__meta__"]).decode())
+        del meta["static_points"]
+        arrays["__meta__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+        np.savez(tmp_path / "old.npz", **arrays)
+        for template in (b_state, no_gauge):
+            got = ckpt.load_checkpoint(tmp_path / "old.npz", template).static_points
+            assert got is None if want is None else np.array_equal(got, want)
 
 
 def test_densify_clone_split_prune_and_capacity_flag(key):

@@ -77,6 +77,9 @@ __all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "Flow
 # ---------------------------------------------------------------------------------------------
 
 
+STATIC_POINTS = 4096  # the most static points `deform.gauge` prices the drift at (a fixed shape under jit)
+
+
 @dataclasses.dataclass
 class TrainState:
     """Everything a checkpoint holds (host-side container; arrays are device arrays)."""
@@ -392,10 +395,14 @@ def template_state(cfg: Config, spec: DeformSpec, num_frames: int, scene_extent_
                       np.zeros(num_frames, np.float32) if t.error_sampling > 0 else None, _no_static_points(cfg))
 
 
+def _bases_placed(cfg: Config) -> bool:
+    """The "bases" field placed from the flow after the warm-up (`fgjax.method.bases_init`)."""
+    return cfg.deform.kind == "bases" and cfg.deform.init == "flow"
+
+
 def _no_static_points(cfg: Config) -> np.ndarray | None:
     """The static points' array before the placement fills it (deform.gauge > 0 with flow-placed bases), else None."""
-    on = cfg.deform.gauge > 0 and cfg.deform.kind == "bases" and cfg.deform.init == "flow"
-    return np.zeros((4096, 4), np.float32) if on else None
+    return np.zeros((STATIC_POINTS, 4), np.float32) if cfg.deform.gauge > 0 and _bases_placed(cfg) else None
 
 
 def load_run(run_dir: str | Path) -> tuple[Config, TrainState, DeformSpec, dict[str, Any]]:
@@ -543,7 +550,8 @@ def train_stage1(
         losses.extend(float(l) for l, _, _, _ in vals)
         return vals
 
-    placed = spec.kind == "bases" and cfg.deform.init == "flow"  # bases placed from the flow after the warm-up
+    placed = _bases_placed(cfg)
+    pts = None if state.static_points is None else jax.device_put(state.static_points, repl_sh)  # the step's copy
     while state.step < end:
         s = state.step
         if state.static is None and s >= t.warmup_steps:
@@ -562,6 +570,7 @@ def train_stage1(
             if state.static_points is not None:
                 state.static_points = static_points(state.params["gaussians"].means, labels,
                                                     len(state.static_points), cfg.model.seed)
+                pts = jax.device_put(state.static_points, repl_sh)
             if repl_sh is not None:  # the new logits network, replicated like the rest of the parameters
                 state.params = jax.device_put(state.params, repl_sh)
         use_deform = s >= t.warmup_steps and not bool(state.static)
@@ -590,7 +599,7 @@ def train_stage1(
             nbr = graph
         state.params, state.opt_state, state.densify, loss, mse, bad = step_fn(
             state.params, state.opt_state, state.densify, sh_mask, *batch, nbr=nbr, depths=dbatch,
-            pts=None if state.static_points is None else jnp.asarray(state.static_points))
+            pts=pts)
         pending.append((loss, mse, bad, idx))
         if state.frame_err is not None:  # error sampling: the next step's draw needs this one's error (a sync)
             m_host, bad_host = jax.device_get((mse, bad))

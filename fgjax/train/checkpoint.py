@@ -83,7 +83,7 @@ def load_checkpoint(path: str | Path, template):
                             meta["num_leaves"] == n_template + (0 if has_points else 1))
     if has_points and not saved_points:
         template = dataclasses.replace(template, static_points=None)  # saved without deform.gauge: it stays off
-    elif getattr(template, "static_points", 1) is None and saved_points:
+    elif not has_points and saved_points:  # the points are the tree's last leaf (its keys are flattened sorted)
         template = dataclasses.replace(template, static_points=np.zeros(meta["shapes"][-1], np.float32))
     t_leaves, treedef = jax.tree_util.tree_flatten(_state_tree(template))
     if meta["num_leaves"] != len(t_leaves):

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from conftest import look_at
 
 from fgjax.gaussians import Gaussians
 from fgjax.method.bases_init import basis_targets, fit_basis_logits, moving_clusters, static_points
 from fgjax.method.flows import previous_frames
-from fgjax.models.deform import DeformSpec, basis_logits, deform_init
+from fgjax.models.deform import DeformSpec, basis_logits, deform_apply, deform_init
 from fgjax.render.api import rasterization
+from fgjax.train.losses import rigid_drift_loss
 
 
 def test_basis_targets_map_clusters_to_moving_bases_and_balance_them():
@@ -142,6 +146,21 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     moving = w[alive, 1:].sum(1) > 0.5
     assert 0 < moving.sum() < 0.5 * alive.sum() and w[alive][~moving, 0].mean() > 0.8, placed
     pts = st.static_points  # deform.gauge: the placement's static points, kept by the checkpoint
+    # the step prices the drift at the points: its loss with the gauge is its loss without plus gauge x the drift
+    # loss of the field at the camera's time (the bases moved: basis 1 translated by 0.1 along x at every knot)
+    ss0 = stage1.StepSpec(spec, 0, scene.width, scene.height, st.capacity, 8, 0.0, 0.0, 0.05, False)
+    ospec = stage1.initial_state(C.load_config(quick, over), scene)[2]
+    params = {**st.params, "deform": {**st.params["deform"],
+                                      "motion": st.params["deform"]["motion"].at[0, :, 3].set(0.1)}}
+    batch = (np.asarray(scene.images[:1], np.float32), np.asarray(scene.viewmats[:1], np.float32),
+             np.asarray(scene.Ks[:1], np.float32), np.asarray(scene.times[:1], np.float32), np.zeros(1, np.int32))
+    copy = lambda tree: jax.tree_util.tree_map(jnp.array, tree)  # the step donates its first three arguments
+    loss = {g: float(stage1.make_step(dataclasses.replace(ss0, gauge=g), ospec, 1, (1.0, 1.0, 1.0))(
+        copy(params), copy(st.opt_state), copy(st.densify), jnp.ones(1), *batch, pts=jnp.asarray(pts))[3])
+        for g in (0.0, 2.0)}
+    drift = deform_apply(spec, params["deform"], pts[:, :3], float(scene.times[0]))[0]
+    want = float(rigid_drift_loss(pts[:, :3], drift, pts[:, 3], ospec.scene_extent))
+    assert want > 1e-4 and loss[2.0] - loss[0.0] == pytest.approx(2.0 * want, rel=1e-3)
     assert pts is not None and pts.shape == (4096, 4) and 0 < pts[:, 3].sum() < alive.sum()
     said.clear()
     res = stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", resume=True, progress=False,

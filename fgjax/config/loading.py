@@ -214,7 +214,7 @@ def validate_stage1(cfg: Config) -> None:
         need(getattr(t, k) >= 0, f"train.{k}", ">= 0", getattr(t, k))
     need(t.log_every >= 1, "train.log_every", ">= 1", t.log_every)
     for k in ("lr_means", "lr_means_final", "lr_deform", "lr_deform_final", "lr_opacity", "lr_scales", "lr_quats",
-              "lr_sh", "lr_hash_factor", "lr_bases_weights", "scale_reg_max"):
+              "lr_sh", "lr_hash_factor", "scale_reg_max"):
         v = getattr(t, k)
         need(finite(v) and v > 0, f"train.{k}", "a finite number > 0", v)
     need(0.0 <= t.lambda_dssim <= 1.0, "train.lambda_dssim", "in [0, 1]", t.lambda_dssim)

@@ -108,9 +108,6 @@ class TrainConfig:
     """SH DC learning rate; higher orders use lr_sh / 20."""
     lr_hash_factor: float = 10.0
     """Multiplier on lr_deform for the hash tables (grids train faster at higher rates)."""
-    lr_bases_weights: float = 1.0
-    """"bases" field: multiplier on the rates of its weights' network (hash tables and MLP), the bases' motions and
-    pivots keeping lr_deform; below 1 the weights follow the motions' fit instead of its transient error."""
     sh_increase_every: int = 1000
     """Raise the active SH degree by one every n steps (up to model.sh_degree)."""
     lambda_dssim: float = 0.2

@@ -369,7 +369,7 @@ def initial_state(cfg: Config, scene, log=print, cache_dir=None) -> tuple[TrainS
         lr_means_final=t.lr_means_final, lr_deform=t.lr_deform, lr_deform_final=t.lr_deform_final,
         lr_hash_factor=t.lr_hash_factor, lr_opacity=t.lr_opacity, lr_scales=t.lr_scales, lr_quats=t.lr_quats,
         lr_sh=t.lr_sh, lr_pose=cfg.pose.lr, lr_pose_final=cfg.pose.lr_final, warmup_steps=t.warmup_steps,
-        lr_bases_weights=t.lr_bases_weights if spec.kind == "bases" else 1.0)
+    )
     opt = make_optimizer(ospec, g.sh.shape[1])
     state = TrainState(params, opt.init(params), densify_init(alive), 0, key, 0, None,
                        np.full(scene.num_frames, np.nan, np.float32) if cfg.train.error_sampling > 0 else None,

@@ -10,16 +10,13 @@ Three kinds (DESIGN.md section 1, step 1):
 - ``"bases"``: a few rigid motions shared by the scene, blended per point (the motion bases of Shape of Motion,
   Wang et al. 2024, with weights read from position instead of stored per Gaussian): basis 0 is the identity
   (the static scene) and basis k >= 1 is a rotation R_k(t) = exp(omega_k(t)) about a learned pivot c_k plus a
-  translation tau_k(t), both linear between ``knots`` evenly spaced control times on [0, 1], stored as increments
-  between consecutive knots (``params["motion"]`` [K-1, knots, 6]; the value at knot j is the sum of the increments
-  up to j, `knot_values`): a flow loss supervises velocities, so a translating basis's frame pair sends its
-  gradient to the one increment of its interval and every later knot follows, where stored values would pass a
-  part's motion on knot by knot (`tests/unit/test_models.py`). The weights w(X) = softmax(logits(X)) come from
-  the hash-grid MLP of X (no time input), and dX = sum_k w_k(X) [R_k(t) (X - c_k) + c_k + tau_k(t) - X]. A part
-  is then a region whose weight sits on one basis, and its motion is that basis's few parameters, which every point
-  of the part informs. Given the Gaussians' raw quaternions q, each turns with the blend
-  r = normalise(w_0 (1, 0, 0, 0) + sum_k w_k r_k(t)) of the bases' unit quaternions (wxyz, each on the hemisphere
-  w >= 0): dq = r q - q, exact for a point on one basis; without q, dq = 0. ds = 0. With an anchor t_a each basis's control values are taken relative to t_a
+  translation tau_k(t), both linear between ``knots`` evenly spaced control times on [0, 1]. The weights
+  w(X) = softmax(logits(X)) come from the hash-grid MLP of X (no time input), and
+  dX = sum_k w_k(X) [R_k(t) (X - c_k) + c_k + tau_k(t) - X]. A part is then a region whose weight sits on one
+  basis, and its motion is that basis's few parameters, which every point of the part informs. Given the
+  Gaussians' raw quaternions q, each turns with the blend r = normalise(w_0 (1, 0, 0, 0) + sum_k w_k r_k(t)) of
+  the bases' unit quaternions (wxyz, each on the hemisphere w >= 0): dq = r q - q, exact for a point on one basis;
+  without q, dq = 0. ds = 0. With an anchor t_a each basis's control values are taken relative to t_a
   (omega_k(t) - omega_k(t_a), tau_k(t) - tau_k(t_a)), so the field is the identity at t_a and stays rigid.
 
 The heads of the first two kinds are initialised to zero, so the field starts at the identity (dX = 0, dq = 0,
@@ -47,8 +44,7 @@ from fgjax.models.encoding import (
     hash_grid_resolutions,
 )
 
-__all__ = ["DeformSpec", "basis_logits", "basis_motions", "deform_init", "deform_apply", "deform_num_params",
-           "knot_increments", "knot_values"]
+__all__ = ["DeformSpec", "basis_logits", "basis_motions", "deform_init", "deform_apply", "deform_num_params"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -237,23 +233,10 @@ def basis_motions(
     return rot, c + m[:, 3:] - jnp.einsum("kij,kj->ki", rot, c), rq
 
 
-def knot_values(motion: Float[ArrayLike, "K J 6"]) -> Float[Array, "K J 6"]:
-    """The bases' control values (omega, tau) at their knots from the stored increments: value_j = sum_{i <= j}
-    increment_i (module docstring)."""
-    return jnp.cumsum(jnp.asarray(motion), axis=1)
-
-
-def knot_increments(values: Float[ArrayLike, "K J 6"]) -> Float[Array, "K J 6"]:
-    """The inverse of `knot_values`: the increments that store the control ``values`` [K-1, knots, 6]."""
-    values = jnp.asarray(values)
-    return jnp.concatenate([values[:, :1], jnp.diff(values, axis=1)], axis=1)
-
-
 def _knot_values(spec: DeformSpec, motion, t):
-    values = knot_values(motion)
-    s = jnp.clip(jnp.asarray(t, values.dtype), 0.0, 1.0) * (spec.knots - 1)
+    s = jnp.clip(jnp.asarray(t, motion.dtype), 0.0, 1.0) * (spec.knots - 1)
     i0 = jnp.clip(jnp.floor(s).astype(jnp.int32), 0, spec.knots - 2)
     f = s - i0
-    return (1.0 - f) * values[:, i0] + f * values[:, i0 + 1]
+    return (1.0 - f) * motion[:, i0] + f * motion[:, i0 + 1]
 
 

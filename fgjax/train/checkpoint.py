@@ -2,8 +2,7 @@
 tile capacity, static flag and the effective config (TOML text).
 
 Format: one ``.npz`` (no pickle) with the flattened leaves ``leaf_00000 ...`` and a JSON header ``__meta__``
-(format version, step, leaf count, shapes and dtypes; a "bases" field's motions are stored as increments, and a
-file written before that read as the knots' values and converted). Loading needs a template state of the same
+(format version, step, leaf count, shapes and dtypes). Loading needs a template state of the same
 structure (built from the config); any mismatch (version, leaf count, shape, dtype) raises
 ``CheckpointError`` naming what differs. Writes go to a temporary file in the same folder, are fsynced
 and renamed over the target, so a crash never leaves a half-written checkpoint.
@@ -22,7 +21,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from fgjax.io import atomic_write
-from fgjax.models.deform import knot_increments
 
 __all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "CHECKPOINT_NAME", "FORMAT_VERSION"]
 
@@ -54,7 +52,6 @@ def save_checkpoint(path: str | Path, state, *, config_toml: str = "") -> Path:
         "static": None if state.static is None else bool(state.static), "num_leaves": len(leaves),
         "shapes": [list(a.shape) for a in arrays.values()], "dtypes": [str(a.dtype) for a in arrays.values()],
         "config_toml": config_toml, "static_points": getattr(state, "static_points", None) is not None,
-        "bases_motion": "increments",
     }
     arrays["__meta__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -109,8 +106,6 @@ def load_checkpoint(path: str | Path, template):
     except (zipfile.BadZipFile, ValueError, KeyError, OSError, EOFError) as e:
         raise CheckpointError(f"checkpoint {path} is corrupt ({type(e).__name__}: {e})") from None
     tree = jax.tree_util.tree_unflatten(treedef, leaves)
-    if "bases_motion" not in meta and "motion" in tree["params"].get("deform", {}):
-        tree = _bases_values_to_increments(tree)
     return dataclasses.replace(
         template, params=tree["params"], opt_state=tree["opt_state"], densify=tree["densify"],
         key=jax.random.wrap_key_data(tree["key"]), step=int(meta["step"]), capacity=int(meta["capacity"]),
@@ -118,15 +113,3 @@ def load_checkpoint(path: str | Path, template):
         frame_err=np.array(tree["frame_err"], np.float32) if "frame_err" in tree else None,
         static_points=np.array(tree["static_points"], np.float32) if "static_points" in tree else None,
     )
-
-
-def _bases_values_to_increments(tree):
-    """A "bases" field saved before its motions were stored as increments (`fgjax.models.deform.knot_values`):
-    the knots' values become increments, so the field renders exactly as it did; the optimiser's moments of the
-    motions, kept in the old coordinates, restart from zero."""
-    deform = tree["params"]["deform"]
-    params = {**tree["params"], "deform": {**deform, "motion": knot_increments(deform["motion"])}}
-    is_motion = lambda path: any(getattr(k, "key", None) == "motion" for k in path)
-    opt_state = jax.tree_util.tree_map_with_path(
-        lambda path, x: jnp.zeros_like(x) if is_motion(path) else x, tree["opt_state"])
-    return {**tree, "params": params, "opt_state": opt_state}

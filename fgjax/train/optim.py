@@ -3,8 +3,7 @@
 Trainable parameters are one pytree ``{"gaussians": Gaussians, "deform": {...}, "pose": [T, 6]?}``.
 Groups (3DGS / Deformable-3DGS defaults): means 1.6e-4 -> 1.6e-6 times the scene extent, deformation
 1.6e-4 -> 1.6e-5 (hash tables x `hash_factor`), opacity 0.05, scales 5e-3, rotations 1e-3, SH DC 2.5e-3
-and higher orders 2.5e-3 / 20, pose deltas 1e-4 -> 1e-6; a "bases" field's weights' network optionally at a
-multiple of its group's rate (``lr_bases_weights``). Adam eps = 1e-15 as in 3DGS.
+and higher orders 2.5e-3 / 20, pose deltas 1e-4 -> 1e-6. Adam eps = 1e-15 as in 3DGS.
 """
 
 from __future__ import annotations
@@ -36,9 +35,6 @@ class OptimSpec:
     lr_pose: float = 1e-4
     lr_pose_final: float = 1e-6
     warmup_steps: int = 0
-    lr_bases_weights: float = 1.0
-    """A "bases" field's weights' network (every deform leaf but ``motion`` and ``pivot``) at this multiple of its
-    group's rate; 1: no extra transform (the optimiser state of every other setting is unchanged)."""
 
 
 def exp_decay(lr0: float, lr1: float, steps: int, delay: int = 0) -> optax.Schedule:
@@ -83,17 +79,6 @@ def _adam(lr) -> optax.GradientTransformation:
     return optax.adam(lr, eps=1e-15)
 
 
-def _scale_weights_network(factor: float) -> optax.GradientTransformation:
-    """Multiply the updates of a "bases" field's weights' network by ``factor``: every leaf whose path does not
-    pass through ``motion`` or ``pivot`` (after Adam, so the network's rate is ``factor`` times its group's)."""
-
-    def update(updates, state, params=None):
-        keep = lambda path: any(getattr(k, "key", None) in ("motion", "pivot") for k in path)
-        return jax.tree_util.tree_map_with_path(lambda path, u: u if keep(path) else u * factor, updates), state
-
-    return optax.GradientTransformation(lambda p: optax.EmptyState(), update)
-
-
 def make_optimizer(spec: OptimSpec, num_sh_coeffs: int) -> optax.GradientTransformation:
     """The multi-group Adam (use with `param_labels`)."""
     ext = float(spec.scene_extent)
@@ -109,9 +94,6 @@ def make_optimizer(spec: OptimSpec, num_sh_coeffs: int) -> optax.GradientTransfo
                                 spec.steps, delay=d)),
         "pose": _adam(exp_decay(spec.lr_pose, spec.lr_pose_final, spec.steps)),
     }
-    if spec.lr_bases_weights != 1.0:
-        for k in ("deform", "hash"):
-            transforms[k] = optax.chain(transforms[k], _scale_weights_network(spec.lr_bases_weights))
     return optax.multi_transform(transforms, param_labels)
 
 

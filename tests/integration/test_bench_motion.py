@@ -122,7 +122,7 @@ def test_basis_weights_read_the_bases_weights_that_the_field_applies():
     spec = DeformSpec(kind="bases", depth=2, width=16, hash_levels=2, hash_log2_table=8, bases=4, knots=3)
     d = deform_init(jax.random.PRNGKey(3), spec)
     d["head"]["w"] = d["head"]["w"] * 40.0  # weights that differ from point to point
-    d["motion"] = d["motion"].at[:, 0, 3].set(1.0)  # increments: every knot's value 1
+    d["motion"] = d["motion"].at[:, :, 3].set(1.0)
     x = jax.random.uniform(jax.random.PRNGKey(4), (50, 3), minval=-0.9, maxval=0.9)
     n = x.shape[0]
     g = Gaussians(x, jnp.zeros((n, 3)), jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (n, 1)), jnp.zeros(n), jnp.zeros((n, 1, 3)))

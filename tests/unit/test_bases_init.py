@@ -151,7 +151,7 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     ss0 = stage1.StepSpec(spec, 0, scene.width, scene.height, st.capacity, 8, 0.0, 0.0, 0.05, False)
     ospec = stage1.initial_state(C.load_config(quick, over), scene)[2]
     params = {**st.params, "deform": {**st.params["deform"],
-                                      "motion": st.params["deform"]["motion"].at[0, 0, 3].set(0.1)}}
+                                      "motion": st.params["deform"]["motion"].at[0, :, 3].set(0.1)}}
     batch = (np.asarray(scene.images[:1], np.float32), np.asarray(scene.viewmats[:1], np.float32),
              np.asarray(scene.Ks[:1], np.float32), np.asarray(scene.times[:1], np.float32), np.zeros(1, np.int32))
     copy = lambda tree: jax.tree_util.tree_map(jnp.array, tree)  # the step donates its first three arguments

@@ -126,29 +126,6 @@ def test_checkpoint_errors(tmp_path):
         for template in (b_state, no_gauge):
             got = ckpt.load_checkpoint(tmp_path / "old.npz", template).static_points
             assert got is None if want is None else np.array_equal(got, want)
-    # a "bases" field saved before its motions were stored as increments: read as the knots' values, converted
-    # (the field the same at every time), the motions' optimiser moments restarted
-    values = np.random.default_rng(0).normal(0, 0.2, b_state.params["deform"]["motion"].shape).astype(np.float32)
-    moments = jax.tree_util.tree_map(lambda x: x + 1 if x.dtype == jnp.float32 else x, b_state.opt_state)
-    old_field = dataclasses.replace(b_state, opt_state=moments, params={
-        **b_state.params, "deform": {**b_state.params["deform"], "motion": jnp.asarray(values)}})
-    ckpt.save_checkpoint(tmp_path / "values.npz", old_field)
-    np.testing.assert_array_equal(ckpt.load_checkpoint(tmp_path / "values.npz", b_state).params["deform"]["motion"],
-                                  values)  # written now: increments, read back as they are
-    with np.load(tmp_path / "values.npz") as z:
-        arrays = dict(z)
-    meta = json.loads(bytes(arrays["__meta__"]).decode())
-    del meta["bases_motion"]
-    arrays["__meta__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    np.savez(tmp_path / "old.npz", **arrays)
-    conv = ckpt.load_checkpoint(tmp_path / "old.npz", b_state)
-    np.testing.assert_allclose(np.cumsum(np.asarray(conv.params["deform"]["motion"]), axis=1), values, atol=1e-6)
-    is_motion = lambda path: any(getattr(k, "key", None) == "motion" for k in path)
-    flat = jax.tree_util.tree_flatten_with_path(conv.opt_state)[0]
-    assert any(is_motion(p) for p, _ in flat)
-    for path, x in flat:
-        if np.asarray(x).dtype == np.float32:
-            assert (float(np.abs(np.asarray(x)).max()) == 0.0) == is_motion(path), path
 
 
 def test_densify_clone_split_prune_and_capacity_flag(key):
@@ -693,34 +670,3 @@ def test_depth_options_on_a_scene_without_depth_say_so_and_train_without():
         _cfg("train.depth_weight=-1")
     with pytest.raises(C.ConfigError, match="model.init"):
         _cfg("model.init=lidar")
-
-
-def test_bases_weights_rate_scales_only_the_weights_network(key):
-    """``train.lr_bases_weights`` = f: one Adam step moves every leaf of a "bases" field's weights' network (MLP
-    layers, head, hash grid) by f times the step it makes at f = 1, and the bases' motions and pivots by the same
-    step; the Gaussians' groups are untouched by f. The config rejects f <= 0 and nan."""
-    from fgjax.gaussians import init_random
-    from fgjax.models.deform import DeformSpec, deform_init
-    from fgjax.train.optim import OptimSpec, make_optimizer
-
-    spec = DeformSpec(kind="bases", depth=2, width=8, hash_levels=2, hash_log2_table=6, bases=3, knots=3)
-    g, _ = init_random(key, 8, [-1, -1, -1], [1, 1, 1], capacity=8, sh_degree=0)
-    params = {"gaussians": g, "deform": deform_init(key, spec)}
-    grads = jax.tree_util.tree_map(lambda x: jnp.full_like(x, 0.5), params)
-    steps = {}
-    for f in (1.0, 0.1):
-        opt = make_optimizer(OptimSpec(steps=10, lr_deform=1e-3, lr_bases_weights=f), 1)
-        steps[f] = opt.update(grads, opt.init(params), params)[0]
-    flat1 = jax.tree_util.tree_flatten_with_path(steps[1.0])[0]
-    flat2 = jax.tree_util.tree_leaves(steps[0.1])
-    kinds = set()
-    for (path, a), b in zip(flat1, flat2):
-        keys = [getattr(k, "key", None) for k in path]
-        net = keys[0] == "deform" and not ({"motion", "pivot"} & set(keys))
-        kinds.add((net, keys[0]))
-        assert float(jnp.max(jnp.abs(a))) > 0
-        np.testing.assert_allclose(np.asarray(b), np.asarray(a) * (0.1 if net else 1.0), rtol=1e-6)
-    assert kinds == {(True, "deform"), (False, "deform"), (False, "gaussians")}
-    for bad in ("0", "-1", "nan"):
-        with pytest.raises(C.ConfigError, match="lr_bases_weights"):
-            C.load_config(None, [f"train.lr_bases_weights={bad}"])

@@ -146,6 +146,7 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     moving = w[alive, 1:].sum(1) > 0.5
     assert 0 < moving.sum() < 0.5 * alive.sum() and w[alive][~moving, 0].mean() > 0.8, placed
     pts = st.static_points  # deform.gauge: the placement's static points, kept by the checkpoint
+    assert pts is not None and pts.shape == (4096, 4) and 0 < pts[:, 3].sum() < alive.sum()
     # the step prices the drift at the points: its loss with the gauge is its loss without plus gauge x the drift
     # loss of the field at the camera's time (the bases moved: basis 1 translated by 0.1 along x at every knot)
     ss0 = stage1.StepSpec(spec, 0, scene.width, scene.height, st.capacity, 8, 0.0, 0.0, 0.05, False)
@@ -161,7 +162,6 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     drift = deform_apply(spec, params["deform"], pts[:, :3], float(scene.times[0]))[0]
     want = float(rigid_drift_loss(pts[:, :3], drift, pts[:, 3], ospec.scene_extent))
     assert want > 1e-4 and loss[2.0] - loss[0.0] == pytest.approx(2.0 * want, rel=1e-3)
-    assert pts is not None and pts.shape == (4096, 4) and 0 < pts[:, 3].sum() < alive.sum()
     said.clear()
     res = stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", resume=True, progress=False,
                               log=said.append)

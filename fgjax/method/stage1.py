@@ -1,11 +1,12 @@
 """Stage 1: deformable 4D Gaussian training (DESIGN.md section 1, step 1).
 
 Library entry points: ``train_stage1(cfg, scene, out_dir, ...)``, and ``run(cfg, data_dir, out)`` which loads the
-scene, trains, evaluates and writes the run folder (``fgjax train``). One jitted step renders a batch of training
-cameras (one by one on one device; vmapped and data-parallel over a ``jax.sharding`` mesh when several devices
-exist), with the deformation field applied (or not: the warm-up and a detected static scene use a separately traced
-step without it, so they pay nothing for it), and applies one optax update. Densification runs between steps over
-fixed-capacity arrays. Checkpoints hold everything needed to resume bit-for-bit.
+scene, trains, evaluates and writes the run folder (``fgjax train``). One jitted step renders a batch of
+training cameras (one by one on one device; vmapped and data-parallel over a ``jax.sharding`` mesh when
+several devices exist),
+with the deformation field applied (or not: the warm-up and a detected static scene use a separately
+traced step without it, so they pay nothing for it), and applies one optax update. Densification runs
+between steps over fixed-capacity arrays. Checkpoints hold everything needed to resume bit-for-bit.
 """
 
 from __future__ import annotations
@@ -181,7 +182,6 @@ class StepSpec:
     flow_scale: float = 10.0  # c of "charbonnier" (pixels)
     freeze_weights: bool = False  # "bases" field: only the bases' motions and pivots update, the weights' network stays
     gauge: float = 0.0  # weight of the static points' rigid drift (the step then takes them)
-    hold_rate: float = 1.0  # with freeze_weights: the motions' and pivots' updates times this
 
 
 class FlowBatch(NamedTuple):
@@ -287,19 +287,19 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         updates, new_opt = optimizer.update(grads, opt_state, params)
         if ss.freeze_gaussians:  # masked updates (zero gradients alone would still move them by momentum)
             updates = {**updates, "gaussians": jax.tree_util.tree_map(jnp.zeros_like, updates["gaussians"])}
-        if ss.freeze_weights:  # the hold: the weights' network stays, the motions move at hold_rate x their rate
-            updates = {**updates, "deform": {k: ss.hold_rate * v if k in ("motion", "pivot") else
-                                             jax.tree_util.tree_map(jnp.zeros_like, v)
-                                             for k, v in updates["deform"].items()}}
+        if ss.freeze_weights:
+            updates = {**updates, "deform": {k: v if k in ("motion", "pivot") else jax.tree_util.tree_map(
+                jnp.zeros_like, v) for k, v in updates["deform"].items()}}
         new_params = optax.apply_updates(params, updates)
         # An overflowing (or non-finite) step is dropped, and reported to the host loop.
         keep = lambda new, old: jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), new, old)
-        new_params, new_opt = keep(new_params, params), keep(new_opt, opt_state)
+        new_params = keep(new_params, params)
+        new_opt = keep(new_opt, opt_state)
         # densification statistics: mean of per-camera screen gradients (x batch, since the loss is a mean)
         nd = dstate
         for i in range(b):
             nd = densify_accumulate(nd, g2d[i] * b, valid[i], ss.width, ss.height)
-        nd = keep(nd, dstate)
+        nd = jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), nd, dstate)
         return new_params, new_opt, nd, loss, mse, bad  # mse: [B] per camera
 
     return jax.jit(step, donate_argnums=(0, 1, 2))
@@ -524,8 +524,7 @@ def train_stage1(
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
                       fc.photo_motion if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth,
                       t.depth_weight if depths is not None else 0.0, fc.norm, fc.charbonnier_px, hold,
-                      cfg.deform.gauge if use_deform and state.static_points is not None else 0.0,
-                      cfg.deform.hold_rate if hold else 1.0)
+                      cfg.deform.gauge if use_deform and state.static_points is not None else 0.0)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
         return steps_cache[ss]

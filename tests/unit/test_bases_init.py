@@ -162,15 +162,6 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     drift = deform_apply(spec, params["deform"], pts[:, :3], float(scene.times[0]))[0]
     want = float(rigid_drift_loss(pts[:, :3], drift, pts[:, 3], ospec.scene_extent))
     assert want > 1e-4 and loss[2.0] - loss[0.0] == pytest.approx(2.0 * want, rel=1e-3)
-    # deform.hold_rate: in the hold the motions and pivots move hold_rate times Adam's update, the weights not at all
-    held = dataclasses.replace(ss0, freeze_weights=True)
-    after = {r: stage1.make_step(dataclasses.replace(held, hold_rate=r), ospec, 1, (1.0, 1.0, 1.0))(
-        copy(params), copy(st.opt_state), copy(st.densify), jnp.ones(1), *batch)[0]["deform"] for r in (1.0, 3.0)}
-    step = {r: np.asarray(after[r]["motion"]) - np.asarray(params["deform"]["motion"]) for r in after}
-    assert np.abs(step[1.0]).max() > 1e-6
-    np.testing.assert_allclose(step[3.0], 3.0 * step[1.0], rtol=1e-4, atol=1e-7)
-    for r in after:
-        np.testing.assert_array_equal(after[r]["grid"], params["deform"]["grid"])
     said.clear()
     res = stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", resume=True, progress=False,
                               log=said.append)

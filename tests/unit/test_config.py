@@ -101,8 +101,6 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
                                           ("deform.anchor=last", "deform.anchor"), ("deform.kind=mlp", "deform.kind"),
                                           ("deform.init=tracks", "deform.init"), ("deform.hold=-1", "deform.hold"),
                                           ("deform.gauge=-1", "deform.gauge"), ("deform.gauge=nan", "deform.gauge"),
-                                          ("deform.hold_rate=0", "deform.hold_rate"),
-                                          ("deform.hold_rate=inf", "deform.hold_rate"),
                                           ("deform.bases=1", "deform.bases"), ("deform.knots=1", "deform.knots"),
                                           ("flow.gaussian_flow=affine", "flow.gaussian_flow"),
                                           ("flow.camera_depth=median", "flow.camera_depth"),

@@ -82,10 +82,6 @@ class DeformConfig:
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""
-    train_weights: str = "all"
-    """With init = "flow", after the hold: "all" of the weights' network trains, or only its hash "grid" (the MLP
-    and head keep the placement's fit, so a Gaussian's weights move through its own grid cells, not through weights
-    that every Gaussian shares: `fgjax.method.bases_init`)."""
     gauge: float = 1.0
     """With init = "flow": weight of the static scene's rigid drift (`fgjax.train.losses.rigid_drift_loss`) at up to
     4096 canonical points that the placement found static, each training step (0: off; 1 chosen on the family's

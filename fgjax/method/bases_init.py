@@ -21,12 +21,9 @@ that sits on it. For ``deform.hold`` steps after the placement only the motions 
 (`fgjax.method.stage1`): a basis at the identity passes no gradient to the weights, and from its first non-zero one
 Adam moves the logits network by about a full step per iteration (the hash grid's rate is ten times the field's)
 in the direction that a motion not yet fitted to its cluster sets; unheld, the placed weights are back on the
-static basis 100 steps later (docs/benchmarks.md, "The placed weights held"). After the hold the MLP and head of
-the weights' network are shared by every Gaussian, so the Gaussians a cluster took wrongly (most of a cluster: the
-region a part sweeps) pull the part's own weights back to the static basis with theirs; ``deform.train_weights =
-"grid"`` trains only the hash grid then, whose fine cells are local (a step towards Shape of Motion's per-Gaussian
-weights). The Gaussians labelled static also give the points whose rigid drift ``deform.gauge`` prices
-(`static_points`). Nothing here encodes a part's shape or motion kind.
+static basis 100 steps later (docs/benchmarks.md, "The placed weights held"). The Gaussians labelled static also
+give the points whose rigid drift ``deform.gauge`` prices (`static_points`). Nothing here encodes a part's shape
+or motion kind.
 """
 
 from __future__ import annotations

@@ -180,7 +180,7 @@ class StepSpec:
     depth_weight: float = 0.0  # weight of the measured-depth term (0: none; the step then takes no depth batch)
     flow_norm: str = "l1"  # the flow loss's per-pixel penalty, "l1" or "charbonnier" (fgjax.flow.flow_loss, .track)
     flow_scale: float = 10.0  # c of "charbonnier" (pixels)
-    frozen_deform: tuple[str, ...] = ()  # the field's parameter groups that do not update (the bases' hold)
+    freeze_weights: bool = False  # "bases" field: only the bases' motions and pivots update, the weights' network stays
     gauge: float = 0.0  # weight of the static points' rigid drift (the step then takes them)
 
 
@@ -287,18 +287,19 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         updates, new_opt = optimizer.update(grads, opt_state, params)
         if ss.freeze_gaussians:  # masked updates (zero gradients alone would still move them by momentum)
             updates = {**updates, "gaussians": jax.tree_util.tree_map(jnp.zeros_like, updates["gaussians"])}
-        if ss.frozen_deform:
-            updates = {**updates, "deform": {k: jax.tree_util.tree_map(jnp.zeros_like, v) if k in ss.frozen_deform
-                                             else v for k, v in updates["deform"].items()}}
+        if ss.freeze_weights:
+            updates = {**updates, "deform": {k: v if k in ("motion", "pivot") else jax.tree_util.tree_map(
+                jnp.zeros_like, v) for k, v in updates["deform"].items()}}
         new_params = optax.apply_updates(params, updates)
         # An overflowing (or non-finite) step is dropped, and reported to the host loop.
         keep = lambda new, old: jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), new, old)
-        new_params, new_opt = keep(new_params, params), keep(new_opt, opt_state)
+        new_params = keep(new_params, params)
+        new_opt = keep(new_opt, opt_state)
         # densification statistics: mean of per-camera screen gradients (x batch, since the loss is a mean)
         nd = dstate
         for i in range(b):
             nd = densify_accumulate(nd, g2d[i] * b, valid[i], ss.width, ss.height)
-        nd = keep(nd, dstate)
+        nd = jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), nd, dstate)
         return new_params, new_opt, nd, loss, mse, bad  # mse: [B] per camera
 
     return jax.jit(step, donate_argnums=(0, 1, 2))
@@ -514,7 +515,7 @@ def train_stage1(
         log(f"coarse-to-fine skipped: {w}x{h} images are too small to halve")
 
     def get_step(use_deform: bool, sh_deg: int, flow_on: bool = False, lo: bool = False, freeze: bool = False,
-                 frozen: tuple[str, ...] = ()):
+                 hold: bool = False):
         sw, sh_ = (w2, h2) if lo else (w, h)
         ss = StepSpec(spec if use_deform else None, sh_deg, sw, sh_, state.capacity, t.tile_size, t.lambda_dssim,
                       t.scale_reg, t.scale_reg_max, "pose" in state.params,
@@ -522,7 +523,7 @@ def train_stage1(
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
                       fc.photo_motion if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth,
-                      t.depth_weight if depths is not None else 0.0, fc.norm, fc.charbonnier_px, frozen,
+                      t.depth_weight if depths is not None else 0.0, fc.norm, fc.charbonnier_px, hold,
                       cfg.deform.gauge if use_deform and state.static_points is not None else 0.0)
         if ss not in steps_cache:
             steps_cache[ss] = make_step(ss, ospec, state.params["gaussians"].sh.shape[1], tuple(cfg.model.background))
@@ -576,9 +577,8 @@ def train_stage1(
         lo = coarse and s < t.coarse_to_fine
         flow_on = use_flow and use_deform and s >= fc.start and not lo
         freeze = use_deform and s < t.warmup_steps + t.field_only_steps
-        frozen = (("grid", "layers", "head") if s < t.warmup_steps + cfg.deform.hold  # the hold: the motions fit
-                  else ("layers", "head") if cfg.deform.train_weights == "grid" else ()) if use_deform and placed else ()
-        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze, frozen)
+        hold = use_deform and placed and s < t.warmup_steps + cfg.deform.hold  # placed weights stay, motions fit
+        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze, hold)
         sh_mask = active_sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)
                   if t.time_curriculum > 0 else None)

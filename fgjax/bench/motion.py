@@ -76,7 +76,8 @@ from fgjax.method.stage1 import (
     training_tracks,
 )
 from fgjax.method.stage1 import run as run_stage1
-from fgjax.models.deform import basis_logits, deform_init
+from fgjax.models import deform as dfm
+from fgjax.models.deform import deform_init
 from fgjax.models.model import deformed_gaussians, render_params
 from fgjax.train.losses import photometric_loss
 from fgjax.train.optim import guarded_step
@@ -127,13 +128,13 @@ def means_at(params, alive, spec, t: float) -> np.ndarray:
 
 
 def basis_weights(params, alive, spec, parts: list[np.ndarray]) -> dict | None:
-    """For a "bases" field (``spec.kind``; `fgjax.models.deform`), the weights w(X) = softmax(logits(X)) [N, B] at
-    the canonical centres: {"static_all": mean w_0 (the static basis) over the live Gaussians, "parts": per part (its
+    """For a "bases" field (``spec.kind``), the weights w [N, B] (`fgjax.models.deform.basis_weights`) at the
+    canonical centres: {"static_all": mean w_0 (the static basis) over the live Gaussians, "parts": per part (its
     indices in ``parts``) the mean of its Gaussians' weights, [B] (NaN for a part with no Gaussians)}; None for the
     other kinds and a static model (``spec`` None)."""
     if spec is None or spec.kind != "bases":
         return None
-    w = np.asarray(jax.nn.softmax(basis_logits(spec, params["deform"], params["gaussians"].means), axis=-1))
+    w = np.asarray(dfm.basis_weights(spec, params["deform"], params["gaussians"].means))
     live = np.asarray(alive, bool)
     return {"static_all": float(np.mean(w[live, 0])) if live.any() else float("nan"),
             "parts": [w[idx].mean(axis=0).tolist() if len(idx) else [float("nan")] * w.shape[1] for idx in parts]}

@@ -85,7 +85,12 @@ class DeformConfig:
     gauge: float = 1.0
     """With init = "flow": weight of the static scene's rigid drift (`fgjax.train.losses.rigid_drift_loss`) at up to
     4096 canonical points that the placement found static, each training step (0: off; 1 chosen on the family's
-    tuning seeds: docs/benchmarks.md, "The static scene's drift priced")."""
+    tuning seeds: docs/benchmarks.md, "The static scene's drift priced"). Not used with weights = "slot", which
+    holds the static Gaussians on the static basis exactly."""
+    weights: str = "field"
+    """"bases" kind: "field": the weights' logits are the hash-grid MLP of the canonical centre; "slot": with
+    init = "flow", each Gaussian stores its own logits, set by the placement, and the Gaussians it labels static
+    stay on the static basis (`fgjax.models.deform`, Shape of Motion's per-Gaussian weights)."""
 
 
 @dataclasses.dataclass(frozen=True)

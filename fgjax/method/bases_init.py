@@ -14,7 +14,9 @@ instead; this is the same idea with the evidence stage 1 already has, at the end
    radius) groups them;
 3. the logits network is fitted, by class-balanced cross-entropy with label smoothing, to put cluster j
    (largest first, j < K - 1) on basis j + 1 and every unselected Gaussian on basis 0; selected Gaussians that
-   DBSCAN calls noise, and clusters beyond K - 1, are left to the training.
+   DBSCAN calls noise, and clusters beyond K - 1, are left to the training. With per-slot weights
+   (``deform.weights = "slot"``) the same targets are written into the slots' logits instead (log of the target),
+   every selected Gaussian is freed and every other is held on the static basis (`fgjax.models.deform`).
 
 The bases' motions stay at the identity; the flow loss then fits each basis's motion to the pixels of the part
 that sits on it. For ``deform.hold`` steps after the placement only the motions and pivots train
@@ -147,9 +149,16 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
                              background=tuple(cfg.model.background))
     sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
     target, weight = basis_targets(labels, spec.bases)
-    deform, loss = fit_basis_logits(spec, params["deform"], params["gaussians"].means, jnp.asarray(target),
-                                    jnp.asarray(weight))
-    moving = int(np.sum((labels >= 0) | ((labels == -1) & np.asarray(alive, bool))))
+    free = (labels >= 0) | ((labels == -1) & np.asarray(alive, bool))
+    moving = int(np.sum(free))
+    if spec.weights == "slot":  # noise and clusters beyond K - 1 start on the static basis, free to leave it
+        slots = params["deform"]["slots"]
+        deform = {**params["deform"], "slots": {"logits": jnp.asarray(np.log(target), slots["logits"].dtype),
+                                                "free": jnp.asarray(free, slots["free"].dtype)}}
+        loss = -np.sum(weight * np.sum(target * np.log(target), axis=-1)) / max(float(np.sum(weight)), 1e-12)
+    else:
+        deform, loss = fit_basis_logits(spec, params["deform"], params["gaussians"].means, jnp.asarray(target),
+                                        jnp.asarray(weight))
     placed = sizes.tolist()[:spec.bases - 1]
     log(f"bases placed from the flow: {moving} moving Gaussians, clusters of {placed} on bases 1..{len(placed)}"
         f" (cross-entropy {float(loss):.3f})")

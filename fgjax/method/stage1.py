@@ -54,6 +54,7 @@ from fgjax.models.model import deformed_gaussians, refined_viewmats, render_para
 from fgjax.provenance import PROVENANCE_NAME, read_provenance, scene_fingerprint, write_provenance
 from fgjax.render.api import count_intersections, round_capacity
 from fgjax.train import checkpoint as ckpt
+from fgjax.train import densify as dens
 from fgjax.train.densify import DensifyState, densify_accumulate, densify_apply, densify_init, opacity_reset
 from fgjax.train.losses import (
     depth_loss,
@@ -145,7 +146,7 @@ def deform_spec_from_config(cfg: Config, aabb, times=None) -> DeformSpec:
         anchor=anchor, kind=d.kind, depth=d.depth, width=d.width, x_freqs=d.x_freqs, t_freqs=d.t_freqs, skip=d.skip,
         hash_levels=d.hash_levels, hash_log2_table=d.hash_log2_table, hash_features=d.hash_features,
         hash_base_res=d.hash_base_res, hash_max_res=d.hash_max_res, x_freqs_hash=d.x_freqs_hash, bases=d.bases,
-        knots=d.knots, aabb=tuple(float(x) for x in aabb),
+        knots=d.knots, weights=d.weights, aabb=tuple(float(x) for x in aabb),
     )
 
 
@@ -293,13 +294,12 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         new_params = optax.apply_updates(params, updates)
         # An overflowing (or non-finite) step is dropped, and reported to the host loop.
         keep = lambda new, old: jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), new, old)
-        new_params = keep(new_params, params)
-        new_opt = keep(new_opt, opt_state)
+        new_params, new_opt = keep(new_params, params), keep(new_opt, opt_state)
         # densification statistics: mean of per-camera screen gradients (x batch, since the loss is a mean)
         nd = dstate
         for i in range(b):
             nd = densify_accumulate(nd, g2d[i] * b, valid[i], ss.width, ss.height)
-        nd = jax.tree_util.tree_map(lambda a, c: jnp.where(bad, c, a), nd, dstate)
+        nd = keep(nd, dstate)
         return new_params, new_opt, nd, loss, mse, bad  # mse: [B] per camera
 
     return jax.jit(step, donate_argnums=(0, 1, 2))
@@ -360,7 +360,7 @@ def initial_state(cfg: Config, scene, log=print, cache_dir=None) -> tuple[TrainS
     g, alive = init_gaussians(cfg, scene, k_init, log=log, cache_dir=cache_dir)
     lo, hi = scene_box(scene.viewmats, scene.Ks, scene.width, scene.height)
     spec = deform_spec_from_config(cfg, np.concatenate([lo, hi]), scene.times)
-    params: dict[str, Any] = {"gaussians": g, "deform": deform_init(k_def, spec)}
+    params: dict[str, Any] = {"gaussians": g, "deform": deform_init(k_def, spec, slots=g.means.shape[0])}
     if cfg.pose.enabled:
         params["pose"] = jnp.asarray(deltas, jnp.float32)
     t = cfg.train
@@ -385,7 +385,7 @@ def template_state(cfg: Config, spec: DeformSpec, num_frames: int, scene_extent_
     k = (cfg.model.sh_degree + 1) ** 2
     z = lambda *shape: jnp.zeros(shape, jnp.float32)
     g = Gaussians(z(n, 3), z(n, 3), z(n, 4).at[:, 0].set(1.0), z(n), z(n, k, 3))
-    params: dict[str, Any] = {"gaussians": g, "deform": deform_init(jax.random.key(0), spec)}
+    params: dict[str, Any] = {"gaussians": g, "deform": deform_init(jax.random.key(0), spec, slots=n)}
     if cfg.pose.enabled:
         params["pose"] = z(num_frames, 6)
     t = cfg.train
@@ -402,7 +402,8 @@ def _bases_placed(cfg: Config) -> bool:
 
 def _no_static_points(cfg: Config) -> np.ndarray | None:
     """The static points' array before the placement fills it (deform.gauge > 0 with flow-placed bases), else None."""
-    return np.zeros((STATIC_POINTS, 4), np.float32) if cfg.deform.gauge > 0 and _bases_placed(cfg) else None
+    used = cfg.deform.gauge > 0 and _bases_placed(cfg) and cfg.deform.weights == "field"
+    return np.zeros((STATIC_POINTS, 4), np.float32) if used else None
 
 
 def load_run(run_dir: str | Path) -> tuple[Config, TrainState, DeformSpec, dict[str, Any]]:
@@ -477,9 +478,8 @@ def train_stage1(
                                            t.capacity_margin)
     batch_sh, repl_sh = _mesh_shardings(t.batch_size, devices)
     if batch_sh is not None:
-        state.params = jax.device_put(state.params, repl_sh)
-        state.opt_state = jax.device_put(state.opt_state, repl_sh)
-        state.densify = jax.device_put(state.densify, repl_sh)
+        state.params, state.opt_state, state.densify = jax.device_put(
+            (state.params, state.opt_state, state.densify), repl_sh)
     steps_cache: dict[StepSpec, Any] = {}
     fc = cfg.flow
     use_flow = fc.enabled and fc.weight > 0
@@ -506,8 +506,7 @@ def train_stage1(
     coarse = t.coarse_to_fine > 0 and w2 >= 8 and h2 >= 8
     if coarse:
         images_lo = images[:, :2 * h2, :2 * w2].reshape(-1, h2, 2, w2, 2, 3).mean(axis=(2, 4))
-        Ks_lo = Ks.copy()
-        Ks_lo[:, :2, :] *= 0.5
+        Ks_lo = (Ks * np.array([0.5, 0.5, 1.0], np.float32)[:, None]).astype(np.float32)  # rows fx, fy halved
         if depths is not None:  # a coarse pixel has a depth where all four of its pixels have one
             d4 = depths[:, :2 * h2, :2 * w2].reshape(-1, h2, 2, w2, 2)
             depths_lo = np.where(np.all(d4 > 0, axis=(2, 4)), d4.mean(axis=(2, 4)), 0.0).astype(np.float32)
@@ -615,7 +614,9 @@ def train_stage1(
                 # 3DGS prunes oversized Gaussians only once opacity resets have started
                 prune_max_scale=d.max_world_scale * extent if 0 < d.reset_every < s1 else 1e9,
             )
-            state.params = {**state.params, "gaussians": g}
+            # per-slot weights ("slot" bases) follow their Gaussians
+            state.params = {**state.params, "gaussians": g,
+                            "deform": dens.follow_parents(state.params["deform"], state.densify)}
             graph = None
             if bool(state.densify.full) and not warned_full:
                 warned_full = True

@@ -18,6 +18,11 @@ Three kinds (DESIGN.md section 1, step 1):
   the bases' unit quaternions (wxyz, each on the hemisphere w >= 0): dq = r q - q, exact for a point on one basis;
   without q, dq = 0. ds = 0. With an anchor t_a each basis's control values are taken relative to t_a
   (omega_k(t) - omega_k(t_a), tau_k(t) - tau_k(t_a)), so the field is the identity at t_a and stays rigid.
+  With ``weights = "slot"`` the logits are stored per Gaussian slot instead (Shape of Motion's per-Gaussian
+  weights): ``params["slots"] = {"logits": [N, K], "free": [N]}``, and a slot whose ``free`` is 0 sits on the
+  static basis exactly (w = (1, 0, ..., 0); no gradient reaches its logits), so the weights of the Gaussians
+  labelled static are held while each moving Gaussian's weights are its own, coupled to no other's through a
+  shared network. The field is then evaluated at the N slots' centres, in slot order.
 
 The heads of the first two kinds are initialised to zero, so the field starts at the identity (dX = 0, dq = 0,
 ds = 0); the bases start at the identity (omega = tau = 0) with random logits (symmetry breaking).
@@ -44,7 +49,8 @@ from fgjax.models.encoding import (
     hash_grid_resolutions,
 )
 
-__all__ = ["DeformSpec", "basis_logits", "basis_motions", "deform_init", "deform_apply", "deform_num_params"]
+__all__ = ["DeformSpec", "basis_logits", "basis_motions", "basis_weights", "deform_init", "deform_apply",
+           "deform_num_params"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,6 +82,9 @@ class DeformSpec:
     """"bases" kind: rigid motions including the static one (>= 2)."""
     knots: int = 16
     """"bases" kind: control times of each motion over t in [0, 1] (>= 2)."""
+    weights: str = "field"
+    """"bases" kind: where the weights' logits come from: "field" (the hash-grid MLP of X) or "slot" (stored per
+    Gaussian slot, with a held static set; module docstring)."""
     anchor: float | None = None
     """A time t_a at which the field is the identity, so the canonical Gaussians are the scene at t_a (None: a
     canonical space of the network's choosing): f(X, t) = g(X, t) - g(X, t_a) with g the network, or, for the
@@ -84,6 +93,8 @@ class DeformSpec:
     def __post_init__(self):
         if self.kind not in ("frequency", "hash", "bases"):
             raise ValueError(f"DeformSpec.kind must be 'frequency', 'hash' or 'bases'; got {self.kind!r}")
+        if self.weights not in ("field", "slot") or (self.weights == "slot" and self.kind != "bases"):
+            raise ValueError(f"DeformSpec.weights must be 'field' or, with kind 'bases', 'slot'; got {self.weights!r}")
         if self.bases < 2 or self.knots < 2:
             raise ValueError(f"DeformSpec.bases and knots must be >= 2; got {self.bases}, {self.knots}")
         if self.depth < 1 or self.width < 1:
@@ -113,8 +124,16 @@ def _dense_init(key, fan_in, fan_out, dtype, zero=False):
     return {"w": jax.random.uniform(key, (fan_in, fan_out), dtype, -lim, lim), "b": jnp.zeros((fan_out,), dtype)}
 
 
-def deform_init(key: jax.Array, spec: DeformSpec, dtype=jnp.float32) -> dict[str, Any]:
-    """Parameters of the field; the output heads are zero, so the field starts at the identity."""
+def deform_init(key: jax.Array, spec: DeformSpec, dtype=jnp.float32, slots: int = 0) -> dict[str, Any]:
+    """Parameters of the field; the output heads are zero, so the field starts at the identity. With
+    ``spec.weights = "slot"``, ``slots`` is the number N of Gaussian slots: their logits start at zero and every
+    slot is held on the static basis (``free`` 0) until something places them (`fgjax.method.bases_init`)."""
+    if spec.weights == "slot":
+        if slots < 1:
+            raise ValueError("deform_init: DeformSpec.weights = 'slot' needs the number of Gaussian slots (slots >= 1)")
+        return {"motion": jnp.zeros((spec.bases - 1, spec.knots, 6), dtype),
+                "pivot": jnp.zeros((spec.bases - 1, 3), dtype),
+                "slots": {"logits": jnp.zeros((slots, spec.bases), dtype), "free": jnp.zeros((slots,), dtype)}}
     keys = jax.random.split(key, spec.depth + 2)
     layers = []
     fan_in = spec.in_dim
@@ -192,8 +211,24 @@ def basis_logits(spec: DeformSpec, params, x: Float[ArrayLike, "N 3"]) -> Float[
     return _network(spec, params, jnp.asarray(x), 0.0)
 
 
+def basis_weights(spec: DeformSpec, params, x: Float[ArrayLike, "N 3"]) -> Float[Array, "N K"]:
+    """The "bases" kind's weights w [N, K] at canonical centres ``x``: softmax of `basis_logits` ("field"), or of
+    each slot's stored logits where the slot is free and (1, 0, ..., 0) where it is held ("slot"; ``x`` must then be
+    the N slots' centres)."""
+    x = jnp.asarray(x)
+    if spec.weights == "field":
+        return jax.nn.softmax(basis_logits(spec, params, x), axis=-1)
+    slots = params["slots"]
+    if x.shape[0] != slots["logits"].shape[0]:
+        raise ValueError(f"the per-slot weights cover {slots['logits'].shape[0]} Gaussian slots; the field was "
+                         f"evaluated at {x.shape[0]} points (it needs the slots' centres, in slot order)")
+    free = jax.lax.stop_gradient(slots["free"])[:, None] > 0.5
+    static = jnp.zeros_like(slots["logits"]).at[:, 0].set(1.0)
+    return jnp.where(free, jax.nn.softmax(slots["logits"], axis=-1), static)
+
+
 def _bases_apply(spec: DeformSpec, params, x, t, quats):
-    weights = jax.nn.softmax(basis_logits(spec, params, x), axis=-1)  # [N, K]
+    weights = basis_weights(spec, params, x)  # [N, K]
     t = jnp.asarray(t, x.dtype)
     if t.ndim == 0:
         rot, off, rq = basis_motions(spec, params, t)

@@ -6,7 +6,8 @@ Gaussians whose mean gradient exceeds the threshold into free slots, prunes tran
 resets the accumulators; ``opacity_reset`` clamps opacities to 0.01. All shapes are fixed, so nothing
 recompiles as the number of live Gaussians changes. When candidates outnumber free slots, the ones with
 the largest gradients win and ``DensifyState.full`` is set (the host loop prints a message).
-Adam moments of re-used slots are zeroed (``reset_rows``).
+Adam moments of re-used slots are zeroed (``reset_rows``). ``DensifyState.parent`` says which slot each slot was
+copied from, so that per-slot data kept beside the Gaussians follows them (``follow_parents``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ from fgjax.gaussians import Gaussians
 from fgjax.geometry import HIGHEST as HI
 from fgjax.geometry import quat_to_rotmat
 
-__all__ = ["DensifyState", "densify_init", "densify_accumulate", "densify_apply", "opacity_reset", "reset_rows"]
+__all__ = ["DensifyState", "densify_init", "densify_accumulate", "densify_apply", "follow_parents", "opacity_reset",
+           "reset_rows"]
 
 
 class DensifyState(eqx.Module):
@@ -30,12 +32,22 @@ class DensifyState(eqx.Module):
     grad_sum: Float[Array, " N"]
     count: Int[Array, " N"]
     full: Bool[Array, ""]  # the last densify_apply ran out of free slots
+    parent: Int[Array, " N"]  # the slot each slot's Gaussian was copied from by the last densify_apply (itself if none)
 
 
 def densify_init(alive: Bool[Array, " N"]) -> DensifyState:
     n = alive.shape[0]
     return DensifyState(jnp.asarray(alive), jnp.zeros((n,), jnp.float32), jnp.zeros((n,), jnp.int32),
-                        jnp.zeros((), bool))
+                        jnp.zeros((), bool), jnp.arange(n, dtype=jnp.int32))
+
+
+def follow_parents(tree: dict[str, Any], state: DensifyState) -> dict[str, Any]:
+    """``tree`` with its per-slot data (the [N, ...] leaves under its "slots" key: `fgjax.models.deform`'s per-slot
+    weights) after `densify_apply`: each slot takes its parent's row, so a clone or split carries its parent's data.
+    Idempotent until the next `densify_apply` (a parent is never itself a copy)."""
+    if "slots" not in tree:
+        return tree
+    return {**tree, "slots": jax.tree_util.tree_map(lambda a: a[state.parent], tree["slots"])}
 
 
 def densify_accumulate(
@@ -46,7 +58,7 @@ def densify_accumulate(
     norm = jnp.sqrt(jnp.sum(g * g, axis=-1)).astype(jnp.float32)
     vis = visible & state.alive
     return DensifyState(state.alive, state.grad_sum + jnp.where(vis, norm, 0.0),
-                        state.count + vis.astype(jnp.int32), state.full)
+                        state.count + vis.astype(jnp.int32), state.full, state.parent)
 
 
 def _rows_set(x, dst, src_vals):
@@ -56,13 +68,13 @@ def _rows_set(x, dst, src_vals):
 def reset_rows(opt_state: Any, rows_mask: Bool[Array, " N"], n: int, only: tuple[str, ...] | None = None) -> Any:
     """Zero the optimiser-state rows (Adam moments) of the Gaussian parameters where `rows_mask` is set.
 
-    Leaves are recognised by a 'gaussians' dict key on their path and a leading dimension N; with
-    `only`, just those Gaussians fields (e.g. ("opacity_logits",)).
+    Leaves are recognised by a 'gaussians' or 'slots' (per-slot data beside the Gaussians) dict key on their path
+    and a leading dimension N; with `only`, just those fields (e.g. ("opacity_logits",)).
     """
 
     def fix(path, leaf):
         keys = [getattr(k, "key", getattr(k, "name", None)) for k in path]
-        if "gaussians" not in keys or not hasattr(leaf, "shape") or leaf.ndim == 0 or leaf.shape[0] != n:
+        if not ("gaussians" in keys or "slots" in keys) or not hasattr(leaf, "shape") or leaf.ndim == 0 or leaf.shape[0] != n:
             return leaf
         if only is not None and not any(k in only for k in keys):
             return leaf
@@ -127,6 +139,7 @@ def densify_apply(
     sh = _rows_set(g.sh, dst, g.sh[src])
     new_alive = _rows_set(alive, dst, jnp.ones((n,), bool))
     is_new = jnp.zeros((n,), bool).at[dst].set(True, mode="drop")
+    parent = _rows_set(jnp.arange(n, dtype=jnp.int32), dst, src.astype(jnp.int32))
 
     # prune (new Gaussians inherit their parent's opacity; huge ones go)
     opac = jax.nn.sigmoid(logits)
@@ -135,7 +148,8 @@ def densify_apply(
     new_alive = new_alive & ~prune
     g2 = Gaussians(means, log_scales, quats, logits, sh)
     opt_state = reset_rows(opt_state, is_new | split, n)
-    state2 = DensifyState(new_alive, jnp.zeros_like(state.grad_sum), jnp.zeros_like(state.count), n_cand > n_free)
+    state2 = DensifyState(new_alive, jnp.zeros_like(state.grad_sum), jnp.zeros_like(state.count), n_cand > n_free,
+                          parent)
     return g2, opt_state, state2, jnp.sum(new_alive)
 
 

@@ -2,7 +2,7 @@
 
 Trainable parameters are one pytree ``{"gaussians": Gaussians, "deform": {...}, "pose": [T, 6]?}``.
 Groups (3DGS / Deformable-3DGS defaults): means 1.6e-4 -> 1.6e-6 times the scene extent, deformation
-1.6e-4 -> 1.6e-5 (hash tables x `hash_factor`), opacity 0.05, scales 5e-3, rotations 1e-3, SH DC 2.5e-3
+1.6e-4 -> 1.6e-5 (hash tables and per-slot weights x `hash_factor`: the weights' rate), opacity 0.05, scales 5e-3, rotations 1e-3, SH DC 2.5e-3
 and higher orders 2.5e-3 / 20, pose deltas 1e-4 -> 1e-6. Adam eps = 1e-15 as in 3DGS.
 """
 
@@ -58,7 +58,7 @@ def param_labels(params: dict[str, Any]) -> dict[str, Any]:
         ),
     }
     if "deform" in params:
-        labels["deform"] = {k: jax.tree_util.tree_map(lambda _: "hash" if k == "grid" else "deform", v)
+        labels["deform"] = {k: jax.tree_util.tree_map(lambda _: "hash" if k in ("grid", "slots") else "deform", v)
                             for k, v in params["deform"].items()}
     if "pose" in params:
         labels["pose"] = "pose"

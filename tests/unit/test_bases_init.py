@@ -180,6 +180,55 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
     assert not np.array_equal(res["state"].params["deform"]["grid"], placed_params[-1]["deform"]["grid"])
 
 
+def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkeypatch):
+    """``deform.weights = "slot"``: the placement writes each Gaussian's logits (log of its target) and frees the
+    moving ones; after the hold the free slots' logits train while the held ones' stay bit-identical; densification
+    copies a parent's row (logits and free flag) into each new slot; the gauge takes no static points."""
+    import pathlib
+
+    from conftest import synth
+
+    from fgjax import config as C
+    from fgjax.data.loaders import load_scene
+    from fgjax.method import stage1
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=8), tmp_path / "scene", overwrite=True,
+                   progress=None)
+    scene = load_scene(tmp_path / "scene", "train")
+    quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
+    over = ["train.steps=110", "train.video_frames=0", "deform.kind=bases", "deform.init=flow",
+            "deform.weights=slot", "deform.hold=5", "densify.every=10"]
+    placed = []
+    place = stage1.place_bases
+
+    def place_and_keep(cfg, params, alive, *args, **kwargs):
+        new, labels = place(cfg, params, alive, *args, **kwargs)
+        placed.append((jax.tree_util.tree_map(np.array, new["deform"]["slots"]), labels, np.array(alive)))
+        return new, labels
+
+    monkeypatch.setattr(stage1, "place_bases", place_and_keep)
+    res = stage1.train_stage1(C.load_config(quick, over), scene, None, progress=False, log=lambda *_: None)
+    (slots0, labels, alive0), = placed
+    st, spec = res["state"], res["spec"]
+    assert spec.weights == "slot" and st.static_points is None and "grid" not in st.params["deform"]
+    free0 = slots0["free"] > 0.5
+    np.testing.assert_array_equal(free0, (labels >= 0) | ((labels == -1) & alive0))
+    assert 0 < free0.sum() < alive0.sum() and (labels >= 0).any()
+    target = basis_targets(labels, spec.bases)[0]
+    np.testing.assert_allclose(slots0["logits"], np.log(target), rtol=1e-6)
+    slots = jax.tree_util.tree_map(np.asarray, st.params["deform"]["slots"])
+    parent = np.asarray(st.densify.parent)
+    copies = np.flatnonzero(parent != np.arange(len(parent)))
+    assert len(copies) > 0  # the last step densified: each copy holds its parent's row
+    np.testing.assert_array_equal(slots["free"][copies], slots["free"][parent[copies]])
+    np.testing.assert_array_equal(slots["logits"][copies], slots["logits"][parent[copies]])
+    kept = np.setdiff1d(np.flatnonzero(alive0), copies)
+    held, freed = kept[~free0[kept]], kept[free0[kept]]
+    np.testing.assert_array_equal(slots["free"][kept], slots0["free"][kept])
+    np.testing.assert_array_equal(slots["logits"][held], slots0["logits"][held])
+    assert np.mean(np.any(slots["logits"][freed] != slots0["logits"][freed], axis=1)) > 0.9
+
+
 def test_static_points_draws_the_static_gaussians_into_a_fixed_shape():
     means = np.arange(30, dtype=np.float32).reshape(10, 3)
     labels = np.array([-2, 0, -2, -1, -2, 1, -2, -2, 0, -2])

@@ -157,6 +157,50 @@ def test_bases_field_is_a_blend_of_rigid_motions(key):
         deform.DeformSpec(kind="bases", bases=1)
 
 
+def test_slot_weights_hold_the_static_slots_and_give_each_free_slot_its_own(key):
+    """weights = "slot": a held slot sits on the static basis exactly (dX = 0, dq = 0, no gradient into its logits);
+    a free slot's weights are the softmax of its own logits, so its dX equals the "field" kind's with the same
+    logits (the head's bias), and its logits' gradient matches central differences (float64); a changed logit moves
+    only its own slot; bad shapes and kinds fail."""
+    from jax.test_util import check_grads
+
+    spec = deform.DeformSpec(kind="bases", bases=3, knots=4, weights="slot")
+    field = deform.DeformSpec(kind="bases", depth=2, width=16, hash_levels=4, hash_log2_table=10, bases=3, knots=4)
+    p = deform.deform_init(key, spec, dtype=jnp.float64, slots=6)
+    assert set(p) == {"motion", "pivot", "slots"} and p["slots"]["logits"].shape == (6, 3)
+    rng = np.random.default_rng(1)
+    logits = rng.normal(0, 1.0, 3)
+    p = {**p, "motion": jnp.asarray(rng.normal(0, 0.4, (2, 4, 6))), "pivot": jnp.asarray(rng.normal(0, 0.5, (2, 3))),
+         "slots": {"logits": jnp.asarray(np.tile(logits, (6, 1))), "free": jnp.asarray([0.0, 1, 1, 0, 1, 0])}}
+    x = jax.random.uniform(jax.random.key(3), (6, 3), jnp.float64, minval=-1, maxval=1)
+    quats = jax.random.normal(jax.random.key(4), (6, 4), jnp.float64)
+    dx, dq, _ = deform.deform_apply(spec, p, x, 0.7, quats=quats)
+    held, free = np.array([0, 3, 5]), np.array([1, 2, 4])
+    assert float(jnp.max(jnp.abs(dx[held]))) == 0.0 and float(jnp.max(jnp.abs(dq[held]))) == 0.0
+    f = deform.deform_init(key, field, dtype=jnp.float64)
+    f = {**f, "motion": p["motion"], "pivot": p["pivot"],
+         "head": {"w": jnp.zeros_like(f["head"]["w"]), "b": jnp.asarray(logits)}}
+    want_dx, want_dq, _ = deform.deform_apply(field, f, x, 0.7, quats=quats)
+    np.testing.assert_allclose(dx[free], want_dx[free], atol=1e-12)
+    np.testing.assert_allclose(dq[free], want_dq[free], atol=1e-12)
+    w = deform.basis_weights(spec, p, x)
+    np.testing.assert_array_equal(w[held], np.tile([1.0, 0.0, 0.0], (3, 1)))
+    g = jax.grad(lambda lg: jnp.sum(deform.deform_apply(spec, {**p, "slots": {**p["slots"], "logits": lg}}, x,
+                                                        0.7)[0] ** 2))(p["slots"]["logits"])
+    assert float(jnp.max(jnp.abs(g[held]))) == 0.0 and float(jnp.min(jnp.abs(g[free]).sum(1))) > 0
+    check_grads(lambda lg: deform.deform_apply(spec, {**p, "slots": {**p["slots"], "logits": lg}}, x, 0.7)[0],
+                (p["slots"]["logits"],), order=1, modes=["rev"], atol=1e-6, rtol=1e-6)
+    moved = {**p, "slots": {**p["slots"], "logits": p["slots"]["logits"].at[2].add(jnp.asarray([0.0, 3.0, 0.0]))}}
+    changed = np.flatnonzero(np.any(np.asarray(deform.deform_apply(spec, moved, x, 0.7)[0] != dx), axis=1))
+    assert changed.tolist() == [2]
+    with pytest.raises(ValueError, match="cover 6 Gaussian slots"):
+        deform.deform_apply(spec, p, x[:4], 0.7)
+    with pytest.raises(ValueError, match="number of Gaussian slots"):
+        deform.deform_init(key, spec)
+    with pytest.raises(ValueError, match="weights must be"):
+        deform.DeformSpec(kind="hash", weights="slot")
+
+
 def test_deform_default_sizes_match_deformable_3dgs(key):
     spec = deform.DeformSpec()
     assert spec.in_dim == 63 + 13

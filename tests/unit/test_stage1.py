@@ -22,7 +22,7 @@ from fgjax.gaussians import init_random
 from fgjax.method import stage1
 from fgjax.models.model import refined_viewmats
 from fgjax.train import checkpoint as ckpt
-from fgjax.train.densify import densify_apply, densify_init
+from fgjax.train.densify import densify_apply, densify_init, follow_parents
 from fgjax.train.optim import make_optimizer
 
 QUICK = str(pathlib.Path(__file__).resolve().parents[2] / "experiments" / "quick.toml")
@@ -135,19 +135,31 @@ def test_densify_clone_split_prune_and_capacity_flag(key):
     logit = g.opacity_logits.at[5].set(-10.0)  # 5 transparent -> pruned
     g = type(g)(g.means, ls, g.quats, logit, g.sh)
     st = densify_init(alive)
-    st = type(st)(st.alive, jnp.zeros(8).at[0].set(1.0).at[1].set(0.5), jnp.ones(8, jnp.int32), st.full)
-    opt = {"gaussians": g}  # any pytree of rows works for the optimiser-state reset
-    g2, _, st2, n_alive = densify_apply(g, opt, st, key, grad_threshold=0.1, clone_max_scale=0.01,
-                                        prune_opacity=0.005, prune_max_scale=10.0)
+    st = type(st)(st.alive, jnp.zeros(8).at[0].set(1.0).at[1].set(0.5), jnp.ones(8, jnp.int32), st.full, st.parent)
+    rows = jnp.arange(8.0)[:, None] * jnp.ones((1, 3))  # per-slot data beside the Gaussians (row i = i)
+    opt = {"gaussians": g, "slots": {"logits": rows + 1.0}}  # any pytree of rows works for the moments' reset
+    g2, opt2, st2, n_alive = densify_apply(g, opt, st, key, grad_threshold=0.1, clone_max_scale=0.01,
+                                           prune_opacity=0.005, prune_max_scale=10.0)
     assert int(n_alive) == 6 + 2 - 1 and not bool(st2.full)
     new = np.flatnonzero(np.asarray(st2.alive) & ~np.asarray(alive))
     assert len(new) == 2
     assert float(jnp.exp(g2.log_scales[0, 0])) == pytest.approx(0.5 / 1.6, rel=1e-5)
     clone = [i for i in new if np.allclose(g2.means[i], g.means[1])]
     assert len(clone) == 1
+    # the per-slot rows follow: the clone's slot takes slot 1's row, the split's new slot slot 0's, the rest stay;
+    # the moments of the new slots and of the split source are zeroed under "slots" as under "gaussians"
+    split_new = [i for i in new if i != clone[0]][0]
+    want = np.arange(8.0)
+    want[clone[0]], want[split_new] = 1.0, 0.0
+    followed = follow_parents({"slots": {"logits": rows}, "motion": jnp.ones(2)}, st2)
+    np.testing.assert_array_equal(followed["slots"]["logits"][:, 0], want)
+    np.testing.assert_array_equal(follow_parents(followed, st2)["slots"]["logits"][:, 0], want)  # idempotent
+    assert followed["motion"].shape == (2,)
+    zeroed = np.flatnonzero(np.asarray(opt2["slots"]["logits"][:, 0]) == 0.0)
+    assert sorted(zeroed.tolist()) == sorted([0, clone[0], split_new])
     assert float(st2.grad_sum.sum()) == 0.0
     # no free slots left: candidates exceed them -> flag
-    st3 = type(st2)(st2.alive, jnp.ones(8), jnp.ones(8, jnp.int32), st2.full)
+    st3 = type(st2)(st2.alive, jnp.ones(8), jnp.ones(8, jnp.int32), st2.full, st2.parent)
     _, _, st4, _ = densify_apply(g2, opt, st3, key, grad_threshold=0.1, clone_max_scale=0.01,
                                  prune_opacity=0.005, prune_max_scale=10.0)
     assert bool(st4.full)

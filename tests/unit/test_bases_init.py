@@ -196,8 +196,8 @@ def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkey
                    progress=None)
     scene = load_scene(tmp_path / "scene", "train")
     quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
-    over = ["train.steps=110", "train.video_frames=0", "deform.kind=bases", "deform.init=flow",
-            "deform.weights=slot", "deform.hold=5", "densify.every=10"]
+    over = ["train.steps=40", "train.warmup_steps=30", "densify.start=30", "train.video_frames=0", "deform.kind=bases",
+            "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10"]
     placed = []
     place = stage1.place_bases
 

@@ -401,7 +401,7 @@ def _bases_placed(cfg: Config) -> bool:
 
 
 def _no_static_points(cfg: Config) -> np.ndarray | None:
-    """The static points' array before the placement fills it (deform.gauge > 0 with flow-placed bases), else None."""
+    """The static points' array before the placement fills it (deform.gauge > 0, flow-placed "field" weights)."""
     used = cfg.deform.gauge > 0 and _bases_placed(cfg) and cfg.deform.weights == "field"
     return np.zeros((STATIC_POINTS, 4), np.float32) if used else None
 

@@ -235,8 +235,6 @@ def validate_stage1(cfg: Config) -> None:
     need(f.hold >= 0, "deform.hold", ">= 0", f.hold)
     need(f.weights == "field" or (f.weights == "slot" and f.kind == "bases" and f.init == "flow"), "deform.weights",
          "'field', or 'slot' with deform.kind = 'bases' and deform.init = 'flow'", f.weights)
-    need(f.refree == 0 or (f.weights == "slot" and f.refree > f.hold), "deform.refree",
-         "0, or with deform.weights = 'slot' more than deform.hold", f.refree)
     need(finite(f.gauge) and f.gauge >= 0, "deform.gauge", "a finite number >= 0", f.gauge)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",

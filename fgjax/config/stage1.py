@@ -91,10 +91,6 @@ class DeformConfig:
     """"bases" kind: "field": the weights' logits are the hash-grid MLP of the canonical centre; "slot": with
     init = "flow", each Gaussian stores its own logits, set by the placement, and the Gaussians it labels static
     stay on the static basis (`fgjax.models.deform`, Shape of Motion's per-Gaussian weights)."""
-    refree: int = 0
-    """With weights = "slot": steps after the placement at which the held Gaussians that still paint flow the model
-    leaves unexplained are freed onto their cluster's basis or an unused one (`fgjax.method.bases_init.refree_slots`),
-    followed by another ``hold``; 0: never. Must exceed ``hold``."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -18,11 +18,6 @@ instead; this is the same idea with the evidence stage 1 already has, at the end
    (``deform.weights = "slot"``) the same targets are written into the slots' logits instead (log of the target),
    every selected Gaussian is freed and every other is held on the static basis (`fgjax.models.deform`).
 
-With per-slot weights the placement can be repeated once the motions have fitted (``deform.refree``,
-`refree_slots`): the held Gaussians that still paint flow the model does not explain (|u - u_cam - u~_GS| > 1 px,
-`unexplained_gaussians`) are the pieces of parts the first placement missed; each joins the basis of the free
-Gaussians it is clustered with, or an unused basis if it forms a cluster of its own.
-
 The bases' motions stay at the identity; the flow loss then fits each basis's motion to the pixels of the part
 that sits on it. For ``deform.hold`` steps after the placement only the motions and pivots train
 (`fgjax.method.stage1`): a basis at the identity passes no gradient to the weights, and from its first non-zero one
@@ -44,16 +39,14 @@ import optax
 
 from fgjax import cluster
 from fgjax.config import Config
-from fgjax.flow import dynamic_gaussian_flow, maps_camera_flow
 from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
 from fgjax.method.discover import camera_flow_from_depth, discover
 from fgjax.method.flows import estimate_training_flows, previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits
-from fgjax.models.model import deformed_gaussians, render_params
+from fgjax.models.model import render_params
 
-__all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases", "static_points",
-           "unexplained_gaussians", "refree_targets", "refree_slots"]
+__all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases", "static_points"]
 
 
 def moving_clusters(
@@ -183,96 +176,3 @@ def static_points(means, labels: np.ndarray, count: int, seed: int = 0) -> np.nd
     out[:idx.size, :3] = np.asarray(means, np.float32)[idx]
     out[:idx.size, 3] = 1.0
     return out
-
-
-def unexplained_gaussians(
-    params, alive, spec: DeformSpec, viewmats, Ks, times, flows, prev, *, width: int, height: int, capacity: int,
-    threshold_px: float = 1.0,
-) -> np.ndarray:
-    """[N] bool: the live Gaussians that paint flow the model leaves unexplained. `discover` as in `moving_clusters`,
-    with each pair's camera flow replaced by the model's whole flow u_cam + u~_GS: the reprojection of the
-    composited depth (`fgjax.flow.maps_camera_flow`) plus the dynamic Gaussian flow
-    (`fgjax.flow.dynamic_gaussian_flow`), both of the Gaussians deformed to the pair's first time and seen by its
-    camera, so a pixel is selected where |u - u_cam - u~_GS| > ``threshold_px``. Arguments as in `moving_clusters`,
-    with the frames' ``times`` [T] and the deformation ``spec``."""
-    pairs = [i for i in range(len(prev)) if prev[i] >= 0]
-    alive_np = np.asarray(alive, bool)
-    if not pairs or not alive_np.any():
-        return np.zeros_like(alive_np)
-    src = [int(prev[i]) for i in pairs]
-    gs, model, valid = [], [], []
-    for i, a in zip(pairs, src):
-        m0, q0, s0, o0, _ = deformed_gaussians(params, alive, float(times[a]), spec)
-        m1 = deformed_gaussians(params, alive, float(times[i]), spec)[0]
-        vm0, K = jnp.asarray(viewmats[a], jnp.float32), jnp.asarray(Ks[a], jnp.float32)
-        maps = dynamic_gaussian_flow(m0, q0, s0, o0, m1, vm0, K, width, height, capacity=capacity)
-        cam, ok = maps_camera_flow(maps, vm0, jnp.asarray(viewmats[i], jnp.float32), K)
-        model.append(np.asarray(cam + maps.flow))
-        valid.append(np.asarray(ok) & (np.asarray(maps.alpha) >= 0.5) & np.all(np.isfinite(flows[i]), axis=-1))
-        gs.append([np.asarray(x) for x in (m0, q0, s0, o0)])
-    m, q, sc, o = (np.stack(x) for x in zip(*gs))
-    u = np.nan_to_num(np.asarray(flows, np.float32)[pairs])
-    found = discover(m, q, sc, o, np.asarray(viewmats, np.float32)[src], np.asarray(Ks, np.float32)[src], u,
-                     np.stack(model), valid=np.stack(valid), threshold_px=threshold_px, capacity=capacity)
-    return found.dynamic & alive_np
-
-
-def refree_targets(means, logits, free, alive, unexplained, *, min_fraction: float = 0.02,
-                   smoothing: float = 0.1) -> tuple[np.ndarray, np.ndarray, dict[int, int]]:
-    """Which held slots to free, and onto which basis (`refree_slots`). The candidates are the live held slots
-    (``free`` 0) in ``unexplained``; DBSCAN (`fgjax.cluster.cluster_dynamic`, automatic radius) groups them together
-    with the free slots whose largest weight is a moving basis; the candidates of a cluster go to the basis most of
-    its free slots sit on, or, in a cluster of candidates only, to the next unused moving basis (largest cluster
-    first; none left: they stay held). DBSCAN's noise stays held. A freed slot's logits are the log of the target of
-    `basis_targets` (1 - ``smoothing`` on its basis).
-
-    Args: ``means`` [N, 3] canonical centres, ``logits`` [N, K] and ``free`` [N] the slots' (`fgjax.models.deform`),
-    ``alive``, ``unexplained`` [N] bool. Returns (logits, free, {basis: slots freed onto it})."""
-    logits, free = np.array(logits, np.float32), np.array(free, np.float32)
-    num_bases = logits.shape[1]
-    alive = np.asarray(alive, bool)
-    cand = np.asarray(unexplained, bool) & alive & (free <= 0.5)
-    basis = np.where(alive & (free > 0.5), np.argmax(logits, axis=1), -1)
-    pool = np.flatnonzero(cand | (basis >= 1))
-    if not cand.any() or pool.size < 2:
-        return logits, free, {}
-    labels = cluster.cluster_dynamic(np.asarray(means, np.float64)[pool], auto_eps=True, min_fraction=min_fraction)
-    spare = [k for k in range(1, num_bases) if not np.any(basis == k)]
-    moved: dict[int, int] = {}
-    for c in range(int(labels.max()) + 1):  # labels are numbered by decreasing size
-        members = pool[labels == c]
-        new = members[cand[members]]
-        on = basis[members][basis[members] >= 1]
-        if new.size == 0 or (on.size == 0 and not spare):
-            continue
-        k = int(np.bincount(on).argmax()) if on.size else spare.pop(0)
-        row = np.full(num_bases, smoothing / max(num_bases - 1, 1), np.float32)
-        row[k] = 1.0 - smoothing
-        logits[new] = np.log(row)
-        free[new] = 1.0
-        moved[k] = moved.get(k, 0) + int(new.size)
-    return logits, free, moved
-
-
-def refree_slots(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None, *, capacity: int, cache_dir=None,
-                 log=print):
-    """The placement repeated on a model whose motions have fitted (``deform.refree``; per-slot weights only): the
-    held slots that paint flow the model leaves unexplained (`unexplained_gaussians`, 1 px) are freed onto the basis
-    of their cluster or an unused one (`refree_targets`). ``flows`` as in `place_bases`. Returns (params, the [N] bool
-    mask of the slots freed), the shape of `place_bases`' result."""
-    if spec.weights != "slot":
-        raise ValueError(f"refree_slots needs per-slot weights (deform.weights = 'slot'); got {spec.weights!r}")
-    if flows is None:
-        flows = estimate_training_flows(scene, cfg.flow.method, cache_dir, log=log)
-    slots = params["deform"]["slots"]
-    found = unexplained_gaussians(params, alive, spec, scene.viewmats, scene.Ks, scene.times, flows,
-                                  previous_frames(scene.times), width=scene.width, height=scene.height,
-                                  capacity=capacity)
-    held = np.asarray(alive, bool) & (np.asarray(slots["free"]) <= 0.5)
-    logits, free, moved = refree_targets(np.asarray(params["gaussians"].means), slots["logits"], slots["free"], alive,
-                                         found)
-    log(f"held Gaussians re-freed: {int(np.sum(found & held))} of {int(held.sum())} held paint unexplained flow; "
-        f"freed onto bases {dict(sorted(moved.items()))}")
-    new = {"logits": jnp.asarray(logits, slots["logits"].dtype), "free": jnp.asarray(free, slots["free"].dtype)}
-    freed = (free > 0.5) & held
-    return {**params, "deform": {**params["deform"], "slots": new}}, freed

@@ -38,7 +38,7 @@ from fgjax.gaussians import Gaussians, activate, init_from_points, knn_graph
 from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
-from fgjax.method.bases_init import place_bases, refree_slots, static_points
+from fgjax.method.bases_init import place_bases, static_points
 from fgjax.method.flows import estimate_training_flows, previous_frames, training_tracks
 from fgjax.method.init_points import (
     depth_point_cloud,
@@ -549,7 +549,7 @@ def train_stage1(
         losses.extend(float(l) for l, _, _, _ in vals)
         return vals
 
-    placed, refree_at = _bases_placed(cfg), t.warmup_steps + cfg.deform.refree if cfg.deform.refree else -1
+    placed = _bases_placed(cfg)
     pts = None if state.static_points is None else jax.device_put(state.static_points, repl_sh)  # the step's copy
     while state.step < end:
         s = state.step
@@ -561,22 +561,22 @@ def train_stage1(
                     + ("static: training without the deformation field" if state.static else "dynamic"))
             else:
                 state.static = False
-        if s in (t.warmup_steps, refree_at) and not state.static and placed:  # the placement, then its repeat
-            fn = place_bases if s == t.warmup_steps else refree_slots
-            state.params, labels = fn(cfg, state.params, state.densify.alive, spec, scene,
-                                      flows if use_flow and fc.loss == "pair" else None, capacity=state.capacity,
-                                      cache_dir=None if out is None else out / "flow_cache", log=log)
-            if state.static_points is not None:  # field weights only: never after a repeat (slot weights)
+        if s == t.warmup_steps and not state.static and placed:
+            state.params, labels = place_bases(cfg, state.params, state.densify.alive, spec, scene,
+                                               flows if use_flow and fc.loss == "pair" else None,
+                                               capacity=state.capacity,
+                                               cache_dir=None if out is None else out / "flow_cache", log=log)
+            if state.static_points is not None:
                 state.static_points = static_points(state.params["gaussians"].means, labels,
                                                     len(state.static_points), cfg.model.seed)
                 pts = jax.device_put(state.static_points, repl_sh)
-            if repl_sh is not None:  # the new logits, replicated like the rest of the parameters
+            if repl_sh is not None:  # the new logits network, replicated like the rest of the parameters
                 state.params = jax.device_put(state.params, repl_sh)
         use_deform = s >= t.warmup_steps and not bool(state.static)
         lo = coarse and s < t.coarse_to_fine
         flow_on = use_flow and use_deform and s >= fc.start and not lo
         freeze = use_deform and s < t.warmup_steps + t.field_only_steps
-        hold = use_deform and placed and any(0 <= s - a < cfg.deform.hold for a in (t.warmup_steps, refree_at))
+        hold = use_deform and placed and s < t.warmup_steps + cfg.deform.hold  # placed weights stay, motions fit
         step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze, hold)
         sh_mask = active_sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)

@@ -11,14 +11,7 @@ import pytest
 from conftest import look_at
 
 from fgjax.gaussians import Gaussians
-from fgjax.method.bases_init import (
-    basis_targets,
-    fit_basis_logits,
-    moving_clusters,
-    refree_targets,
-    static_points,
-    unexplained_gaussians,
-)
+from fgjax.method.bases_init import basis_targets, fit_basis_logits, moving_clusters, static_points
 from fgjax.method.flows import previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits, deform_apply, deform_init
 from fgjax.render.api import rasterization
@@ -110,85 +103,6 @@ def test_moving_clusters_find_the_moving_blob_from_the_flow():
     assert np.sum(labels == 0) <= 1.15 * np.sum(labels[blob] == 0)  # the cluster is the blob
 
 
-def test_unexplained_gaussians_find_the_part_the_model_leaves_still():
-    """A wall and two blobs: blob A slides by 0.3 along x, blob B by 0.5 along z. The model puts A on a basis with
-    A's true motion and holds B (the part a placement missed): the flow the model leaves unexplained is B's, so B's
-    Gaussians are selected, A's are not, nor the wall's but where the model shows the wall behind B's first place
-    while the true B has moved on; `refree_targets` then frees B onto the first unused basis."""
-    rng = np.random.default_rng(1)
-    n, w, h, frames = 230, 48, 36, 6
-    means = np.stack([rng.uniform(-1.0, 1.0, n), rng.uniform(0.4, 0.6, n), rng.uniform(-0.8, 0.8, n)], 1)
-    a, b = np.arange(n) < 30, (np.arange(n) >= 30) & (np.arange(n) < 60)
-    means[a] = rng.normal([-0.45, -0.2, 0.1], 0.06, (30, 3))
-    means[b] = rng.normal([0.45, -0.2, -0.2], 0.06, (30, 3))
-    quats = np.tile([1.0, 0, 0, 0], (n, 1))
-    scales = np.full((n, 3), 0.08)
-    opac = np.full(n, 0.9)
-    K = np.array([[45.0, 0, w / 2], [0, 45.0, h / 2], [0, 0, 1]])
-    times = np.linspace(0, 1, frames)
-    vms = np.stack([look_at(np.array([2.0 * np.sin(t), -2.0 * np.cos(t), 0.3]))
-                    for t in 0.4 * (np.arange(frames) / (frames - 1) - 0.5)])
-    at = [means + a[:, None] * np.array([0.3 * t, 0, 0]) + b[:, None] * np.array([0, 0, 0.5 * t]) for t in times]
-    prev = previous_frames(times)
-    flows = np.full((frames, h, w, 2), np.nan, np.float32)
-    for i in range(1, frames):
-        flows[i] = _pair_flow(at[i - 1], at[i], quats, scales, opac, vms[i - 1], vms[i], K, w, h)
-    spec = DeformSpec(kind="bases", weights="slot", bases=4, knots=2)
-    deform = deform_init(jax.random.PRNGKey(0), spec, slots=n)
-    target = basis_targets(np.where(a, 0, -2), spec.bases)[0]
-    deform["slots"] = {"logits": jnp.asarray(np.log(target)), "free": jnp.asarray(a, jnp.float32)}
-    deform["motion"] = deform["motion"].at[0, 1, 3].set(0.3)  # basis 1: A's slide, exact at the knots 0 and 1
-    g = Gaussians(means=jnp.asarray(means, jnp.float32), log_scales=jnp.log(jnp.asarray(scales, jnp.float32)),
-                  quats=jnp.asarray(quats, jnp.float32), opacity_logits=jnp.full((n,), 2.2, jnp.float32),
-                  sh=jnp.full((n, 1, 3), 0.5, jnp.float32))
-    alive = np.ones(n, bool)
-    found = unexplained_gaussians({"gaussians": g, "deform": deform}, jnp.asarray(alive), spec,
-                                  vms.astype(np.float32), np.stack([K] * frames).astype(np.float32),
-                                  times.astype(np.float32), flows, prev, width=w, height=h, capacity=1 << 15)
-    assert np.mean(found[b]) > 0.8, found[b]  # B, which the model holds still, is found
-    wall = ~a & ~b
-    assert np.mean(found[a]) < 0.1 and np.mean(found[wall]) < 0.15  # A's flow is explained, and the wall's
-    assert np.all(means[wall & found, 0] > 0.15)  # but behind B, which the model shows where B has left
-    logits, free, moved = refree_targets(means, deform["slots"]["logits"], deform["slots"]["free"], alive, found)
-    # B, the largest cluster, takes the first unused basis; the wall behind it may take another (its flow is
-    # explained once B moves), and nothing the flow did not flag is freed
-    assert set(moved) <= {2, 3} and np.all(free[wall & ~found] == 0) and np.all(free[b & ~found] == 0)
-    assert np.mean((free[b] == 1) & (np.argmax(logits[b], 1) == 2)) > 0.8  # (DBSCAN's noise stays held)
-    np.testing.assert_array_equal(logits[a], np.asarray(deform["slots"]["logits"])[a])  # A is left as it was
-
-
-def test_refree_targets_join_a_cluster_s_basis_or_take_an_unused_one():
-    """Candidates inside a free part's cluster take its basis; a cluster of candidates alone takes the next unused
-    moving basis, or stays held when none is left; DBSCAN's noise, dead slots and non-candidates stay held."""
-    rng = np.random.default_rng(0)
-    part = rng.normal([0.0, 0.0, 0.0], 0.03, (40, 3))  # 30 free on basis 1, 10 held pieces of it
-    lone = rng.normal([2.0, 0.0, 0.0], 0.03, (30, 3))  # a part the placement missed
-    far = np.array([[0.0, 5.0, 0.0], [5.0, 5.0, 0.0], [0.0, -5.0, 5.0]])  # isolated: noise
-    wall = rng.normal([0.0, 0.0, 3.0], 0.3, (50, 3))
-    means = np.concatenate([part, lone, far, wall])
-    n = len(means)
-    free = np.zeros(n, np.float32)
-    free[:30] = 1
-    logits = np.log(basis_targets(np.where(np.arange(n) < 30, 0, -2), 4)[0])
-    found = np.zeros(n, bool)
-    found[30:73] = True  # the held pieces, the missed part and the isolated points
-    alive = np.ones(n, bool)
-    alive[72] = False
-    new, new_free, moved = refree_targets(means, logits, free, alive, found)
-    assert moved == {1: 10, 2: 30}
-    np.testing.assert_array_equal(np.argmax(new[30:40], 1), 1)
-    np.testing.assert_array_equal(np.argmax(new[40:70], 1), 2)
-    assert np.all(new_free[30:70] == 1) and np.all(new_free[70:] == 0)
-    np.testing.assert_array_equal(new[:30], logits[:30])
-    np.testing.assert_array_equal(new[70:], logits[70:])
-    np.testing.assert_allclose(np.exp(new[40]).sum(), 1.0, rtol=1e-6)
-    two = np.log(basis_targets(np.where(np.arange(n) < 30, 0, -2), 2)[0])  # no unused basis: the lone part stays
-    _, free2, moved2 = refree_targets(means, two, free, alive, found)
-    assert moved2 == {1: 10} and np.all(free2[40:] == 0)
-    same = refree_targets(means, logits, free, alive, np.zeros(n, bool))
-    assert same[2] == {} and np.array_equal(same[1], free)
-
-
 def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monkeypatch):
     """``deform.init = "flow"``: at the end of the warm-up stage 1 puts the moving Gaussians of a 64x48 synthetic
     scene (three parts) on moving bases and the rest on the static basis, and for ``deform.hold`` steps only the
@@ -269,8 +183,7 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
 def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkeypatch):
     """``deform.weights = "slot"``: the placement writes each Gaussian's logits (log of its target) and frees the
     moving ones; after the hold the free slots' logits train while the held ones' stay bit-identical; densification
-    copies a parent's row (logits and free flag) into each new slot; the gauge takes no static points; the repeat
-    (``deform.refree``) runs once, 5 steps after the placement, and only frees slots."""
+    copies a parent's row (logits and free flag) into each new slot; the gauge takes no static points."""
     import pathlib
 
     from conftest import synth
@@ -284,28 +197,18 @@ def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkey
     scene = load_scene(tmp_path / "scene", "train")
     quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
     over = ["train.steps=40", "train.warmup_steps=30", "densify.start=30", "train.video_frames=0", "deform.kind=bases",
-            "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10", "deform.refree=5"]
-    placed, repeats = [], []
-    place, refree = stage1.place_bases, stage1.refree_slots
+            "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10"]
+    placed = []
+    place = stage1.place_bases
 
     def place_and_keep(cfg, params, alive, *args, **kwargs):
         new, labels = place(cfg, params, alive, *args, **kwargs)
         placed.append((jax.tree_util.tree_map(np.array, new["deform"]["slots"]), labels, np.array(alive)))
         return new, labels
 
-    def refree_and_keep(cfg, params, *args, **kwargs):
-        new, freed = refree(cfg, params, *args, **kwargs)
-        repeats.append((int(params["deform"]["slots"]["logits"].shape[0]), freed,
-                        np.array(new["deform"]["slots"]["free"]), np.array(params["deform"]["slots"]["free"])))
-        return new, freed
-
     monkeypatch.setattr(stage1, "place_bases", place_and_keep)
-    monkeypatch.setattr(stage1, "refree_slots", refree_and_keep)
     res = stage1.train_stage1(C.load_config(quick, over), scene, None, progress=False, log=lambda *_: None)
     (slots0, labels, alive0), = placed
-    (n, freed, free_after, free_before), = repeats  # the repeat at step 30 + 5: frees held slots, holds no free one
-    np.testing.assert_array_equal(free_after > 0.5, (free_before > 0.5) | freed)
-    assert not np.any(freed & (free_before > 0.5)) and n == len(alive0)
     st, spec = res["state"], res["spec"]
     assert spec.weights == "slot" and st.static_points is None and "grid" not in st.params["deform"]
     free0 = slots0["free"] > 0.5
@@ -320,7 +223,6 @@ def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkey
     np.testing.assert_array_equal(slots["free"][copies], slots["free"][parent[copies]])
     np.testing.assert_array_equal(slots["logits"][copies], slots["logits"][parent[copies]])
     kept = np.setdiff1d(np.flatnonzero(alive0), copies)
-    kept = kept[~freed[kept]]  # (the repeat's freed slots, if any, train from their new logits)
     held, freed = kept[~free0[kept]], kept[free0[kept]]
     np.testing.assert_array_equal(slots["free"][kept], slots0["free"][kept])
     np.testing.assert_array_equal(slots["logits"][held], slots0["logits"][held])

@@ -103,7 +103,6 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
                                           ("deform.gauge=-1", "deform.gauge"), ("deform.gauge=nan", "deform.gauge"),
                                           ("deform.weights=slot", "deform.weights"),
                                           ("deform.weights=mlp", "deform.weights"),
-                                          ("deform.refree=500", "deform.refree"),
                                           ("deform.bases=1", "deform.bases"), ("deform.knots=1", "deform.knots"),
                                           ("flow.gaussian_flow=affine", "flow.gaussian_flow"),
                                           ("flow.camera_depth=median", "flow.camera_depth"),
@@ -118,8 +117,4 @@ def test_stage1_flow_options_are_validated(override, key):
     assert load_config(None, overrides=["deform.kind=bases", "deform.bases=4"]).deform.bases == 4
     slot = ["deform.kind=bases", "deform.init=flow", "deform.weights=slot"]
     assert load_config(None, overrides=slot).deform.weights == "slot"
-    assert load_config(None, overrides=[*slot, "deform.refree=500"]).deform.refree == 500
-    for bad in ("deform.refree=100", "deform.refree=-1"):  # not past the hold (150), negative
-        with pytest.raises(ConfigError, match=r"^config key 'deform.refree' must be "):
-            load_config(None, overrides=[*slot, bad])
     assert load_config(None, overrides=["flow.norm=charbonnier", "flow.loss=track"]).flow.norm == "charbonnier"

@@ -38,6 +38,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "motion": ("fgjax.bench.motion", "stage-1 run: object vs static PSNR, learned vs true object motion"),
     "field": ("fgjax.bench.field", "the deformation field alone fitted to a local motion: L1 against L2"),
     "track": ("fgjax.bench.track", "photometric tracker: time a frame drawing all Gaussians vs those near the parts"),
+    "placement": ("fgjax.bench.placement", "which parts the flow placement of the motion bases finds, by frame span"),
     "family": ("fgjax.bench.family", "the whole pipeline on seeds of the scene family: ARI, parts found, PSNR, time"),
     "step": ("fgjax.bench.step", "stage-1 step (cameras looped vs vmapped), render with active tiles vs all"),
     "viewer": ("fgjax.bench.viewer", "viewer: time from a control change to the Gaussians ready to send"),

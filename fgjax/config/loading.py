@@ -233,6 +233,8 @@ def validate_stage1(cfg: Config) -> None:
     need(f.anchor in ("none", "first"), "deform.anchor", "'none' or 'first'", f.anchor)
     need(f.init in ("random", "flow"), "deform.init", "'random' or 'flow'", f.init)
     need(f.hold >= 0, "deform.hold", ">= 0", f.hold)
+    need(len(f.spans) > 0 and min(f.spans) >= 1 and len(set(f.spans)) == len(f.spans), "deform.spans",
+         "a list of distinct frame spans >= 1", list(f.spans))
     need(f.weights == "field" or (f.weights == "slot" and f.kind == "bases" and f.init == "flow"), "deform.weights",
          "'field', or 'slot' with deform.kind = 'bases' and deform.init = 'flow'", f.weights)
     need(finite(f.gauge) and f.gauge >= 0, "deform.gauge", "a finite number >= 0", f.gauge)

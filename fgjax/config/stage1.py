@@ -79,6 +79,11 @@ class DeformConfig:
     init: str = "random"
     """"bases" kind: "random" logits, or "flow": placed on the moving clusters that the flow finds after the
     warm-up (`fgjax.method.bases_init`)."""
+    spans: tuple[int, ...] = (1,)
+    """With init = "flow": the frame spans (in time order) of the pairs whose |u - u_cam| the placement reads, each
+    span's selection of moving Gaussians united: 1 is consecutive frames; a part that moves under the 1 px floor a
+    frame shows over longer spans (`fgjax.method.bases_init`; docs/benchmarks.md, "The placement's frame
+    spans")."""
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""

@@ -8,9 +8,12 @@ softmax at w_0 ~ 1 passes almost no gradient to a part's other weights: the part
 instead; this is the same idea with the evidence stage 1 already has, at the end of its warm-up:
 
 1. the warm-up model's depth gives each training pair's camera flow u_cam (exact reprojection), and the observed
-   flow u minus u_cam marks the moving pixels (`fgjax.method.discover.discover`, |u - u_cam| > 1 px);
+   flow u minus u_cam marks the moving pixels (`fgjax.method.discover.discover`, |u - u_cam| > 1 px), for the pairs
+   of frames each span of ``deform.spans`` apart in time (a part that moves 0.3 px a frame is under the 1 px floor
+   between consecutive frames, above it over four: docs/benchmarks.md, "The placement's frame spans");
 2. the moving pixels are back-projected onto the canonical Gaussians through the rasterizer's weights and the
-   Gaussians that paint mostly moving pixels are selected; DBSCAN (`fgjax.cluster.cluster_dynamic`, automatic
+   Gaussians that paint mostly moving pixels are selected, span by span (each with its own score threshold), and
+   the selections united; DBSCAN (`fgjax.cluster.cluster_dynamic`, automatic
    radius) groups them;
 3. the logits network is fitted, by class-balanced cross-entropy with label smoothing, to put cluster j
    (largest first, j < K - 1) on basis j + 1 and every unselected Gaussian on basis 0; selected Gaussians that
@@ -59,18 +62,33 @@ def moving_clusters(
     Args:
         params, alive: stage-1 parameters and the live-slot mask [N].
         viewmats [T, 4, 4] (OpenCV world-to-camera), Ks [T, 3, 3]: the training cameras.
-        flows: [T, H, W, 2] optical flow into frame i from frame ``prev[i]``, on that frame's grid (NaN: unknown).
-        prev: [T] the previous frame in time of each frame (-1: none; `fgjax.method.flows.previous_frames`).
+        flows: [T, H, W, 2] optical flow into frame i from frame ``prev[i]``, on that frame's grid (NaN: unknown);
+            or a sequence of such arrays, one per frame span, whose selections are united.
+        prev: [T] the earlier frame of each frame's pair (-1: none; `fgjax.method.flows.previous_frames`); or a
+            sequence, one per array of ``flows``.
         width, height, capacity, background: rendering of the canonical model's depth.
         threshold_px: a pixel moves where |u - u_cam| exceeds this many pixels. A fixed floor rather than each pair's
             Otsu threshold: a fast part's large residual puts Otsu's cut above a slow part's (`fgjax.method.discover`).
         min_fraction: clusters smaller than this share of the moving Gaussians are noise.
     """
-    pairs = [i for i in range(len(prev)) if prev[i] >= 0]
+    sets = list(zip(flows, prev)) if isinstance(flows, list | tuple) else [(flows, prev)]
     alive_np = np.asarray(alive, bool)
     labels = np.where(alive_np, -2, -1).astype(np.int64)
-    if not pairs or not alive_np.any():
-        return labels
+    dyn = np.zeros_like(alive_np)
+    for f, p in sets:
+        dyn |= _moving_gaussians(params, alive, viewmats, Ks, f, p, width, height, capacity, background, threshold_px)
+    dyn &= alive_np
+    if dyn.sum() >= 2:
+        labels[dyn] = cluster.cluster_dynamic(np.asarray(params["gaussians"].means)[dyn], auto_eps=True,
+                                              min_fraction=min_fraction)
+    return labels
+
+
+def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, capacity, background, threshold_px):
+    """[N] bool: `discover`'s dynamic Gaussians of one set of pairs (`moving_clusters`)."""
+    pairs = [i for i in range(len(prev)) if prev[i] >= 0]
+    if not pairs or not np.asarray(alive, bool).any():
+        return np.zeros(np.shape(alive), bool)
     g = params["gaussians"]
     quats, scales, opac = activate(g, alive)
     c2w = viewmat_to_c2w(np.asarray(viewmats, np.float64))
@@ -91,10 +109,7 @@ def moving_clusters(
                      np.asarray(viewmats, np.float32)[src], np.asarray(Ks, np.float32)[src], u,
                      np.stack(cam_flows), valid=np.stack(valid), threshold_px=threshold_px,
                      capacity=capacity)
-    dyn = found.dynamic & alive_np
-    if dyn.sum() >= 2:
-        labels[dyn] = cluster.cluster_dynamic(np.asarray(g.means)[dyn], auto_eps=True, min_fraction=min_fraction)
-    return labels
+    return np.asarray(found.dynamic, bool)
 
 
 def basis_targets(labels: np.ndarray, num_bases: int, smoothing: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
@@ -142,11 +157,12 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
     ``flows``: the pair flows of `fgjax.method.flows.estimate_training_flows` (None: estimated, cached in
     ``cache_dir``). Where the flow shows no moving cluster every live Gaussian goes to the static basis, which is
     what that evidence says. Returns (params, labels) with the labels of `moving_clusters`."""
-    if flows is None:
-        flows = estimate_training_flows(scene, cfg.flow.method, cache_dir, log=log)
-    labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, flows, previous_frames(scene.times),
-                             width=scene.width, height=scene.height, capacity=capacity,
-                             background=tuple(cfg.model.background))
+    spans = cfg.deform.spans  # span 1 can use the given flows
+    sets = [flows if s == 1 and flows is not None else
+            estimate_training_flows(scene, cfg.flow.method, cache_dir, log=log, span=s) for s in spans]
+    labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, sets,
+                             [previous_frames(scene.times, s) for s in spans], width=scene.width, height=scene.height,
+                             capacity=capacity, background=tuple(cfg.model.background))
     sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
     target, weight = basis_targets(labels, spec.bases)
     free = (labels >= 0) | ((labels == -1) & np.asarray(alive, bool))

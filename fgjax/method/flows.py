@@ -15,21 +15,24 @@ from fgjax.data.opticalflow import chained_tracks, estimate_flow, forward_backwa
 __all__ = ["previous_frames", "estimate_training_flows", "training_tracks"]
 
 
-def previous_frames(times: np.ndarray) -> np.ndarray:
-    """Index of the previous frame in time order for each frame (-1 for the first)."""
+def previous_frames(times: np.ndarray, span: int = 1) -> np.ndarray:
+    """Index of the frame ``span`` frames earlier in time order for each frame (-1 for the first ``span``)."""
+    if span < 1:
+        raise ValueError(f"previous_frames: span must be >= 1; got {span}")
     order = np.argsort(np.asarray(times), kind="stable")
     prev = np.full(len(order), -1, np.int64)
-    prev[order[1:]] = order[:-1]
+    prev[order[span:]] = order[:max(len(order) - span, 0)]
     return prev
 
 
 def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str | Path | None = None,
-                            log=print, backward: bool = False) -> np.ndarray:
+                            log=print, backward: bool = False, span: int = 1) -> np.ndarray:
     """Observed optical flow into each training frame from its predecessor in time, on the predecessor's
     grid: [T, H, W, 2] float32, NaN for the first frame (``fgjax.data.opticalflow.estimate_flow``, cached
     on disk under `cache_dir`). ``backward``: the reverse, from each frame to its predecessor on the frame's
-    own grid (the round trip of ``pose.bundle_fb_px``)."""
-    prev = previous_frames(scene.times)
+    own grid (the round trip of ``pose.bundle_fb_px``). ``span``: the predecessor ``span`` frames earlier
+    (`previous_frames`; NaN for the first ``span`` frames)."""
+    prev = previous_frames(scene.times, span)
     imgs = (np.clip(np.asarray(scene.images), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     out = np.full((scene.num_frames, scene.height, scene.width, 2), np.nan, np.float32)
     t0 = time.time()
@@ -37,8 +40,8 @@ def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str 
         if j >= 0:
             a, b = (i, j) if backward else (j, i)  # the flow from frame a to frame b, on a's grid
             out[i] = estimate_flow(imgs[a], imgs[b], method, cache_dir=cache_dir)
-    log(f"optical flow ({method}{', backward' if backward else ''}): {int(np.sum(prev >= 0))} pairs in "
-        f"{time.time() - t0:.1f} s")
+    log(f"optical flow ({method}{', backward' if backward else ''}{f', span {span}' if span > 1 else ''}): "
+        f"{int(np.sum(prev >= 0))} pairs in {time.time() - t0:.1f} s")
     return out
 
 

@@ -103,6 +103,54 @@ def test_moving_clusters_find_the_moving_blob_from_the_flow():
     assert np.sum(labels == 0) <= 1.15 * np.sum(labels[blob] == 0)  # the cluster is the blob
 
 
+def test_previous_frames_span_frames_back_in_time_order():
+    times = np.array([0.5, 0.0, 0.75, 0.25, 1.0])  # time order: frames 1, 3, 0, 2, 4
+    np.testing.assert_array_equal(previous_frames(times), [3, -1, 0, 1, 2])
+    np.testing.assert_array_equal(previous_frames(times, 2), [1, -1, 3, -1, 0])
+    np.testing.assert_array_equal(previous_frames(times, 5), [-1] * 5)
+    np.testing.assert_array_equal(previous_frames(times, 7), [-1] * 5)
+    with pytest.raises(ValueError, match="span"):
+        previous_frames(times, 0)
+
+
+def test_moving_clusters_unite_spans_and_find_a_part_slower_than_the_floor():
+    """The blob of the test above slides by 0.15 over 9 frames: under 1 px between consecutive frames, so the
+    placement on consecutive pairs finds nothing; with the pairs 1, 2 and 4 frames apart as well (each span's
+    selection united) it finds the blob and nothing else."""
+    rng = np.random.default_rng(0)
+    n, w, h, frames = 200, 48, 36, 9
+    means = np.stack([rng.uniform(-1.0, 1.0, n), rng.uniform(0.4, 0.6, n), rng.uniform(-0.8, 0.8, n)], 1)
+    means[:30] = rng.normal([-0.1, -0.2, 0.1], 0.06, (30, 3))
+    quats = np.tile([1.0, 0, 0, 0], (n, 1))
+    scales = np.full((n, 3), 0.08)
+    opac = np.full(n, 0.9)
+    K = np.array([[45.0, 0, w / 2], [0, 45.0, h / 2], [0, 0, 1]])
+    times = np.linspace(0, 1, frames)
+    vms = np.stack([look_at(np.array([2.0 * np.sin(a), -2.0 * np.cos(a), 0.3]))
+                    for a in 0.4 * (np.arange(frames) / (frames - 1) - 0.5)])
+    at = [means + np.where(np.arange(n)[:, None] < 30, [0.15 * t, 0.0, 0.0], 0.0) for t in times]
+    g = Gaussians(means=jnp.asarray(means, jnp.float32), log_scales=jnp.log(jnp.asarray(scales, jnp.float32)),
+                  quats=jnp.asarray(quats, jnp.float32), opacity_logits=jnp.full((n,), 2.2, jnp.float32),
+                  sh=jnp.full((n, 1, 3), 0.5, jnp.float32))
+    alive = jnp.ones(n, bool)
+    flows, prevs = [], []
+    for span in (1, 2, 4):
+        prev = previous_frames(times, span)
+        f = np.full((frames, h, w, 2), np.nan, np.float32)
+        for i in np.flatnonzero(prev >= 0):
+            f[i] = _pair_flow(at[prev[i]], at[i], quats, scales, opac, vms[prev[i]], vms[i], K, w, h)
+        flows.append(f)
+        prevs.append(prev)
+    kw = dict(width=w, height=h, capacity=1 << 15)
+    Ks = np.stack([K] * frames).astype(np.float32)
+    one = moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows[0], prevs[0], **kw)
+    assert np.all(one == -2)  # consecutive frames: under the floor everywhere
+    united = moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prevs, **kw)
+    blob = np.arange(n) < 30
+    assert np.mean(united[blob] == 0) > 0.8, united[blob]
+    assert np.mean(united[~blob] == -2) > 0.9 and np.sum(united == 0) <= 1.15 * np.sum(united[blob] == 0)
+
+
 def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monkeypatch):
     """``deform.init = "flow"``: at the end of the warm-up stage 1 puts the moving Gaussians of a 64x48 synthetic
     scene (three parts) on moving bases and the rest on the static basis, and for ``deform.hold`` steps only the
@@ -197,7 +245,7 @@ def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkey
     scene = load_scene(tmp_path / "scene", "train")
     quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
     over = ["train.steps=40", "train.warmup_steps=30", "densify.start=30", "train.video_frames=0", "deform.kind=bases",
-            "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10"]
+            "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10", "deform.spans=1,2"]
     placed = []
     place = stage1.place_bases
 

@@ -103,6 +103,8 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
                                           ("deform.gauge=-1", "deform.gauge"), ("deform.gauge=nan", "deform.gauge"),
                                           ("deform.weights=slot", "deform.weights"),
                                           ("deform.weights=mlp", "deform.weights"),
+                                          ("deform.spans=0,1", "deform.spans"), ("deform.spans=1,1", "deform.spans"),
+                                          ("deform.spans=", "deform.spans"),
                                           ("deform.bases=1", "deform.bases"), ("deform.knots=1", "deform.knots"),
                                           ("flow.gaussian_flow=affine", "flow.gaussian_flow"),
                                           ("flow.camera_depth=median", "flow.camera_depth"),
@@ -117,4 +119,5 @@ def test_stage1_flow_options_are_validated(override, key):
     assert load_config(None, overrides=["deform.kind=bases", "deform.bases=4"]).deform.bases == 4
     slot = ["deform.kind=bases", "deform.init=flow", "deform.weights=slot"]
     assert load_config(None, overrides=slot).deform.weights == "slot"
+    assert load_config(None, overrides=["deform.spans=1,2,4"]).deform.spans == (1, 2, 4)
     assert load_config(None, overrides=["flow.norm=charbonnier", "flow.loss=track"]).flow.norm == "charbonnier"

@@ -1,0 +1,165 @@
+"""``fgjax bench placement``: which parts the flow placement of the motion bases finds, by the frame spans it reads.
+
+The placement (`fgjax.method.bases_init`, ``deform.init = "flow"``) marks a pixel as moving where the observed
+optical flow u and the camera flow u_cam of a frame pair differ by more than 1 px, over the pairs ``deform.spans``
+frames apart in time. On scenes with ground truth (``fgjax synth``: gt/train/depth.npy, object_id.npy, states.npy,
+viewmats_true.npy) and for each set of spans in ``--spans`` (sets separated by ";", e.g. "1;1,2,4") it prints:
+
+- ``pixels``: the share of each part's pixels, in the frame pairs over which the part's state changes, where
+  |u - u_cam| > 1 px with u_cam from the true depth and poses (`fgjax.method.discover.camera_flow_from_depth`) and u
+  the estimated optical flow (``flow.method``): the evidence the placement could read with a perfect model. A set of
+  spans marks a pixel of source frame a where any of its pairs starting at a does; a part counts at a where its
+  state changes over the longest of those pairs. Beside it the share of static pixels marked (``static``);
+- ``placed``: stage 1 of the configuration (``--config`` and ``--set``) trained to the end of its warm-up, then the
+  placement: the share of each part's model Gaussians (`fgjax.bench.motion.part_gaussians`) that it frees (a
+  moving cluster or DBSCAN's noise), the number of other Gaussians freed (``others``: the region a part sweeps, and
+  false positives) and the placement's time.
+
+Results: docs/benchmarks.md, "The placement's frame spans".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fgjax import config as C
+from fgjax.bench.motion import part_gaussians
+from fgjax.data.loaders import load_scene
+from fgjax.data.opticalflow import estimate_flow
+from fgjax.geometry import viewmat_to_c2w
+from fgjax.io import atomic_write
+from fgjax.method import stage1
+from fgjax.method.bases_init import place_bases
+from fgjax.method.discover import camera_flow_from_depth
+
+__all__ = ["main", "pixel_evidence", "placed_shares"]
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "experiments" / "family.toml"
+
+
+def pixel_evidence(scene_dir: Path, span_sets: list[tuple[int, ...]], method: str = "dis_deepflow",
+                   threshold_px: float = 1.0) -> list[dict]:
+    """The ``pixels`` measurement (module docstring) for each set of spans: {"spans", "parts" [K], "static"}."""
+    gt = Path(scene_dir) / "gt" / "train"
+    sc = load_scene(scene_dir, "train")
+    times = np.load(gt / "times.npy")
+    if not np.allclose(np.asarray(sc.times), times, atol=1e-5):
+        raise ValueError(f"{gt / 'times.npy'} does not list the training frames in the order of the scene's")
+    depth, oid, states = np.load(gt / "depth.npy"), np.load(gt / "object_id.npy"), np.load(gt / "states.npy")
+    Ks, c2w = np.load(gt / "Ks.npy"), viewmat_to_c2w(np.load(gt / "viewmats_true.npy"))
+    imgs = (np.clip(np.asarray(sc.images), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    order = np.argsort(times, kind="stable")
+    hits: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, int]] = {}
+    for span in sorted({s for ss in span_sets for s in ss}):
+        for n in range(span, len(order)):
+            i, a = int(order[n]), int(order[n - span])
+            u = estimate_flow(imgs[a], imgs[i], method)
+            u_cam, ok = camera_flow_from_depth(depth[a], Ks[a], c2w[a], c2w[i])
+            ok = ok & (depth[a] > 0)
+            hits[(span, a)] = ((np.linalg.norm(u - u_cam, axis=-1) > threshold_px) & ok, ok, i)
+    out = []
+    for spans in span_sets:
+        num, den = np.zeros(states.shape[1]), np.zeros(states.shape[1])
+        fp, ns = 0, 0
+        for a in order.tolist():
+            here = [s for s in spans if (s, a) in hits]
+            if not here:
+                continue
+            hit = np.any([hits[(s, a)][0] for s in here], axis=0)
+            ok = np.any([hits[(s, a)][1] for s in here], axis=0)
+            i = hits[(max(here), a)][2]
+            fp, ns = fp + int(np.sum(hit & ok & (oid[a] == 0))), ns + int(np.sum(ok & (oid[a] == 0)))
+            for k in np.flatnonzero(np.abs(states[i] - states[a]) > 1e-4):
+                m = ok & (oid[a] == k + 1)
+                num[k], den[k] = num[k] + np.sum(hit & m), den[k] + np.sum(m)
+        out.append({"spans": list(spans), "parts": [float(x / d) if d else float("nan") for x, d in zip(num, den)],
+                    "static": float(fp / ns) if ns else float("nan")})
+    return out
+
+
+def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...]]) -> tuple[list[dict], float]:
+    """The ``placed`` measurement (module docstring) for each set of spans, and the warm-up's time (s)."""
+    scene = load_scene(scene_dir, "train")
+    t0 = time.perf_counter()
+    res = stage1.train_stage1(cfg, scene, None, stop_at=cfg.train.warmup_steps, progress=False, log=lambda *_: None)
+    warm = time.perf_counter() - t0
+    st, spec = res["state"], res["spec"]
+    alive = np.asarray(st.densify.alive)
+    parts = part_gaussians(np.asarray(st.params["gaussians"].means), alive, Path(scene_dir) / "gt",
+                           scene.normalization)
+    on_part = np.zeros(len(alive), bool)
+    for p in parts:
+        on_part[p] = True
+    out = []
+    for spans in span_sets:
+        c2 = C.apply_overrides(cfg, [f"deform.spans={','.join(map(str, spans))}"])
+        t1 = time.perf_counter()
+        _, labels = place_bases(c2, st.params, st.densify.alive, spec, scene, None, capacity=st.capacity,
+                                log=lambda *_: None)
+        free = (labels >= 0) | ((labels == -1) & alive)
+        out.append({"spans": list(spans), "parts": [float(free[p].mean()) if len(p) else float("nan") for p in parts],
+                    "others": int(np.sum(free & alive & ~on_part)), "clusters": int(labels.max()) + 1,
+                    "seconds": time.perf_counter() - t1})
+    return out, warm
+
+
+def _spans(text: str) -> list[tuple[int, ...]]:
+    try:
+        sets = [tuple(int(x) for x in part.split(",")) for part in text.split(";") if part.strip()]
+    except ValueError:
+        sets = []
+    if not sets or any(not s or min(s) < 1 for s in sets):
+        raise SystemExit(f"fgjax bench placement: --spans must look like '1;1,2,4' (frame spans >= 1); got {text!r}")
+    return sets
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="fgjax bench placement", description=__doc__.splitlines()[0])
+    p.add_argument("--data", action="append", required=True, help="scene folder with gt/ (repeatable)")
+    p.add_argument("--spans", default="1;1,2,4", help="sets of frame spans, ';'-separated (default: %(default)s)")
+    p.add_argument("--config", default=str(DEFAULT_CONFIG), help="named configuration (default: %(default)s)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    p.add_argument("--pixels-only", action="store_true", help="skip the warm-up and the placement")
+    p.add_argument("--json", default=None, help="write the rows here too")
+    args = p.parse_args(argv)
+    span_sets = _spans(args.spans)
+    cfg = C.load_config(args.config, args.overrides)
+    if not args.pixels_only and (cfg.deform.kind, cfg.deform.init) != ("bases", "flow"):
+        print("fgjax bench placement: the placement needs deform.kind = 'bases' and deform.init = 'flow' (pass "
+              "--set deform.kind=bases --set deform.init=flow, or --pixels-only)", file=sys.stderr)
+        return 2
+    rows = []
+    for d in args.data:
+        scene_dir = Path(d)
+        if not (scene_dir / "gt" / "train" / "object_id.npy").is_file():
+            print(f"fgjax bench placement: {scene_dir / 'gt/train/object_id.npy'} is missing (a scene of "
+                  "`fgjax synth` has it)", file=sys.stderr)
+            return 2
+        t0 = time.perf_counter()
+        row = {"data": str(scene_dir), "pixels": pixel_evidence(scene_dir, span_sets, cfg.flow.method)}
+        row["pixels_seconds"] = time.perf_counter() - t0
+        if not args.pixels_only:
+            row["placed"], row["warmup_seconds"] = placed_shares(cfg, scene_dir, span_sets)
+        rows.append(row)
+        fmt = lambda xs: " ".join(f"{x:.2f}" for x in xs)
+        print(f"{scene_dir}:")
+        for e in row["pixels"]:
+            print(f"  spans {','.join(map(str, e['spans'])):<8} pixels {fmt(e['parts'])} (static {e['static']:.3f})")
+        for e in row.get("placed", []):
+            print(f"  spans {','.join(map(str, e['spans'])):<8} placed {fmt(e['parts'])} (others {e['others']}, "
+                  f"{e['clusters']} clusters, {e['seconds']:.1f} s)")
+        print(f"  time: pixels {row['pixels_seconds']:.1f} s"
+              + (f", warm-up {row['warmup_seconds']:.1f} s" if "warmup_seconds" in row else ""), flush=True)
+    if args.json:
+        atomic_write(Path(args.json), lambda f: f.write(json.dumps(rows, indent=1).encode()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -68,12 +68,11 @@ def _pair_flow(means0, means1, quats, scales, opac, vm0, vm1, K, w, h):
     return np.where(a > 0.5, np.asarray(img)[..., :2] / np.maximum(a, 1e-6), np.nan).astype(np.float32)
 
 
-def test_moving_clusters_find_the_moving_blob_from_the_flow():
-    """200 Gaussians seen by a camera on an arc; 30 of them (a blob in front of a wall) slide by 0.3 over the clip.
-    From the exact flow of every pair and the Gaussians in their first state, the blob's Gaussians are the moving
-    cluster."""
+def _blob_scene(n, w, h, frames, shift):
+    """A wall of n Gaussians and a blob of its first 30 in front of it that slides by ``shift`` along x over the
+    clip, seen by a camera on an arc: (canonical Gaussians, times [T], viewmats [T, 4, 4], K, flow_of) with
+    flow_of(prev) the exact flows [T, H, W, 2] into each frame i from frame prev[i] (NaN where prev[i] < 0)."""
     rng = np.random.default_rng(0)
-    n, w, h, frames = 200, 48, 36, 6
     means = np.stack([rng.uniform(-1.0, 1.0, n), rng.uniform(0.4, 0.6, n), rng.uniform(-0.8, 0.8, n)], 1)  # a wall
     means[:30] = rng.normal([-0.1, -0.2, 0.1], 0.06, (30, 3))  # the blob, in front of it
     quats = np.tile([1.0, 0, 0, 0], (n, 1))
@@ -83,14 +82,28 @@ def test_moving_clusters_find_the_moving_blob_from_the_flow():
     times = np.linspace(0, 1, frames)
     vms = np.stack([look_at(np.array([2.0 * np.sin(a), -2.0 * np.cos(a), 0.3]))
                     for a in 0.4 * (np.arange(frames) / (frames - 1) - 0.5)])
-    at = [means + np.where(np.arange(n)[:, None] < 30, [0.3 * t, 0.0, 0.0], 0.0) for t in times]
-    prev = previous_frames(times)
-    flows = np.full((frames, h, w, 2), np.nan, np.float32)
-    for i in range(1, frames):
-        flows[i] = _pair_flow(at[i - 1], at[i], quats, scales, opac, vms[i - 1], vms[i], K, w, h)
+    at = [means + np.where(np.arange(n)[:, None] < 30, [shift * t, 0.0, 0.0], 0.0) for t in times]
+
+    def flow_of(prev):
+        flows = np.full((frames, h, w, 2), np.nan, np.float32)
+        for i in np.flatnonzero(prev >= 0):
+            flows[i] = _pair_flow(at[prev[i]], at[i], quats, scales, opac, vms[prev[i]], vms[i], K, w, h)
+        return flows
+
     g = Gaussians(means=jnp.asarray(means, jnp.float32), log_scales=jnp.log(jnp.asarray(scales, jnp.float32)),
                   quats=jnp.asarray(quats, jnp.float32), opacity_logits=jnp.full((n,), 2.2, jnp.float32),
                   sh=jnp.full((n, 1, 3), 0.5, jnp.float32))
+    return g, times, vms, K, flow_of
+
+
+def test_moving_clusters_find_the_moving_blob_from_the_flow():
+    """200 Gaussians seen by a camera on an arc; 30 of them (a blob in front of a wall) slide by 0.3 over the clip.
+    From the exact flow of every pair and the Gaussians in their first state, the blob's Gaussians are the moving
+    cluster."""
+    n, w, h, frames = 200, 48, 36, 6
+    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, shift=0.3)
+    prev = previous_frames(times)
+    flows = flow_of(prev)
     alive = np.ones(n, bool)
     alive[-5:] = False
     labels = moving_clusters({"gaussians": g}, jnp.asarray(alive), vms.astype(np.float32),
@@ -117,30 +130,11 @@ def test_moving_clusters_unite_spans_and_find_a_part_slower_than_the_floor():
     """The blob of the test above slides by 0.15 over 9 frames: under 1 px between consecutive frames, so the
     placement on consecutive pairs finds nothing; with the pairs 1, 2 and 4 frames apart as well (each span's
     selection united) it finds the blob and nothing else."""
-    rng = np.random.default_rng(0)
     n, w, h, frames = 200, 48, 36, 9
-    means = np.stack([rng.uniform(-1.0, 1.0, n), rng.uniform(0.4, 0.6, n), rng.uniform(-0.8, 0.8, n)], 1)
-    means[:30] = rng.normal([-0.1, -0.2, 0.1], 0.06, (30, 3))
-    quats = np.tile([1.0, 0, 0, 0], (n, 1))
-    scales = np.full((n, 3), 0.08)
-    opac = np.full(n, 0.9)
-    K = np.array([[45.0, 0, w / 2], [0, 45.0, h / 2], [0, 0, 1]])
-    times = np.linspace(0, 1, frames)
-    vms = np.stack([look_at(np.array([2.0 * np.sin(a), -2.0 * np.cos(a), 0.3]))
-                    for a in 0.4 * (np.arange(frames) / (frames - 1) - 0.5)])
-    at = [means + np.where(np.arange(n)[:, None] < 30, [0.15 * t, 0.0, 0.0], 0.0) for t in times]
-    g = Gaussians(means=jnp.asarray(means, jnp.float32), log_scales=jnp.log(jnp.asarray(scales, jnp.float32)),
-                  quats=jnp.asarray(quats, jnp.float32), opacity_logits=jnp.full((n,), 2.2, jnp.float32),
-                  sh=jnp.full((n, 1, 3), 0.5, jnp.float32))
+    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, shift=0.15)
     alive = jnp.ones(n, bool)
-    flows, prevs = [], []
-    for span in (1, 2, 4):
-        prev = previous_frames(times, span)
-        f = np.full((frames, h, w, 2), np.nan, np.float32)
-        for i in np.flatnonzero(prev >= 0):
-            f[i] = _pair_flow(at[prev[i]], at[i], quats, scales, opac, vms[prev[i]], vms[i], K, w, h)
-        flows.append(f)
-        prevs.append(prev)
+    prevs = [previous_frames(times, span) for span in (1, 2, 4)]
+    flows = [flow_of(prev) for prev in prevs]
     kw = dict(width=w, height=h, capacity=1 << 15)
     Ks = np.stack([K] * frames).astype(np.float32)
     one = moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows[0], prevs[0], **kw)

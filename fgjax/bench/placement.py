@@ -31,12 +31,12 @@ import numpy as np
 from fgjax import config as C
 from fgjax.bench.motion import part_gaussians
 from fgjax.data.loaders import load_scene
-from fgjax.data.opticalflow import estimate_flow
 from fgjax.geometry import viewmat_to_c2w
 from fgjax.io import atomic_write
 from fgjax.method import stage1
 from fgjax.method.bases_init import place_bases
 from fgjax.method.discover import camera_flow_from_depth
+from fgjax.method.flows import estimate_training_flows, previous_frames
 
 __all__ = ["main", "pixel_evidence", "placed_shares"]
 
@@ -53,13 +53,13 @@ def pixel_evidence(scene_dir: Path, span_sets: list[tuple[int, ...]], method: st
         raise ValueError(f"{gt / 'times.npy'} does not list the training frames in the order of the scene's")
     depth, oid, states = np.load(gt / "depth.npy"), np.load(gt / "object_id.npy"), np.load(gt / "states.npy")
     Ks, c2w = np.load(gt / "Ks.npy"), viewmat_to_c2w(np.load(gt / "viewmats_true.npy"))
-    imgs = (np.clip(np.asarray(sc.images), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     order = np.argsort(times, kind="stable")
     hits: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, int]] = {}
     for span in sorted({s for ss in span_sets for s in ss}):
-        for n in range(span, len(order)):
-            i, a = int(order[n]), int(order[n - span])
-            u = estimate_flow(imgs[a], imgs[i], method)
+        prev = previous_frames(sc.times, span)
+        flows = estimate_training_flows(sc, method, log=lambda *_: None, span=span)  # the placement's own flows
+        for i in np.flatnonzero(prev >= 0).tolist():
+            a, u = int(prev[i]), flows[i]
             u_cam, ok = camera_flow_from_depth(depth[a], Ks[a], c2w[a], c2w[i])
             ok = ok & (depth[a] > 0)
             hits[(span, a)] = ((np.linalg.norm(u - u_cam, axis=-1) > threshold_px) & ok, ok, i)

@@ -239,6 +239,9 @@ def validate_stage1(cfg: Config) -> None:
          "'field', or 'slot' with deform.kind = 'bases' and deform.init = 'flow'", f.weights)
     need(finite(f.gauge) and f.gauge >= 0, "deform.gauge", "a finite number >= 0", f.gauge)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
+    need(len(fl.spans) > 0 and min(fl.spans) >= 1 and len(set(fl.spans)) == len(fl.spans)
+         and (fl.loss == "pair" or tuple(fl.spans) == (1,)), "flow.spans",
+         "a list of distinct frame spans >= 1 (only [1] with flow.loss = 'track')", list(fl.spans))
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
          fl.gaussian_flow)
     need(fl.camera_depth in ("composited", "expected"), "flow.camera_depth", "'composited' or 'expected'",

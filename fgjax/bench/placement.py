@@ -13,7 +13,8 @@ viewmats_true.npy) and for each set of spans in ``--spans`` (sets separated by "
 - ``placed``: stage 1 of the configuration (``--config`` and ``--set``) trained to the end of its warm-up, then the
   placement: the share of each part's model Gaussians (`fgjax.bench.motion.part_gaussians`) that it frees (a
   moving cluster or DBSCAN's noise), the number of other Gaussians freed (``others``: the region a part sweeps, and
-  false positives) and the placement's time.
+  false positives) and the placement's time; with ``--shares``, for each ``deform.camera_share`` listed (the floor
+  growing with the camera flow, 1 px + share |u_cam|).
 
 Results: docs/benchmarks.md, "The placement's frame spans".
 """
@@ -83,8 +84,10 @@ def pixel_evidence(scene_dir: Path, span_sets: list[tuple[int, ...]], method: st
     return out
 
 
-def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...]]) -> tuple[list[dict], float]:
-    """The ``placed`` measurement (module docstring) for each set of spans, and the warm-up's time (s)."""
+def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...]],
+                  camera_shares: list[float] | None = None) -> tuple[list[dict], float]:
+    """The ``placed`` measurement (module docstring) for each set of spans and each ``deform.camera_share`` in
+    ``camera_shares`` (None: the configuration's), on one warm-up model; and the warm-up's time (s)."""
     scene = load_scene(scene_dir, "train")
     t0 = time.perf_counter()
     res = stage1.train_stage1(cfg, scene, None, stop_at=cfg.train.warmup_steps, progress=False, log=lambda *_: None)
@@ -97,13 +100,14 @@ def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...
     for p in parts:
         on_part[p] = True
     out = []
-    for spans in span_sets:
-        c2 = C.apply_overrides(cfg, [f"deform.spans={','.join(map(str, spans))}"])
+    for spans, share in ((a, b) for a in span_sets for b in camera_shares or [cfg.deform.camera_share]):
+        c2 = C.apply_overrides(cfg, [f"deform.spans={','.join(map(str, spans))}", f"deform.camera_share={share}"])
         t1 = time.perf_counter()
         _, labels = place_bases(c2, st.params, st.densify.alive, spec, scene, None, capacity=st.capacity,
                                 log=lambda *_: None)
         free = (labels >= 0) | ((labels == -1) & alive)
-        out.append({"spans": list(spans), "parts": [float(free[p].mean()) if len(p) else float("nan") for p in parts],
+        out.append({"spans": list(spans), "camera_share": share,
+                    "parts": [float(free[p].mean()) if len(p) else float("nan") for p in parts],
                     "others": int(np.sum(free & alive & ~on_part)), "clusters": int(labels.max()) + 1,
                     "seconds": time.perf_counter() - t1})
     return out, warm
@@ -123,12 +127,22 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="fgjax bench placement", description=__doc__.splitlines()[0])
     p.add_argument("--data", action="append", required=True, help="scene folder with gt/ (repeatable)")
     p.add_argument("--spans", default="1;1,2,4", help="sets of frame spans, ';'-separated (default: %(default)s)")
+    p.add_argument("--shares", default=None, help="deform.camera_share values of the placement, ';'-separated "
+                   "(default: the configuration's)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="named configuration (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     p.add_argument("--pixels-only", action="store_true", help="skip the warm-up and the placement")
     p.add_argument("--json", default=None, help="write the rows here too")
     args = p.parse_args(argv)
     span_sets = _spans(args.spans)
+    try:
+        shares = None if args.shares is None else [float(x) for x in args.shares.split(";") if x.strip()]
+    except ValueError:
+        shares = []
+    if shares is not None and (not shares or not all(np.isfinite(x) and x >= 0 for x in shares)):
+        print(f"fgjax bench placement: --shares must look like '0;0.1' (numbers >= 0); got {args.shares!r}",
+              file=sys.stderr)
+        return 2
     cfg = C.load_config(args.config, args.overrides)
     if not args.pixels_only and (cfg.deform.kind, cfg.deform.init) != ("bases", "flow"):
         print("fgjax bench placement: the placement needs deform.kind = 'bases' and deform.init = 'flow' (pass "
@@ -145,14 +159,15 @@ def main(argv: list[str] | None = None) -> int:
         row = {"data": str(scene_dir), "pixels": pixel_evidence(scene_dir, span_sets, cfg.flow.method)}
         row["pixels_seconds"] = time.perf_counter() - t0
         if not args.pixels_only:
-            row["placed"], row["warmup_seconds"] = placed_shares(cfg, scene_dir, span_sets)
+            row["placed"], row["warmup_seconds"] = placed_shares(cfg, scene_dir, span_sets, shares)
         rows.append(row)
         fmt = lambda xs: " ".join(f"{x:.2f}" for x in xs)
         print(f"{scene_dir}:")
         for e in row["pixels"]:
             print(f"  spans {','.join(map(str, e['spans'])):<8} pixels {fmt(e['parts'])} (static {e['static']:.3f})")
         for e in row.get("placed", []):
-            print(f"  spans {','.join(map(str, e['spans'])):<8} placed {fmt(e['parts'])} (others {e['others']}, "
+            print(f"  spans {','.join(map(str, e['spans'])):<8} share {e['camera_share']:<5g} placed {fmt(e['parts'])} "
+                  f"(others {e['others']}, "
                   f"{e['clusters']} clusters, {e['seconds']:.1f} s)")
         print(f"  time: pixels {row['pixels_seconds']:.1f} s"
               + (f", warm-up {row['warmup_seconds']:.1f} s" if "warmup_seconds" in row else ""), flush=True)

@@ -238,6 +238,8 @@ def validate_stage1(cfg: Config) -> None:
     need(f.weights == "field" or (f.weights == "slot" and f.kind == "bases" and f.init == "flow"), "deform.weights",
          "'field', or 'slot' with deform.kind = 'bases' and deform.init = 'flow'", f.weights)
     need(finite(f.gauge) and f.gauge >= 0, "deform.gauge", "a finite number >= 0", f.gauge)
+    need(finite(f.camera_share) and f.camera_share >= 0, "deform.camera_share", "a finite number >= 0",
+         f.camera_share)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(len(fl.spans) > 0 and min(fl.spans) >= 1 and len(set(fl.spans)) == len(fl.spans)
          and (fl.loss == "pair" or tuple(fl.spans) == (1,)), "flow.spans",

@@ -84,6 +84,11 @@ class DeformConfig:
     span's selection of moving Gaussians united: 1 is consecutive frames; a part that moves under the 1 px floor a
     frame shows over longer spans (`fgjax.method.bases_init`; docs/benchmarks.md, "The placement's frame
     spans")."""
+    camera_share: float = 0.0
+    """With init = "flow": the placement's moving-pixel floor grows with each pair's camera flow, 1 px +
+    camera_share |u_cam| (`fgjax.method.bases_init.moving_clusters`): the camera flow's error is the warm-up depth's
+    relative error times its parallax, so a moving camera, and a longer span, needs more evidence (0: a fixed
+    1 px; docs/benchmarks.md, "The placement's frame spans")."""
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""

@@ -54,7 +54,7 @@ __all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases"
 
 def moving_clusters(
     params, alive, viewmats, Ks, flows, prev, *, width: int, height: int, capacity: int,
-    background=(0.0, 0.0, 0.0), threshold_px: float = 1.0, min_fraction: float = 0.02,
+    background=(0.0, 0.0, 0.0), threshold_px: float = 1.0, camera_share: float = 0.0, min_fraction: float = 0.02,
 ) -> np.ndarray:
     """Label every Gaussian slot: -2 static, -1 dead or moving but DBSCAN noise, j >= 0 moving cluster j (the
     largest first), from the canonical Gaussians (``params["gaussians"]``, no deformation) and the training flows.
@@ -69,6 +69,9 @@ def moving_clusters(
         width, height, capacity, background: rendering of the canonical model's depth.
         threshold_px: a pixel moves where |u - u_cam| exceeds this many pixels. A fixed floor rather than each pair's
             Otsu threshold: a fast part's large residual puts Otsu's cut above a slow part's (`fgjax.method.discover`).
+        camera_share: the floor grows with the pair's camera flow, threshold_px + camera_share |u_cam| per pixel:
+            u_cam's error is the canonical depth's relative error times its parallax, and the optical flow's own
+            error grows with the displacement, so a moving camera needs more evidence than a still one.
         min_fraction: clusters smaller than this share of the moving Gaussians are noise.
     """
     sets = list(zip(flows, prev)) if isinstance(flows, list | tuple) else [(flows, prev)]
@@ -76,7 +79,8 @@ def moving_clusters(
     labels = np.where(alive_np, -2, -1).astype(np.int64)
     dyn = np.zeros_like(alive_np)
     for f, p in sets:
-        dyn |= _moving_gaussians(params, alive, viewmats, Ks, f, p, width, height, capacity, background, threshold_px)
+        dyn |= _moving_gaussians(params, alive, viewmats, Ks, f, p, width, height, capacity, background, threshold_px,
+                                 camera_share)
     dyn &= alive_np
     if dyn.sum() >= 2:
         labels[dyn] = cluster.cluster_dynamic(np.asarray(params["gaussians"].means)[dyn], auto_eps=True,
@@ -84,7 +88,8 @@ def moving_clusters(
     return labels
 
 
-def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, capacity, background, threshold_px):
+def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, capacity, background, threshold_px,
+                      camera_share=0.0):
     """[N] bool: `discover`'s dynamic Gaussians of one set of pairs (`moving_clusters`)."""
     pairs = [i for i in range(len(prev)) if prev[i] >= 0]
     if not pairs or not np.asarray(alive, bool).any():
@@ -107,8 +112,9 @@ def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, c
     u = np.nan_to_num(np.asarray(flows, np.float32)[pairs])
     found = discover(np.asarray(g.means), np.asarray(quats), np.asarray(scales), np.asarray(opac),
                      np.asarray(viewmats, np.float32)[src], np.asarray(Ks, np.float32)[src], u,
-                     np.stack(cam_flows), valid=np.stack(valid), threshold_px=threshold_px,
-                     capacity=capacity)
+                     np.stack(cam_flows), valid=np.stack(valid), capacity=capacity,
+                     threshold_px=threshold_px + camera_share * np.linalg.norm(np.stack(cam_flows), axis=-1)
+                     if camera_share > 0 else threshold_px)
     return np.asarray(found.dynamic, bool)
 
 
@@ -159,7 +165,8 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
     what that evidence says. Returns (params, labels) with the labels of `moving_clusters`."""
     prevs, sets = training_pairs(scene, cfg.flow.method, cfg.deform.spans, cache_dir, log=log, known=flows)
     labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, list(sets), list(prevs), width=scene.width,
-                             height=scene.height, capacity=capacity, background=tuple(cfg.model.background))
+                             height=scene.height, capacity=capacity, background=tuple(cfg.model.background),
+                             camera_share=cfg.deform.camera_share)
     sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
     target, weight = basis_targets(labels, spec.bases)
     free = (labels >= 0) | ((labels == -1) & np.asarray(alive, bool))

@@ -62,20 +62,21 @@ def residual_flow(
 
 def binarize(
     residual: Float[np.ndarray, "*T H W 2"],
-    threshold_px: float | Literal["otsu"] | None = "otsu",
+    threshold_px: float | Float[np.ndarray, "*T H W"] | Literal["otsu"] | None = "otsu",
     *,
     valid: Bool[np.ndarray, "*T H W"] | None = None,
     min_px: float = 0.5,
 ) -> Bool[np.ndarray, "*T H W"]:
     """Moving-pixel masks: |r| above a threshold, per frame.
 
-    The threshold is `threshold_px` pixels, or (``"otsu"`` / None) Otsu's threshold of the frame's
-    valid magnitudes, never below `min_px`: a frame where nothing moves has unimodal noise that
-    Otsu would still cut in two, and the floor keeps it empty.
+    The threshold is `threshold_px` pixels (one number, or one per pixel), or (``"otsu"`` / None)
+    Otsu's threshold of the frame's valid magnitudes, never below `min_px`: a frame where nothing
+    moves has unimodal noise that Otsu would still cut in two, and the floor keeps it empty.
 
     Args:
         residual: [H, W, 2] or [T, H, W, 2] residual flow.
-        threshold_px: pixels, or ``"otsu"`` (None means ``"otsu"``).
+        threshold_px: pixels (a number, or an array of the masks' shape), or ``"otsu"`` (None
+            means ``"otsu"``).
         valid: [H, W] or [T, H, W] pixels where the residual is defined (others are False);
             non-finite residuals are invalid too.
         min_px: floor of the Otsu threshold (pixels).
@@ -98,6 +99,12 @@ def binarize(
         ok &= v
     if threshold_px is None:
         threshold_px = "otsu"
+    if not isinstance(threshold_px, str) and np.ndim(threshold_px) > 0:
+        per_px = np.asarray(threshold_px, np.float64)
+        if per_px.shape != mag.shape[int(single):]:
+            raise ValueError(f"binarize: threshold_px must be a number or have shape {mag.shape[int(single):]}, "
+                             f"got {per_px.shape}")
+        threshold_px = per_px[None] if single else per_px
     out = np.zeros(mag.shape, bool)
     for t in range(len(mag)):
         if isinstance(threshold_px, str):
@@ -105,7 +112,7 @@ def binarize(
                 raise ValueError(f"binarize: threshold_px must be a number, 'otsu' or None, got {threshold_px!r}")
             thr = max(cluster.otsu_threshold(mag[t][ok[t]]), float(min_px))
         else:
-            thr = float(threshold_px)
+            thr = threshold_px[t] if np.ndim(threshold_px) else float(threshold_px)
         out[t] = ok[t] & (np.where(ok[t], mag[t], 0.0) > thr)
     return out[0] if single else out
 
@@ -263,7 +270,7 @@ def discover(
     camera_flows: Float[np.ndarray, "T H W 2"],
     *,
     valid: Bool[np.ndarray, "T H W"] | None = None,
-    threshold_px: float | Literal["otsu"] | None = "otsu",
+    threshold_px: float | Float[np.ndarray, "T H W"] | Literal["otsu"] | None = "otsu",
     min_px: float = 0.5,
     score_threshold: float | Literal["otsu"] = "otsu",
     min_score: float = 0.02,

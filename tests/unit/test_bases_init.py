@@ -145,6 +145,32 @@ def test_moving_clusters_unite_spans_and_find_a_part_slower_than_the_floor():
     assert np.mean(united[~blob] == -2) > 0.9 and np.sum(united == 0) <= 1.15 * np.sum(united[blob] == 0)
 
 
+def test_moving_clusters_floor_grows_with_the_camera_flow():
+    """The slow blob of the test above (spans 1, 2, 4) placed with a wrong canonical depth: the wall pushed 0.4 back
+    (about 16 %), so the camera flow u_cam it predicts misses the wall's true flow by more than the 1 px floor and a
+    third of the wall reads as moving. With the floor growing by a tenth of |u_cam| (``camera_share``) the wall is
+    static again and the blob still found; with the true depth the share costs the blob nothing."""
+    n, w, h, frames = 200, 48, 36, 9
+    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, shift=0.15)
+    prevs = [previous_frames(times, span) for span in (1, 2, 4)]
+    flows = [flow_of(prev) for prev in prevs]
+    blob = np.arange(n) < 30
+    kw = dict(width=w, height=h, capacity=1 << 15)
+    Ks = np.stack([K] * frames).astype(np.float32)
+    pushed = dataclasses.replace(g, means=g.means.at[30:, 1].add(0.4))
+
+    def moving(gs, share):
+        labels = moving_clusters({"gaussians": gs}, jnp.ones(n, bool), vms.astype(np.float32), Ks, flows, prevs,
+                                 camera_share=share, **kw)
+        return np.mean(labels[blob] != -2), np.mean(labels[~blob] != -2)
+
+    blob0, wall0 = moving(pushed, 0.0)
+    assert wall0 > 0.25 and blob0 < 0.7, (blob0, wall0)
+    blob1, wall1 = moving(pushed, 0.1)
+    assert wall1 < 0.08 and blob1 > 0.9, (blob1, wall1)
+    assert moving(g, 0.1)[0] > 0.95
+
+
 def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monkeypatch):
     """``deform.init = "flow"``: at the end of the warm-up stage 1 puts the moving Gaussians of a 64x48 synthetic
     scene (three parts) on moving bases and the rest on the static basis, and for ``deform.hold`` steps only the

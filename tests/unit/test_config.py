@@ -105,6 +105,8 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
                                           ("deform.weights=mlp", "deform.weights"),
                                           ("deform.spans=0,1", "deform.spans"), ("deform.spans=1,1", "deform.spans"),
                                           ("deform.spans=", "deform.spans"),
+                                          ("deform.camera_share=-0.1", "deform.camera_share"),
+                                          ("deform.camera_share=inf", "deform.camera_share"),
                                           ("flow.spans=0,1", "flow.spans"), ("flow.spans=2,2", "flow.spans"),
                                           ("flow.spans=1,2;flow.loss=track", "flow.spans"),
                                           ("deform.bases=1", "deform.bases"), ("deform.knots=1", "deform.knots"),

@@ -167,6 +167,13 @@ def test_residual_and_binarize():
     r2 = r[1].copy()
     r2[5, 6] = np.nan
     assert not D.binarize(r2)[5, 6]
+    # a threshold per pixel: 10 px over the object's left half hides it there, 1 px elsewhere
+    per_px = np.ones((3, 16, 20))
+    per_px[:, :, :7] = 10.0
+    np.testing.assert_array_equal(D.binarize(r, per_px), truth & (np.arange(20) >= 7))
+    np.testing.assert_array_equal(D.binarize(r[1], per_px[1]), truth[1] & (np.arange(20) >= 7))
+    with pytest.raises(ValueError, match=r"threshold_px must be a number or have shape \(3, 16, 20\)"):
+        D.binarize(r, per_px[0])
     with pytest.raises(ValueError, match="residual"):
         D.binarize(np.zeros((4, 4)))
     with pytest.raises(ValueError, match="camera_flow"):

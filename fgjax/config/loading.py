@@ -241,9 +241,6 @@ def validate_stage1(cfg: Config) -> None:
     need(finite(f.camera_share) and f.camera_share >= 0, "deform.camera_share", "a finite number >= 0",
          f.camera_share)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
-    need(len(fl.spans) > 0 and min(fl.spans) >= 1 and len(set(fl.spans)) == len(fl.spans)
-         and (fl.loss == "pair" or tuple(fl.spans) == (1,)), "flow.spans",
-         "a list of distinct frame spans >= 1 (only [1] with flow.loss = 'track')", list(fl.spans))
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
          fl.gaussian_flow)
     need(fl.camera_depth in ("composited", "expected"), "flow.camera_depth", "'composited' or 'expected'",

@@ -203,13 +203,8 @@ class FlowConfig:
     threshold: float = 0.5
     """"pair": flow-target magnitude threshold (pixels) below which motion counts as static; "track": residuals under
     this many pixels cost nothing (0: off)."""
-    spans: tuple[int, ...] = (1,)
-    """The frame spans (in time order) of the "pair" loss's pairs: 1 is consecutive frames (the paper); with more,
-    the training steps take the spans in turn (`fgjax.method.flows.training_pairs`), so that a part moving under a
-    pixel a frame gives a flow target above the flow estimate's noise over a longer span (docs/benchmarks.md,
-    "The flow loss's frame spans")."""
     loss: str = "pair"
-    """Which flow loss: "pair" is L_uGS of frame pairs ``spans`` apart (the paper; `fgjax.flow.gaussian_flow_loss`); "track"
+    """Which flow loss: "pair" is L_uGS of consecutive frames (the paper; `fgjax.flow.gaussian_flow_loss`); "track"
     is the first frame's pixels tracked by chaining the optical flow through the video (forward-backward checked)
     against the rendered correspondence of the Gaussians that paint them there (`fgjax.flow.track`): positions
     instead of velocities, no camera flow in the target."""

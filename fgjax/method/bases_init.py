@@ -45,7 +45,7 @@ from fgjax.config import Config
 from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
 from fgjax.method.discover import camera_flow_from_depth, discover
-from fgjax.method.flows import training_pairs
+from fgjax.method.flows import estimate_training_flows, previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits
 from fgjax.models.model import render_params
 
@@ -160,12 +160,15 @@ def fit_basis_logits(spec: DeformSpec, deform_params, x, target, weight, *, step
 def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None, *, capacity: int, cache_dir=None,
                 log=print):
     """Steps 1-3 of the module docstring on a stage-1 model at the end of its warm-up; returns the new params.
-    ``flows``: the pair flows at hand by span, {span: [T, H, W, 2]} (`fgjax.method.flows.training_pairs`; the
-    others estimated, cached in ``cache_dir``). Where the flow shows no moving cluster every live Gaussian goes to the static basis, which is
+    ``flows``: the pair flows of `fgjax.method.flows.estimate_training_flows` (None: estimated, cached in
+    ``cache_dir``). Where the flow shows no moving cluster every live Gaussian goes to the static basis, which is
     what that evidence says. Returns (params, labels) with the labels of `moving_clusters`."""
-    prevs, sets = training_pairs(scene, cfg.flow.method, cfg.deform.spans, cache_dir, log=log, known=flows)
-    labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, list(sets), list(prevs), width=scene.width,
-                             height=scene.height, capacity=capacity, background=tuple(cfg.model.background),
+    spans = cfg.deform.spans  # span 1 can use the given flows
+    sets = [flows if s == 1 and flows is not None else
+            estimate_training_flows(scene, cfg.flow.method, cache_dir, log=log, span=s) for s in spans]
+    labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, sets,
+                             [previous_frames(scene.times, s) for s in spans], width=scene.width, height=scene.height,
+                             capacity=capacity, background=tuple(cfg.model.background),
                              camera_share=cfg.deform.camera_share)
     sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
     target, weight = basis_targets(labels, spec.bases)

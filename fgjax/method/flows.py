@@ -12,7 +12,7 @@ import numpy as np
 
 from fgjax.data.opticalflow import chained_tracks, estimate_flow, forward_backward_mask
 
-__all__ = ["previous_frames", "estimate_training_flows", "training_pairs", "training_tracks"]
+__all__ = ["previous_frames", "estimate_training_flows", "training_tracks"]
 
 
 def previous_frames(times: np.ndarray, span: int = 1) -> np.ndarray:
@@ -43,24 +43,6 @@ def estimate_training_flows(scene, method: str = "dis_deepflow", cache_dir: str 
     log(f"optical flow ({method}{', backward' if backward else ''}{f', span {span}' if span > 1 else ''}): "
         f"{int(np.sum(prev >= 0))} pairs in {time.time() - t0:.1f} s")
     return out
-
-
-def training_pairs(scene, method: str = "dis_deepflow", spans=(1,), cache_dir: str | Path | None = None, log=print,
-                   known: dict[int, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The frame pairs of L_uGS (``flow.loss = "pair"``) and of the bases' placement, one set per frame span in
-    ``spans``: (previous [S, T] int64, row s the frame ``spans[s]`` frames earlier in time than each frame, -1 for
-    the first ``spans[s]``: `previous_frames`; flows [S, T, H, W, 2] float32, the observed flow from that frame
-    into each frame on the earlier frame's grid, NaN where unknown: `estimate_training_flows`, cached under
-    `cache_dir`). ``known``: flows already at hand by span ({1: flows} for ``train_stage1(flows=...)``), each
-    [T, H, W, 2]; a ValueError names a wrong shape."""
-    shape = (scene.num_frames, scene.height, scene.width, 2)
-    known = {} if known is None else known
-    for s, f in known.items():
-        if np.shape(f) != shape:
-            raise ValueError(f"flows of span {s} must have shape {list(shape)}; got {list(np.shape(f))}")
-    flows = [np.asarray(known[s], np.float32) if s in known else
-             estimate_training_flows(scene, method, cache_dir, log=log, span=s) for s in spans]
-    return np.stack([previous_frames(scene.times, s) for s in spans]), np.stack(flows)
 
 
 def training_tracks(scene, method: str = "dis_deepflow", cache_dir: str | Path | None = None,

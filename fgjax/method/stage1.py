@@ -39,7 +39,7 @@ from fgjax.geometry import matmul, se3_exp
 from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
 from fgjax.method.bases_init import place_bases, static_points
-from fgjax.method.flows import estimate_training_flows, previous_frames, training_pairs, training_tracks
+from fgjax.method.flows import estimate_training_flows, previous_frames, training_tracks
 from fgjax.method.init_points import (
     depth_point_cloud,
     first_view_colors,
@@ -321,13 +321,11 @@ def compute_capacity(params, alive, viewmats, Ks, width, height, tile_size, marg
     return round_capacity(int(worst * margin) + 1024)
 
 
-def _flow_batch(idx: np.ndarray, prev: np.ndarray, flows: np.ndarray, viewmats, times, Ks, step: int = 0) -> FlowBatch:
-    """The flow pairs of frames ``idx`` [B] from ``prev`` [S, T], ``flows`` [S, T, H, W, 2] (`training_pairs`)."""
-    row = (step * len(idx) + np.arange(len(idx))) % len(prev)  # item b reads span row (step B + b) mod S: turns
-    p = prev[row, idx]
+def _flow_batch(idx: np.ndarray, prev: np.ndarray, flows: np.ndarray, viewmats, times, Ks) -> FlowBatch:
+    p = prev[idx]
     has = p >= 0
     pi = np.where(has, p, idx)
-    return FlowBatch(flows[row, idx], viewmats[pi], times[pi], pi.astype(np.int32), has.astype(np.float32), Ks[pi])
+    return FlowBatch(flows[idx], viewmats[pi], times[pi], pi.astype(np.int32), has.astype(np.float32), Ks[pi])
 
 
 def _mesh_shardings(batch: int, devices=None):
@@ -446,9 +444,9 @@ def train_stage1(
         stop_at: stop (and checkpoint) after this step, as if interrupted (tests).
         devices: devices of the data-parallel mesh over cameras (default all; used when there are >= 2
             and train.batch_size is a multiple of their number).
-        flows: observed optical flow into each frame from its predecessor in time (span 1 of ``flow.spans``),
-            [T, H, W, 2] on the predecessor's grid (NaN = unknown), for the flow loss (flow.enabled and flow.weight
-            > 0); None, and the other spans: estimated with ``flow.method`` (cached under out_dir/flow_cache).
+        flows: observed optical flow into each frame from its predecessor in time, [T, H, W, 2] on the
+            predecessor's grid (NaN = unknown), for the flow loss (flow.enabled and flow.weight > 0);
+            None: estimated with ``flow.method`` (cached under out_dir/flow_cache).
         monitor: called as monitor(step, state, spec) every ``train.log_every`` steps and at the end (after the
             losses are synced); it must not modify the state (`fgjax bench motion --train` records the learned
             motion with it).
@@ -483,21 +481,24 @@ def train_stage1(
         state.params, state.opt_state, state.densify = jax.device_put(
             (state.params, state.opt_state, state.densify), repl_sh)
     steps_cache: dict[StepSpec, Any] = {}
-    fc, cache = cfg.flow, None if out is None else out / "flow_cache"
+    fc = cfg.flow
     use_flow = fc.enabled and fc.weight > 0
-    prev, known = previous_frames(times)[None], {}  # [S, T]: a row per frame span (`training_pairs`)
+    prev = previous_frames(times)
     if use_flow and fc.loss == "track":
         if flows is not None:
             raise ValueError("train_stage1(flows=...) is the pair loss's input; flow.loss = 'track' makes its own tracks")
-        prev, flows = (x[None] for x in training_tracks(scene, fc.method, cache, log=log))
-    elif use_flow:
-        prev, flows = training_pairs(scene, fc.method, fc.spans, cache, log=log, known=None if flows is None else {1: flows})
-        known = dict(zip(fc.spans, flows))  # the placement's spans among them are not estimated twice
+        prev, flows = training_tracks(scene, fc.method, None if out is None else out / "flow_cache", log=log)
+    elif use_flow and flows is None:
+        flows = estimate_training_flows(scene, fc.method, None if out is None else out / "flow_cache", log=log)
     depths = depths_lo = None
     if t.depth_weight > 0 and scene.depths is None:
         log(f"train.depth_weight = {t.depth_weight}: the scene has no depth maps; training without the depth term")
     elif t.depth_weight > 0:
         depths = np.where(np.isfinite(scene.depths) & (scene.depths > 0), scene.depths, 0.0).astype(np.float32)
+    if use_flow:
+        flows = np.asarray(flows, np.float32)
+        if flows.shape != (scene.num_frames, h, w, 2):
+            raise ValueError(f"flows must have shape [{scene.num_frames}, {h}, {w}, 2]; got {list(flows.shape)}")
 
     # coarse-to-fine: the first `train.coarse_to_fine` steps see 2x2-averaged images and halved intrinsics
     # (pixel centres at +0.5 map exactly: new pixel j covers old pixels 2j, 2j + 1)
@@ -554,14 +555,17 @@ def train_stage1(
         s = state.step
         if state.static is None and s >= t.warmup_steps:
             if cfg.static.detect:
-                state.static, score = detect_static(state.params, state.densify.alive, scene, cfg, state.capacity, cache)
+                state.static, score = detect_static(state.params, state.densify.alive, scene, cfg, state.capacity,
+                                                     None if out is None else out / "flow_cache")
                 log(f"static-scene check after warm-up: score {score:.4f} (threshold {cfg.static.threshold}) -> "
                     + ("static: training without the deformation field" if state.static else "dynamic"))
             else:
                 state.static = False
         if s == t.warmup_steps and not state.static and placed:
-            state.params, labels = place_bases(cfg, state.params, state.densify.alive, spec, scene, known,
-                                               capacity=state.capacity, cache_dir=cache, log=log)
+            state.params, labels = place_bases(cfg, state.params, state.densify.alive, spec, scene,
+                                               flows if use_flow and fc.loss == "pair" else None,
+                                               capacity=state.capacity,
+                                               cache_dir=None if out is None else out / "flow_cache", log=log)
             if state.static_points is not None:
                 state.static_points = static_points(state.params["gaussians"].means, labels,
                                                     len(state.static_points), cfg.model.seed)
@@ -581,7 +585,7 @@ def train_stage1(
         batch = ((images_lo if lo else images)[idx], viewmats[idx], (Ks_lo if lo else Ks)[idx], times[idx],
                  idx.astype(np.int32))
         if flow_on:
-            batch = (*batch, _flow_batch(idx, prev, flows, viewmats, times, Ks, s))
+            batch = (*batch, _flow_batch(idx, prev, flows, viewmats, times, Ks))
         dbatch = None if depths is None else (depths_lo if lo else depths)[idx]
         if batch_sh is not None:
             batch, dbatch = jax.device_put((batch, dbatch), batch_sh)

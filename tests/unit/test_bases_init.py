@@ -265,21 +265,18 @@ def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkey
     scene = load_scene(tmp_path / "scene", "train")
     quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
     over = ["train.steps=40", "train.warmup_steps=30", "densify.start=30", "train.video_frames=0", "deform.kind=bases",
-            "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10", "deform.spans=1,2",
-            "flow.enabled=true", "flow.spans=2,1", "flow.start=39", "flow.method=dis"]
-    placed, logs = [], []
+            "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10", "deform.spans=1,2"]
+    placed = []
     place = stage1.place_bases
 
-    def place_and_keep(cfg, params, alive, spec, scene, known, **kwargs):
-        assert sorted(known) == [1, 2]  # the flow loss's pairs, handed to the placement
-        new, labels = place(cfg, params, alive, spec, scene, known, **kwargs)
+    def place_and_keep(cfg, params, alive, *args, **kwargs):
+        new, labels = place(cfg, params, alive, *args, **kwargs)
         placed.append((jax.tree_util.tree_map(np.array, new["deform"]["slots"]), labels, np.array(alive)))
         return new, labels
 
     monkeypatch.setattr(stage1, "place_bases", place_and_keep)
-    res = stage1.train_stage1(C.load_config(quick, over), scene, None, progress=False, log=logs.append)
+    res = stage1.train_stage1(C.load_config(quick, over), scene, None, progress=False, log=lambda *_: None)
     (slots0, labels, alive0), = placed
-    assert sum("optical flow" in m for m in logs) == 2  # spans 1 and 2, each estimated once
     st, spec = res["state"], res["spec"]
     assert spec.weights == "slot" and st.static_points is None and "grid" not in st.params["deform"]
     free0 = slots0["free"] > 0.5

@@ -259,8 +259,7 @@ def _flow_inputs(scene, cfg, frame=3):
     flows = np.full((scene.num_frames, scene.height, scene.width, 2), np.nan, np.float32)
     flows[1:] = np.array([1.5, -0.5], np.float32)  # a constant observed flow: the target is not zero
     f32 = lambda x: np.asarray(x, np.float32)
-    fb = stage1._flow_batch(np.array([frame]), prev[None], flows[None], f32(scene.viewmats), f32(scene.times),
-                            f32(scene.Ks))
+    fb = stage1._flow_batch(np.array([frame]), prev, flows, f32(scene.viewmats), f32(scene.times), f32(scene.Ks))
     fb = stage1.FlowBatch(*(jnp.asarray(x)[0] for x in fb))
     return state, spec, fb
 
@@ -310,13 +309,7 @@ def test_training_step_with_flow_loss_runs():
     g = res["state"].params["gaussians"]
     assert np.all(np.isfinite(np.asarray(g.means)))
     assert np.abs(np.asarray(res["state"].params["deform"]["head"]["w"])).max() > 0  # the field was updated
-    # flow.spans = 1, 2: step 0 reads span 1 (the given flows, as above), step 1 span 2 (estimated)
-    logs = []
-    two = stage1.train_stage1(C.apply_overrides(cfg, ["flow.spans=1,2", "flow.method=dis"]), scene, None, stop_at=2,
-                              progress=False, log=logs.append, flows=flows)
-    assert two["losses"][0] == res["losses"][0] and two["losses"][1] != res["losses"][1]
-    assert np.all(np.isfinite(two["losses"])) and sum("span 2" in m for m in logs) == 1
-    with pytest.raises(ValueError, match=r"flows of span 1 must have shape \[6, 24, 32, 2\]"):
+    with pytest.raises(ValueError, match="flows must have shape"):
         stage1.train_stage1(cfg, scene, None, stop_at=1, progress=False, log=lambda *_: None, flows=flows[1:])
 
 
@@ -343,37 +336,6 @@ def test_training_with_the_track_loss_runs_and_tracks_from_the_first_frame(tmp_p
     with pytest.raises(ValueError, match="makes its own tracks"):
         stage1.train_stage1(cfg, scene, None, stop_at=1, progress=False, log=lambda *_: None,
                             flows=np.zeros((4, 32, 48, 2), np.float32))
-
-
-def test_flow_pairs_by_span_and_the_batches_take_the_spans_in_turn(tmp_path):
-    """``flow.spans``: one row of pairs per span (the earlier frame ``span`` frames back in time, its flow into the
-    frame), flows at hand reused and not estimated, and batch items reading the span rows in turn."""
-    scene = _tiny_scene(True, frames=5, w=48, h=32)
-    order = np.array([3, 0, 4, 1, 2])  # time order differs from file order
-    scene = dataclasses.replace(scene, times=np.linspace(0, 1, 5)[np.argsort(order)])
-    given = np.full((5, 32, 48, 2), 7.0, np.float32)
-    logs = []
-    prev, flows = stage1.training_pairs(scene, "dis", (1, 3), tmp_path / "c", log=logs.append, known={1: given})
-    assert prev.shape == (2, 5) and flows.shape == (2, 5, 32, 48, 2)
-    np.testing.assert_array_equal(prev[1][order], [-1, -1, -1, order[0], order[1]])
-    np.testing.assert_array_equal(prev[0], stage1.previous_frames(scene.times))
-    np.testing.assert_array_equal(flows[0], given)  # span 1's flows at hand, not estimated
-    assert len(logs) == 1 and "span 3" in logs[0]
-    np.testing.assert_array_equal(flows[1], stage1.estimate_training_flows(scene, "dis", tmp_path / "c", span=3,
-                                                                           log=lambda *_: None))
-    f32 = lambda x: np.asarray(x, np.float32)
-    late = int(order[4])
-    for step, row in ((0, 0), (1, 1), (2, 0)):  # one frame a batch: the spans alternate by step
-        fb = stage1._flow_batch(np.array([late]), prev, flows, f32(scene.viewmats), f32(scene.times), f32(scene.Ks),
-                                step)
-        assert fb.idx_prev[0] == prev[row, late] and fb.weight[0] == 1.0
-        np.testing.assert_array_equal(fb.flow[0], flows[row, late])
-        np.testing.assert_array_equal(fb.viewmat_prev[0], f32(scene.viewmats)[prev[row, late]])
-    fb = stage1._flow_batch(np.array([late, order[1]]), prev, flows, f32(scene.viewmats), f32(scene.times),
-                            f32(scene.Ks), 0)  # two a batch: item 1 reads span 3, where order[1] has no pair
-    assert fb.idx_prev.tolist() == [prev[0, late], order[1]] and fb.weight.tolist() == [1.0, 0.0]
-    with pytest.raises(ValueError, match=r"flows of span 1 must have shape \[5, 32, 48, 2\]; got \[5, 32, 48\]"):
-        stage1.training_pairs(scene, "dis", (1,), known={1: given[..., 0]})
 
 
 def test_training_flows_from_opencv_are_cached(tmp_path):

@@ -87,8 +87,9 @@ class DeformConfig:
     camera_share: float = 0.0
     """With init = "flow": the placement's moving-pixel floor grows with each pair's camera flow, 1 px +
     camera_share |u_cam| (`fgjax.method.bases_init.moving_clusters`): the camera flow's error is the warm-up depth's
-    relative error times its parallax, so a moving camera, and a longer span, needs more evidence (0: a fixed
-    1 px; docs/benchmarks.md, "The placement's frame spans")."""
+    relative error times its parallax, so a moving camera, and a longer span, needs more evidence. 0: a fixed 1 px;
+    with spans 1, 2, 4 the family's tuning seeds choose 0.2 (docs/benchmarks.md, "A floor that grows with the camera
+    flow")."""
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""

@@ -16,7 +16,7 @@ viewmats_true.npy) and for each set of spans in ``--spans`` (sets separated by "
   false positives) and the placement's time; with ``--shares``, for each ``deform.camera_share`` listed (the floor
   growing with the camera flow, 1 px + share |u_cam|).
 
-Results: docs/benchmarks.md, "The placement's frame spans".
+Results: docs/benchmarks.md, "The placement's frame spans" and "A floor that grows with the camera flow".
 """
 
 from __future__ import annotations
@@ -167,8 +167,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  spans {','.join(map(str, e['spans'])):<8} pixels {fmt(e['parts'])} (static {e['static']:.3f})")
         for e in row.get("placed", []):
             print(f"  spans {','.join(map(str, e['spans'])):<8} share {e['camera_share']:<5g} placed {fmt(e['parts'])} "
-                  f"(others {e['others']}, "
-                  f"{e['clusters']} clusters, {e['seconds']:.1f} s)")
+                  f"(others {e['others']}, {e['clusters']} clusters, {e['seconds']:.1f} s)")
         print(f"  time: pixels {row['pixels_seconds']:.1f} s"
               + (f", warm-up {row['warmup_seconds']:.1f} s" if "warmup_seconds" in row else ""), flush=True)
     if args.json:

@@ -110,10 +110,11 @@ def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, c
         valid.append(ok & (np.asarray(alpha) >= 0.5) & np.all(np.isfinite(flows[i]), axis=-1))
     src = [int(prev[i]) for i in pairs]
     u = np.nan_to_num(np.asarray(flows, np.float32)[pairs])
+    cams = np.stack(cam_flows)
     found = discover(np.asarray(g.means), np.asarray(quats), np.asarray(scales), np.asarray(opac),
-                     np.asarray(viewmats, np.float32)[src], np.asarray(Ks, np.float32)[src], u,
-                     np.stack(cam_flows), valid=np.stack(valid), capacity=capacity,
-                     threshold_px=threshold_px + camera_share * np.linalg.norm(np.stack(cam_flows), axis=-1)
+                     np.asarray(viewmats, np.float32)[src], np.asarray(Ks, np.float32)[src], u, cams,
+                     valid=np.stack(valid), capacity=capacity,
+                     threshold_px=threshold_px + camera_share * np.linalg.norm(cams, axis=-1)
                      if camera_share > 0 else threshold_px)
     return np.asarray(found.dynamic, bool)
 

@@ -4,6 +4,7 @@ truth allows, and bad input is one line before any work."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -90,3 +91,22 @@ def test_real_configuration_loads():
     cfg = load_config(REPO / "experiments" / "real.toml")
     assert cfg.stage2.variant == "paper" and cfg.stage2.camera_correction == "on" and cfg.model.sh_degree == 1
     assert cfg.train.steps <= 2000
+
+
+def test_real_configurations_differ_only_in_the_stage1_motion():
+    """experiments/real.toml (motion bases placed from the flow, the flow loss on) and real_hash.toml (the hash
+    deformation field) are compared clip by clip in docs/benchmarks.md ("Real captures"): everything but the motion
+    model, its learning rates, its warm-up and its losses must be the same for the comparison to mean anything."""
+    bases, hashed = (load_config(REPO / "experiments" / f"{n}.toml") for n in ("real", "real_hash"))
+    assert (bases.deform.kind, bases.deform.init, bases.flow.enabled) == ("bases", "flow", True)
+    assert (hashed.deform.kind, hashed.flow.enabled) == ("hash", False)
+    motion = {"deform": {"kind", "init", "weights"}, "flow": {"enabled", "norm", "start"},
+              "train": {"warmup_steps", "lr_deform", "lr_deform_final", "rigid_weight"}}
+    for section in dataclasses.fields(bases):
+        a, b = getattr(bases, section.name), getattr(hashed, section.name)
+        if not dataclasses.is_dataclass(a):
+            assert a == b, section.name
+            continue
+        for key in dataclasses.fields(a):
+            if key.name not in motion.get(section.name, set()):
+                assert getattr(a, key.name) == getattr(b, key.name), f"{section.name}.{key.name}"

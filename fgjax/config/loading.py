@@ -230,6 +230,7 @@ def validate_stage1(cfg: Config) -> None:
     need(finite(fl.weight) and fl.weight >= 0, "flow.weight", ">= 0", fl.weight)
     need(finite(fl.threshold) and fl.threshold >= 0, "flow.threshold", ">= 0", fl.threshold)
     need(fl.start >= 0, "flow.start", ">= 0", fl.start)
+    need(fl.photo_motion_start >= 0, "flow.photo_motion_start", ">= 0", fl.photo_motion_start)
     need(f.anchor in ("none", "first"), "deform.anchor", "'none' or 'first'", f.anchor)
     need(f.init in ("random", "flow"), "deform.init", "'random' or 'flow'", f.init)
     need(f.hold >= 0, "deform.hold", ">= 0", f.hold)

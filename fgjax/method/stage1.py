@@ -1,12 +1,11 @@
 """Stage 1: deformable 4D Gaussian training (DESIGN.md section 1, step 1).
 
 Library entry points: ``train_stage1(cfg, scene, out_dir, ...)``, and ``run(cfg, data_dir, out)`` which loads the
-scene, trains, evaluates and writes the run folder (``fgjax train``). One jitted step renders a batch of
-training cameras (one by one on one device; vmapped and data-parallel over a ``jax.sharding`` mesh when
-several devices exist),
-with the deformation field applied (or not: the warm-up and a detected static scene use a separately
-traced step without it, so they pay nothing for it), and applies one optax update. Densification runs
-between steps over fixed-capacity arrays. Checkpoints hold everything needed to resume bit-for-bit.
+scene, trains, evaluates and writes the run folder (``fgjax train``). One jitted step renders a batch of training
+cameras (one by one on one device; vmapped and data-parallel over a ``jax.sharding`` mesh when several devices
+exist), with the deformation field applied (or not: the warm-up and a detected static scene use a separately traced
+step without it, so they pay nothing for it), and applies one optax update. Densification runs between steps over
+fixed-capacity arrays. Checkpoints hold everything needed to resume bit-for-bit.
 """
 
 from __future__ import annotations
@@ -514,14 +513,14 @@ def train_stage1(
         log(f"coarse-to-fine skipped: {w}x{h} images are too small to halve")
 
     def get_step(use_deform: bool, sh_deg: int, flow_on: bool = False, lo: bool = False, freeze: bool = False,
-                 hold: bool = False):
+                 hold: bool = False, photo: float = 1.0):  # photo: the photometric share of the motion
         sw, sh_ = (w2, h2) if lo else (w, h)
         ss = StepSpec(spec if use_deform else None, sh_deg, sw, sh_, state.capacity, t.tile_size, t.lambda_dssim,
                       t.scale_reg, t.scale_reg_max, "pose" in state.params,
                       fc.weight if flow_on else 0.0, fc.threshold if flow_on else 0.0,
                       t.rigid_weight if use_deform else 0.0, t.rigid_scale_weight if use_deform else 0.0,
                       t.rigid_cap if use_deform else 0.0, freeze, batch_sh is not None,
-                      fc.photo_motion if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth,
+                      photo if flow_on else 1.0, fc.loss, fc.gaussian_flow, fc.camera_depth,
                       t.depth_weight if depths is not None else 0.0, fc.norm, fc.charbonnier_px, hold,
                       cfg.deform.gauge if use_deform and state.static_points is not None else 0.0)
         if ss not in steps_cache:
@@ -577,7 +576,8 @@ def train_stage1(
         flow_on = use_flow and use_deform and s >= fc.start and not lo
         freeze = use_deform and s < t.warmup_steps + t.field_only_steps
         hold = use_deform and placed and s < t.warmup_steps + cfg.deform.hold  # placed weights stay, motions fit
-        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze, hold)
+        photo = fc.photo_motion if s >= fc.photo_motion_start else 0.0  # flow.photo_motion_start
+        step_fn = get_step(use_deform, cfg.model.sh_degree, flow_on, lo, freeze, hold, photo)
         sh_mask = active_sh_mask(active_sh_degree(s, t.sh_increase_every, cfg.model.sh_degree), cfg.model.sh_degree)
         window = (time_window(s, times, t.warmup_steps, t.time_curriculum, t.time_window_start)
                   if t.time_curriculum > 0 else None)

@@ -98,6 +98,7 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
 
 
 @pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"), ("flow.photo_motion=1.5", "flow.photo_motion"),
+                                          ("flow.photo_motion_start=-1", "flow.photo_motion_start"),
                                           ("deform.anchor=last", "deform.anchor"), ("deform.kind=mlp", "deform.kind"),
                                           ("deform.init=tracks", "deform.init"), ("deform.hold=-1", "deform.hold"),
                                           ("deform.gauge=-1", "deform.gauge"), ("deform.gauge=nan", "deform.gauge"),

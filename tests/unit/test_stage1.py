@@ -295,7 +295,7 @@ def test_flow_loss_is_finite_and_reaches_the_deformation(gaussian_flow, camera_d
     assert np.all(np.isfinite(np.asarray(gc["deform"]["head"]["w"]))) and np.abs(gc["deform"]["head"]["w"]).max() > 0
 
 
-def test_training_step_with_flow_loss_runs():
+def test_training_step_with_flow_loss_runs(monkeypatch):
     scene = _tiny_scene(True)
     flows = np.full((scene.num_frames, scene.height, scene.width, 2), np.nan, np.float32)
     flows[1:] = 0.5
@@ -306,6 +306,17 @@ def test_training_step_with_flow_loss_runs():
     charb = stage1.train_stage1(dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, norm="charbonnier")), scene,
                                 None, stop_at=3, progress=False, log=lambda *_: None, flows=flows)
     assert np.all(np.isfinite(charb["losses"])) and charb["losses"] != res["losses"]  # the option reaches the step
+    # flow.photo_motion_start: the photometric share of the motion is 0 before that step, flow.photo_motion from it
+    shares, make = [], stage1.make_step
+
+    def recording(ss, *a, **k):
+        fn = make(ss, *a, **k)
+        return lambda *b, **kw: shares.append(ss.photo_motion) or fn(*b, **kw)
+
+    monkeypatch.setattr(stage1, "make_step", recording)
+    late = dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, photo_motion=0.5, photo_motion_start=2))
+    stage1.train_stage1(late, scene, None, stop_at=4, progress=False, log=lambda *_: None, flows=flows)
+    assert shares == [0.0, 0.0, 0.5, 0.5], shares
     g = res["state"].params["gaussians"]
     assert np.all(np.isfinite(np.asarray(g.means)))
     assert np.abs(np.asarray(res["state"].params["deform"]["head"]["w"])).max() > 0  # the field was updated

@@ -233,7 +233,8 @@ class FlowConfig:
     are and pulls a part back from the motion the flow loss gives it (docs/benchmarks.md, "Do the parts move?")."""
     photo_motion_start: int = 0
     """First step at which ``photo_motion`` applies; before it, with the flow loss on, the factor is 0 (the flow loss
-    alone trains the motion). 0: ``photo_motion`` from the flow loss's first step."""
+    alone trains the motion). 0: ``photo_motion`` from the flow loss's first step (docs/benchmarks.md, "The
+    photometric share of the motion from mid-way")."""
     start: int = 1000
     """First step with the flow loss (it also needs the deformation field on, i.e. after the warm-up).
     Training flows come from ``method`` (OpenCV, cached under RUN/flow_cache) unless passed to

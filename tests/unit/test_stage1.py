@@ -306,6 +306,11 @@ def test_training_step_with_flow_loss_runs(monkeypatch):
     charb = stage1.train_stage1(dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, norm="charbonnier")), scene,
                                 None, stop_at=3, progress=False, log=lambda *_: None, flows=flows)
     assert np.all(np.isfinite(charb["losses"])) and charb["losses"] != res["losses"]  # the option reaches the step
+    g = res["state"].params["gaussians"]
+    assert np.all(np.isfinite(np.asarray(g.means)))
+    assert np.abs(np.asarray(res["state"].params["deform"]["head"]["w"])).max() > 0  # the field was updated
+    with pytest.raises(ValueError, match="flows must have shape"):
+        stage1.train_stage1(cfg, scene, None, stop_at=1, progress=False, log=lambda *_: None, flows=flows[1:])
     # flow.photo_motion_start: the photometric share of the motion is 0 before that step, flow.photo_motion from it
     shares, make = [], stage1.make_step
 
@@ -317,11 +322,6 @@ def test_training_step_with_flow_loss_runs(monkeypatch):
     late = dataclasses.replace(cfg, flow=dataclasses.replace(cfg.flow, photo_motion=0.5, photo_motion_start=2))
     stage1.train_stage1(late, scene, None, stop_at=4, progress=False, log=lambda *_: None, flows=flows)
     assert shares == [0.0, 0.0, 0.5, 0.5], shares
-    g = res["state"].params["gaussians"]
-    assert np.all(np.isfinite(np.asarray(g.means)))
-    assert np.abs(np.asarray(res["state"].params["deform"]["head"]["w"])).max() > 0  # the field was updated
-    with pytest.raises(ValueError, match="flows must have shape"):
-        stage1.train_stage1(cfg, scene, None, stop_at=1, progress=False, log=lambda *_: None, flows=flows[1:])
 
 
 def test_training_with_the_track_loss_runs_and_tracks_from_the_first_frame(tmp_path):

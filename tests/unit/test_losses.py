@@ -9,7 +9,13 @@ import pytest
 
 from fgjax.gaussians import knn_graph
 from fgjax.geometry import so3_exp
-from fgjax.train.losses import depth_loss, isometry_loss, photometric_loss, rigid_drift_loss, scale_regularizer
+from fgjax.train.losses import (
+    depth_loss,
+    isometry_loss,
+    photometric_loss,
+    rigid_drift_loss,
+    scale_regularizer,
+)
 
 
 def _cloud(seed=0, n=60):

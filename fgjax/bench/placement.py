@@ -14,7 +14,9 @@ viewmats_true.npy) and for each set of spans in ``--spans`` (sets separated by "
   placement: the share of each part's model Gaussians (`fgjax.bench.motion.part_gaussians`) that it frees (a
   moving cluster or DBSCAN's noise), the number of other Gaussians freed (``others``: the region a part sweeps, and
   false positives) and the placement's time; with ``--shares``, for each ``deform.camera_share`` listed (the floor
-  growing with the camera flow, 1 px + share |u_cam|).
+  growing with the camera flow, 1 px + share |u_cam|). Beside it, per part, the moving cluster that holds most of
+  its Gaussians and their share in it (`part_clusters`): two parts with the same cluster share one basis, which one
+  rigid motion cannot fit.
 
 Results: docs/benchmarks.md, "The placement's frame spans" and "A floor that grows with the camera flow".
 """
@@ -39,7 +41,7 @@ from fgjax.method.bases_init import place_bases
 from fgjax.method.discover import camera_flow_from_depth
 from fgjax.method.flows import estimate_training_flows, previous_frames
 
-__all__ = ["main", "pixel_evidence", "placed_shares"]
+__all__ = ["main", "part_clusters", "pixel_evidence", "placed_shares"]
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "experiments" / "family.toml"
 
@@ -84,6 +86,25 @@ def pixel_evidence(scene_dir: Path, span_sets: list[tuple[int, ...]], method: st
     return out
 
 
+def part_clusters(labels: np.ndarray, parts: list[np.ndarray]) -> tuple[list[int], list[float]]:
+    """Per part (its Gaussians' indices in ``parts``), the moving cluster of the placement's ``labels`` [N]
+    (`fgjax.method.bases_init.moving_clusters`: j >= 0 a cluster, negative none) that holds most of the part's
+    Gaussians (-1: none of them is in a cluster) and the share of the part's Gaussians in it (NaN for a part with
+    no Gaussians). Ties go to the lower cluster index (the larger cluster)."""
+    clusters, shares = [], []
+    for p in parts:
+        lab = np.asarray(labels)[np.asarray(p, np.int64)]
+        lab = lab[lab >= 0]
+        if not len(lab):
+            clusters.append(-1)
+            shares.append(0.0 if len(p) else float("nan"))
+            continue
+        c = int(np.argmax(np.bincount(lab)))
+        clusters.append(c)
+        shares.append(float(np.sum(lab == c) / len(p)))
+    return clusters, shares
+
+
 def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...]],
                   camera_shares: list[float] | None = None) -> tuple[list[dict], float]:
     """The ``placed`` measurement (module docstring) for each set of spans and each ``deform.camera_share`` in
@@ -106,8 +127,10 @@ def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...
         _, labels = place_bases(c2, st.params, st.densify.alive, spec, scene, None, capacity=st.capacity,
                                 log=lambda *_: None)
         free = (labels >= 0) | ((labels == -1) & alive)
+        cl, in_cl = part_clusters(labels, parts)
         out.append({"spans": list(spans), "camera_share": share,
                     "parts": [float(free[p].mean()) if len(p) else float("nan") for p in parts],
+                    "part_cluster": cl, "in_cluster": in_cl,
                     "others": int(np.sum(free & alive & ~on_part)), "clusters": int(labels.max()) + 1,
                     "seconds": time.perf_counter() - t1})
     return out, warm
@@ -167,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  spans {','.join(map(str, e['spans'])):<8} pixels {fmt(e['parts'])} (static {e['static']:.3f})")
         for e in row.get("placed", []):
             print(f"  spans {','.join(map(str, e['spans'])):<8} share {e['camera_share']:<5g} placed {fmt(e['parts'])} "
-                  f"(others {e['others']}, {e['clusters']} clusters, {e['seconds']:.1f} s)")
+                  f"(others {e['others']}, {e['clusters']} clusters, {e['seconds']:.1f} s); part clusters "
+                  f"{' '.join(map(str, e['part_cluster']))} holding {fmt(e['in_cluster'])}")
         print(f"  time: pixels {row['pixels_seconds']:.1f} s"
               + (f", warm-up {row['warmup_seconds']:.1f} s" if "warmup_seconds" in row else ""), flush=True)
     if args.json:

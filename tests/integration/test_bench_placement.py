@@ -36,11 +36,25 @@ def test_bench_placement_reads_the_evidence_and_places_by_span(tmp_path, capsys)
     for e in row["placed"]:
         assert len(e["parts"]) == parts and e["clusters"] >= 1 and e["others"] >= 0
         assert all(0.0 <= x <= 1.0 for x in e["parts"] if x == x)
+        assert len(e["part_cluster"]) == len(e["in_cluster"]) == parts
+        assert all(-1 <= c < e["clusters"] for c in e["part_cluster"])
+        assert all(0.0 <= x <= y for x, y in zip(e["in_cluster"], e["parts"]) if x == x)  # in a cluster: freed
     assert max(max(x for x in e["parts"] if x == x) for e in row["placed"]) > 0.5  # a part is placed
-    assert "spans 1,2" in text and "share 0.2" in text and "placed" in text and "warm-up" in text
+    assert "spans 1,2" in text and "share 0.2" in text and "part clusters" in text and "placed" in text and "warm-up" in text
     assert placement.main(["--data", str(tmp_path), "--pixels-only"]) == 2  # no gt/ there
     assert "gt/train/object_id.npy is missing" in capsys.readouterr().err
     assert placement.main(["--data", str(tmp_path / "scene"), "--shares", "0;-1", "--pixels-only"]) == 2
     assert "--shares must look like" in capsys.readouterr().err
     with __import__("pytest").raises(SystemExit, match="--spans"):
         placement.main(["--data", str(tmp_path / "scene"), "--spans", "0;1", "--pixels-only"])
+
+
+def test_part_clusters_names_each_parts_cluster_and_shows_two_parts_on_one():
+    labels = np.array([-2, 0, 0, 1, 1, 1, -1, 0])  # -2 static, -1 noise, j >= 0 cluster j
+    cl, share = placement.part_clusters(labels, [np.array([1, 2, 7]), np.array([3, 4, 5]), np.array([0, 6]),
+                                                 np.array([], np.int64)])
+    assert cl == [0, 1, -1, -1] and share[:3] == [1.0, 1.0, 0.0] and np.isnan(share[3])
+    cl, share = placement.part_clusters(labels, [np.array([1, 3, 4, 0]), np.array([2, 5])])
+    assert cl == [1, 0] and share == [0.5, 0.5]  # a tie goes to the lower (larger) cluster
+    cl, _ = placement.part_clusters(labels, [np.array([3, 4]), np.array([5, 6])])
+    assert cl == [1, 1]  # two parts on one cluster: one basis for both

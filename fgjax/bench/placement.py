@@ -14,8 +14,7 @@ viewmats_true.npy) and for each set of spans in ``--spans`` (sets separated by "
   placement: the share of each part's model Gaussians (`fgjax.bench.motion.part_gaussians`) that it frees (a
   moving cluster or DBSCAN's noise), the number of other Gaussians freed (``others``: the region a part sweeps, and
   false positives) and the placement's time; with ``--shares``, for each ``deform.camera_share`` listed (the floor
-  growing with the camera flow, 1 px + share |u_cam|), and with ``--min-cos`` for each ``deform.place_min_cos``
-  listed (DBSCAN linking only neighbours whose residual flows agree in direction). Beside it, per part, the moving cluster that holds most of
+  growing with the camera flow, 1 px + share |u_cam|). Beside it, per part, the moving cluster that holds most of
   its Gaussians and their share in it (`part_clusters`): two parts with the same cluster share one basis, which one
   rigid motion cannot fit.
 
@@ -107,11 +106,9 @@ def part_clusters(labels: np.ndarray, parts: list[np.ndarray]) -> tuple[list[int
 
 
 def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...]],
-                  camera_shares: list[float] | None = None,
-                  min_cos: list[float] | None = None) -> tuple[list[dict], float]:
-    """The ``placed`` measurement (module docstring) for each set of spans, each ``deform.camera_share`` in
-    ``camera_shares`` and each ``deform.place_min_cos`` in ``min_cos`` (None: the configuration's), on one warm-up
-    model; and the warm-up's time (s)."""
+                  camera_shares: list[float] | None = None) -> tuple[list[dict], float]:
+    """The ``placed`` measurement (module docstring) for each set of spans and each ``deform.camera_share`` in
+    ``camera_shares`` (None: the configuration's), on one warm-up model; and the warm-up's time (s)."""
     scene = load_scene(scene_dir, "train")
     t0 = time.perf_counter()
     res = stage1.train_stage1(cfg, scene, None, stop_at=cfg.train.warmup_steps, progress=False, log=lambda *_: None)
@@ -124,16 +121,14 @@ def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...
     for p in parts:
         on_part[p] = True
     out = []
-    for spans, share, mc in ((a, b, c) for a in span_sets for b in camera_shares or [cfg.deform.camera_share]
-                             for c in min_cos or [cfg.deform.place_min_cos]):
-        c2 = C.apply_overrides(cfg, [f"deform.spans={','.join(map(str, spans))}", f"deform.camera_share={share}",
-                                     f"deform.place_min_cos={mc}"])
+    for spans, share in ((a, b) for a in span_sets for b in camera_shares or [cfg.deform.camera_share]):
+        c2 = C.apply_overrides(cfg, [f"deform.spans={','.join(map(str, spans))}", f"deform.camera_share={share}"])
         t1 = time.perf_counter()
         _, labels = place_bases(c2, st.params, st.densify.alive, spec, scene, None, capacity=st.capacity,
                                 log=lambda *_: None)
         free = (labels >= 0) | ((labels == -1) & alive)
         cl, in_cl = part_clusters(labels, parts)
-        out.append({"spans": list(spans), "camera_share": share, "min_cos": mc,
+        out.append({"spans": list(spans), "camera_share": share,
                     "parts": [float(free[p].mean()) if len(p) else float("nan") for p in parts],
                     "part_cluster": cl, "in_cluster": in_cl,
                     "others": int(np.sum(free & alive & ~on_part)), "clusters": int(labels.max()) + 1,
@@ -157,8 +152,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spans", default="1;1,2,4", help="sets of frame spans, ';'-separated (default: %(default)s)")
     p.add_argument("--shares", default=None, help="deform.camera_share values of the placement, ';'-separated "
                    "(default: the configuration's)")
-    p.add_argument("--min-cos", default=None, help="deform.place_min_cos values of the placement, ';'-separated, "
-                   "e.g. --min-cos=-1;0 (default: the configuration's)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="named configuration (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     p.add_argument("--pixels-only", action="store_true", help="skip the warm-up and the placement")
@@ -172,14 +165,6 @@ def main(argv: list[str] | None = None) -> int:
     if shares is not None and (not shares or not all(np.isfinite(x) and x >= 0 for x in shares)):
         print(f"fgjax bench placement: --shares must look like '0;0.1' (numbers >= 0); got {args.shares!r}",
               file=sys.stderr)
-        return 2
-    try:
-        cosines = None if args.min_cos is None else [float(x) for x in args.min_cos.split(";") if x.strip()]
-    except ValueError:
-        cosines = []
-    if cosines is not None and (not cosines or not all(-1 <= x <= 1 for x in cosines)):
-        print(f"fgjax bench placement: --min-cos must look like '-1;0;0.5' (numbers in [-1, 1]); got "
-              f"{args.min_cos!r}", file=sys.stderr)
         return 2
     cfg = C.load_config(args.config, args.overrides)
     if not args.pixels_only and (cfg.deform.kind, cfg.deform.init) != ("bases", "flow"):
@@ -197,15 +182,14 @@ def main(argv: list[str] | None = None) -> int:
         row = {"data": str(scene_dir), "pixels": pixel_evidence(scene_dir, span_sets, cfg.flow.method)}
         row["pixels_seconds"] = time.perf_counter() - t0
         if not args.pixels_only:
-            row["placed"], row["warmup_seconds"] = placed_shares(cfg, scene_dir, span_sets, shares, cosines)
+            row["placed"], row["warmup_seconds"] = placed_shares(cfg, scene_dir, span_sets, shares)
         rows.append(row)
         fmt = lambda xs: " ".join(f"{x:.2f}" for x in xs)
         print(f"{scene_dir}:")
         for e in row["pixels"]:
             print(f"  spans {','.join(map(str, e['spans'])):<8} pixels {fmt(e['parts'])} (static {e['static']:.3f})")
         for e in row.get("placed", []):
-            print(f"  spans {','.join(map(str, e['spans'])):<8} share {e['camera_share']:<5g} min cos "
-                  f"{e['min_cos']:<5g} placed {fmt(e['parts'])} "
+            print(f"  spans {','.join(map(str, e['spans'])):<8} share {e['camera_share']:<5g} placed {fmt(e['parts'])} "
                   f"(others {e['others']}, {e['clusters']} clusters, {e['seconds']:.1f} s); part clusters "
                   f"{' '.join(map(str, e['part_cluster']))} holding {fmt(e['in_cluster'])}")
         print(f"  time: pixels {row['pixels_seconds']:.1f} s"

@@ -29,7 +29,6 @@ from fgjax.cluster.dbscan import snap_to_trajectory as snap_to_trajectory
 from fgjax.cluster.dbscan import trajectories as trajectories
 from fgjax.cluster.motion import Localized as Localized
 from fgjax.cluster.motion import activity_correlation as activity_correlation
-from fgjax.cluster.motion import cluster_by_flow as cluster_by_flow
 from fgjax.cluster.motion import cluster_by_motion as cluster_by_motion
 from fgjax.cluster.motion import localize_clusters as localize_clusters
 from fgjax.cluster.motion import merge_fragments as merge_fragments
@@ -45,8 +44,7 @@ from fgjax.cluster.regions import refine_by_colour as refine_by_colour
 
 __all__ = [
     "fill_hulls", "hinge_axes", "fill_hinges", "drop_isolated", "refine_by_colour", "near_swept",
-    "cluster_by_motion", "cluster_by_flow", "activity_correlation", "localize_clusters", "split_by_motion",
-    "merge_fragments",
+    "cluster_by_motion", "activity_correlation", "localize_clusters", "split_by_motion", "merge_fragments",
     "true_runs", "moving_frames", "Localized",
     "otsu_threshold", "select_dynamic", "k_distances", "auto_eps", "cluster_dynamic", "relabel_by_size", "size_cut",
     "ClusterReport", "cluster_report", "trajectories", "Snap", "snap_to_trajectory",

@@ -152,88 +152,15 @@ def cluster_by_motion(
         raise ValueError(f"cluster_by_motion: min_fraction must be in [0, 1), got {min_fraction}")
     if m < max(min_samples, 2):
         return np.full(m, -1, np.int64)
-    z = activity_correlation(mv, tt)
-    return _gated_dbscan(pts, lambda r, c: np.einsum("tk,tk->k", z[:, r], z[:, c]) >= min_corr - 1e-12, eps=eps,
-                         min_samples=min_samples, min_fraction=min_fraction, auto_eps=auto_eps)
-
-
-def _gated_dbscan(pts: np.ndarray, gate, *, eps: float, min_samples: int, min_fraction: float,
-                  auto_eps: bool) -> np.ndarray:
-    """DBSCAN on the neighbourhood graph within eps whose links (i, j), i != j, pass ``gate(rows, cols)`` ([E]
-    bool); labels by decreasing size after the size cut (`cluster_by_motion`, `cluster_by_flow`)."""
-    m = len(pts)
     if auto_eps:
         eps = _auto_eps(pts, max(min_samples - 1, 1))
+    z = activity_correlation(mv, tt)
     g = NearestNeighbors(radius=eps).fit(pts).radius_neighbors_graph(pts, mode="distance").tocoo()
-    keep = (g.row == g.col) | np.asarray(gate(g.row, g.col), bool)
+    keep = (g.row == g.col) | (np.einsum("tk,tk->k", z[:, g.row], z[:, g.col]) >= min_corr - 1e-12)
     # stored entries are the neighbours of a precomputed sparse graph (a zero distance is kept as an entry)
     graph = sparse.csr_matrix((np.maximum(g.data[keep], 0.0), (g.row[keep], g.col[keep])), shape=(m, m))
     raw = DBSCAN(eps=eps, min_samples=min_samples, metric="precomputed").fit_predict(graph)
     return relabel_by_size(raw, min_size=size_cut(min_fraction, m))
-
-
-def cluster_by_flow(
-    points: Float[np.ndarray, "M D"],
-    flows: Float[np.ndarray, "T M 2"],
-    *,
-    eps: float = 0.05,
-    min_samples: int = 5,
-    min_cos: float = 0.0,
-    min_fraction: float = 0.0,
-    auto_eps: bool = False,
-) -> Int[np.ndarray, " M"]:
-    """DBSCAN whose neighbours must also move the same way in the images: points i, j are neighbours when
-    ||x_i - x_j|| <= eps and the cosine of their residual-flow series is at least ``min_cos``,
-
-        cos_ij = sum_t f_it . f_jt / (||f_i|| ||f_j||),   ||f_i||^2 = sum_t |f_it|^2,
-
-    with f_it the mean residual flow u - u_cam on the moving pixels that point i paints in pair t
-    (`fgjax.method.discover.gaussian_residual_flows`; 0 where it paints none). Two neighbours of one rigid part
-    move alike (cos near 1); two parts that touch and move apart, such as a tool's two handles closing against each
-    other, move in opposite directions (cos < 0), and parts that move at different times have orthogonal series
-    (cos 0). A point with no flow (a zero series) links to no other point, so that it cannot bridge two parts.
-    ``min_cos`` <= -1 links every pair within eps, still points too: plain DBSCAN (`fgjax.cluster.cluster_dynamic`). Unlike
-    `cluster_by_motion`'s activity profiles (where a point moves), the series carry the direction of the motion.
-
-    Args:
-        points: [M, D] canonical centres.
-        flows: [T, M, 2] residual flow of each point per pair (pixels).
-        eps: neighbourhood radius (> 0).
-        min_samples: neighbours of a core point, itself included.
-        min_cos: the smallest cosine of two neighbours' series, in [-1, 1].
-        min_fraction, auto_eps: as in `fgjax.cluster.cluster_dynamic` (the size cut; eps from the k-distance knee).
-
-    Returns:
-        [M] int64 labels, -1 = noise, 0..K-1 by decreasing size.
-    """
-    pts = as_points(points, "cluster_by_flow")
-    m = len(pts)
-    f = np.asarray(flows, np.float64)
-    if f.ndim != 3 or f.shape[1:] != (m, 2):
-        raise ValueError(f"cluster_by_flow: flows must have shape [T, {m}, 2], got {list(f.shape)}")
-    if not np.all(np.isfinite(f)):
-        raise ValueError("cluster_by_flow: flows must be finite")
-    if not auto_eps and not eps > 0:
-        raise ValueError(f"cluster_by_flow: eps must be > 0, got {eps}")
-    if min_samples < 1:
-        raise ValueError(f"cluster_by_flow: min_samples must be >= 1, got {min_samples}")
-    if not -1.0 <= min_cos <= 1.0:
-        raise ValueError(f"cluster_by_flow: min_cos must be in [-1, 1], got {min_cos}")
-    if not 0.0 <= min_fraction < 1.0:
-        raise ValueError(f"cluster_by_flow: min_fraction must be in [0, 1), got {min_fraction}")
-    if m < max(min_samples, 2):
-        return np.full(m, -1, np.int64)
-    v = f.transpose(1, 0, 2).reshape(m, -1)  # [M, 2T]
-    norm = np.linalg.norm(v, axis=1)
-    z = np.where(norm[:, None] > 1e-12, v / np.maximum(norm, 1e-12)[:, None], 0.0)
-    still = norm <= 1e-12
-
-    def gate(r, c):
-        if min_cos <= -1.0:
-            return np.ones(len(r), bool)
-        return (np.einsum("kd,kd->k", z[r], z[c]) >= min_cos - 1e-12) & ~still[r] & ~still[c]
-
-    return _gated_dbscan(pts, gate, eps=eps, min_samples=min_samples, min_fraction=min_fraction, auto_eps=auto_eps)
 
 
 def split_by_motion(

@@ -241,8 +241,6 @@ def validate_stage1(cfg: Config) -> None:
     need(finite(f.gauge) and f.gauge >= 0, "deform.gauge", "a finite number >= 0", f.gauge)
     need(finite(f.camera_share) and f.camera_share >= 0, "deform.camera_share", "a finite number >= 0",
          f.camera_share)
-    need(finite(f.place_min_cos) and -1 <= f.place_min_cos <= 1, "deform.place_min_cos", "a number in [-1, 1]",
-         f.place_min_cos)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
          fl.gaussian_flow)

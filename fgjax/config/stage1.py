@@ -90,11 +90,6 @@ class DeformConfig:
     relative error times its parallax, so a moving camera, and a longer span, needs more evidence. 0: a fixed 1 px;
     with spans 1, 2, 4 the family's tuning seeds choose 0.2 (docs/benchmarks.md, "A floor that grows with the camera
     flow")."""
-    place_min_cos: float = -1.0
-    """With init = "flow": the placement's DBSCAN links two neighbouring moving Gaussians only when their residual
-    flows u - u_cam, back-projected per pair, agree in direction: cosine of the two series at least this
-    (`fgjax.cluster.cluster_by_flow`), so that touching parts that move apart (two handles closing) get a basis
-    each. -1: every neighbour linked (plain DBSCAN on the centres)."""
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""

@@ -14,9 +14,7 @@ instead; this is the same idea with the evidence stage 1 already has, at the end
 2. the moving pixels are back-projected onto the canonical Gaussians through the rasterizer's weights and the
    Gaussians that paint mostly moving pixels are selected, span by span (each with its own score threshold), and
    the selections united; DBSCAN (`fgjax.cluster.cluster_dynamic`, automatic
-   radius) groups them; with ``deform.place_min_cos`` > -1 it links two neighbours only when their residual flows
-   (each pair's mean u - u_cam on the moving pixels a Gaussian paints) agree in direction
-   (`fgjax.cluster.cluster_by_flow`), so that touching parts that move apart get a cluster each;
+   radius) groups them;
 3. the logits network is fitted, by class-balanced cross-entropy with label smoothing, to put cluster j
    (largest first, j < K - 1) on basis j + 1 and every unselected Gaussian on basis 0; selected Gaussians that
    DBSCAN calls noise, and clusters beyond K - 1, are left to the training. With per-slot weights
@@ -46,7 +44,7 @@ from fgjax import cluster
 from fgjax.config import Config
 from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
-from fgjax.method.discover import camera_flow_from_depth, discover, gaussian_residual_flows
+from fgjax.method.discover import camera_flow_from_depth, discover
 from fgjax.method.flows import estimate_training_flows, previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits
 from fgjax.models.model import render_params
@@ -57,7 +55,6 @@ __all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases"
 def moving_clusters(
     params, alive, viewmats, Ks, flows, prev, *, width: int, height: int, capacity: int,
     background=(0.0, 0.0, 0.0), threshold_px: float = 1.0, camera_share: float = 0.0, min_fraction: float = 0.02,
-    min_cos: float = -1.0,
 ) -> np.ndarray:
     """Label every Gaussian slot: -2 static, -1 dead or moving but DBSCAN noise, j >= 0 moving cluster j (the
     largest first), from the canonical Gaussians (``params["gaussians"]``, no deformation) and the training flows.
@@ -76,38 +73,27 @@ def moving_clusters(
             u_cam's error is the canonical depth's relative error times its parallax, and the optical flow's own
             error grows with the displacement, so a moving camera needs more evidence than a still one.
         min_fraction: clusters smaller than this share of the moving Gaussians are noise.
-        min_cos: > -1: DBSCAN links two neighbours only when the cosine of their residual-flow series (each pair's
-            mean u - u_cam on the moving pixels the Gaussian paints, `fgjax.method.discover.gaussian_residual_flows`,
-            the pairs of every span in turn) is at least this (`fgjax.cluster.cluster_by_flow`); -1: plain DBSCAN.
     """
     sets = list(zip(flows, prev)) if isinstance(flows, list | tuple) else [(flows, prev)]
     alive_np = np.asarray(alive, bool)
     labels = np.where(alive_np, -2, -1).astype(np.int64)
     dyn = np.zeros_like(alive_np)
-    series = []
     for f, p in sets:
-        d, r = _moving_gaussians(params, alive, viewmats, Ks, f, p, width, height, capacity, background, threshold_px,
-                                 camera_share, with_flows=min_cos > -1)
-        dyn |= d
-        series.append(r)
+        dyn |= _moving_gaussians(params, alive, viewmats, Ks, f, p, width, height, capacity, background, threshold_px,
+                                 camera_share)
     dyn &= alive_np
     if dyn.sum() >= 2:
-        means = np.asarray(params["gaussians"].means)[dyn]
-        if min_cos > -1:
-            r = np.concatenate([x[:, dyn] for x in series if x is not None] or [np.zeros((0, int(dyn.sum()), 2))])
-            labels[dyn] = cluster.cluster_by_flow(means, r, auto_eps=True, min_cos=min_cos, min_fraction=min_fraction)
-        else:
-            labels[dyn] = cluster.cluster_dynamic(means, auto_eps=True, min_fraction=min_fraction)
+        labels[dyn] = cluster.cluster_dynamic(np.asarray(params["gaussians"].means)[dyn], auto_eps=True,
+                                              min_fraction=min_fraction)
     return labels
 
 
 def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, capacity, background, threshold_px,
-                      camera_share=0.0, with_flows=False):
-    """([N] bool: `discover`'s dynamic Gaussians of one set of pairs; with ``with_flows`` their residual flows per
-    pair [P, N, 2] (`fgjax.method.discover.gaussian_residual_flows`), else None) (`moving_clusters`)."""
+                      camera_share=0.0):
+    """[N] bool: `discover`'s dynamic Gaussians of one set of pairs (`moving_clusters`)."""
     pairs = [i for i in range(len(prev)) if prev[i] >= 0]
     if not pairs or not np.asarray(alive, bool).any():
-        return np.zeros(np.shape(alive), bool), None
+        return np.zeros(np.shape(alive), bool)
     g = params["gaussians"]
     quats, scales, opac = activate(g, alive)
     c2w = viewmat_to_c2w(np.asarray(viewmats, np.float64))
@@ -130,14 +116,7 @@ def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, c
                      valid=np.stack(valid), capacity=capacity,
                      threshold_px=threshold_px + camera_share * np.linalg.norm(cams, axis=-1)
                      if camera_share > 0 else threshold_px)
-    flows_g = None
-    if with_flows:
-        flows_g = gaussian_residual_flows(np.asarray(g.means), np.asarray(quats), np.asarray(scales),
-                                          np.asarray(opac), np.asarray(viewmats, np.float32)[src],
-                                          np.asarray(Ks, np.float32)[src],
-                                          np.where(found.masks[..., None], u - cams, 0.0), found.masks,
-                                          capacity=capacity)
-    return np.asarray(found.dynamic, bool), flows_g
+    return np.asarray(found.dynamic, bool)
 
 
 def basis_targets(labels: np.ndarray, num_bases: int, smoothing: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
@@ -191,7 +170,7 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
     labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, sets,
                              [previous_frames(scene.times, s) for s in spans], width=scene.width, height=scene.height,
                              capacity=capacity, background=tuple(cfg.model.background),
-                             camera_share=cfg.deform.camera_share, min_cos=cfg.deform.place_min_cos)
+                             camera_share=cfg.deform.camera_share)
     sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
     target, weight = basis_targets(labels, spec.bases)
     free = (labels >= 0) | ((labels == -1) & np.asarray(alive, bool))

@@ -43,7 +43,6 @@ __all__ = [
     "camera_flow_from_depth",
     "Scores",
     "accumulate_scores",
-    "gaussian_residual_flows",
     "Discovery",
     "discover",
 ]
@@ -155,73 +154,6 @@ def _pair_weights(means, quats, scales, opacities, viewmat, K, mask, *, width, h
     total = gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height,
                              jnp.ones_like(mask), **kw)
     return moving, total
-
-
-@functools.partial(jax.jit, static_argnames=("width", "height", "capacity"))
-def _flow_weights(means, quats, scales, opacities, viewmat, K, mask, residual, *, width, height, capacity):
-    """[N, 3]: w_i(mask r_x), w_i(mask r_y), w_i(mask) for one frame (three backward passes of the rasterizer)."""
-    kw = {} if capacity is None else {"capacity": capacity}
-    w = lambda m: gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height, m, **kw)
-    return jnp.stack([w(mask * residual[..., 0]), w(mask * residual[..., 1]), w(mask)], axis=-1)
-
-
-def gaussian_residual_flows(
-    means: Float[np.ndarray, "N 3"],
-    quats: Float[np.ndarray, "N 4"],
-    scales: Float[np.ndarray, "N 3"],
-    opacities: Float[np.ndarray, " N"],
-    viewmats: Float[np.ndarray, "T 4 4"],
-    K: Float[np.ndarray, "T 3 3"],
-    residual: Float[np.ndarray, "T H W 2"],
-    masks: Float[np.ndarray, "T H W"],
-    *,
-    eps: float = 0.1,
-    capacity: int | None = None,
-) -> Float[np.ndarray, "T N 2"]:
-    """Each Gaussian's residual flow per pair: the mean of r = u - u_cam over the moving pixels it paints,
-
-        r_it = w_i(m_t r_t) / (w_i(m_t) + eps),   w_i(m) = sum_p m_p T_ip alpha_ip
-
-    (the back-projection of `accumulate_scores`, linear in the pixel weights, applied to each component of the
-    masked residual; `eps` in pixel-equivalents shrinks what a Gaussian barely paints towards 0). Gaussians that
-    paint no moving pixel of pair t get r_it = 0. Two Gaussians of one rigid part get nearby vectors in each pair,
-    two parts that move apart opposite ones (`fgjax.cluster.cluster_by_flow`). The Gaussians are shared by the
-    pairs (a canonical model); the camera of pair t is that of its first frame.
-
-    Args:
-        means, quats, scales, opacities: activated Gaussians [N, ...].
-        viewmats: [T, 4, 4] OpenCV world-to-camera of each pair's first frame.
-        K: [T, 3, 3] intrinsics.
-        residual: [T, H, W, 2] residual flow (`residual_flow`; NaN-free).
-        masks: [T, H, W] moving pixels (`binarize`; bool or weights in [0, 1]).
-        eps: pixel-equivalents added to the denominator (> 0).
-        capacity: the rasterizer's intersection capacity (static).
-
-    Returns:
-        [T, N, 2] float32 (pixels per frame interval).
-    """
-    r = np.asarray(residual, np.float32)
-    m = np.asarray(masks, np.float32)
-    if r.ndim != 4 or r.shape[-1] != 2 or m.shape != r.shape[:3]:
-        raise ValueError(f"gaussian_residual_flows: residual [T, H, W, 2] and masks [T, H, W] expected, got "
-                         f"{list(r.shape)} and {list(m.shape)}")
-    if not np.all(np.isfinite(r)):
-        raise ValueError("gaussian_residual_flows: residual must be finite (zero the unknown pixels)")
-    if not eps > 0:
-        raise ValueError(f"gaussian_residual_flows: eps must be > 0, got {eps}")
-    t, h, w = m.shape
-    n = np.shape(means)[0]
-    vm = np.asarray(viewmats, np.float32).reshape(t, 4, 4)
-    ks = np.asarray(K, np.float32).reshape(t, 3, 3)
-    g = [jnp.asarray(np.asarray(x, np.float32)) for x in (means, quats, scales, opacities)]
-    out = np.zeros((t, n, 2), np.float32)
-    for i in range(t):
-        if not m[i].any():
-            continue
-        wts = np.asarray(_flow_weights(*g, jnp.asarray(vm[i]), jnp.asarray(ks[i]), jnp.asarray(m[i]),
-                                       jnp.asarray(r[i]), width=w, height=h, capacity=capacity), np.float64)
-        out[i] = wts[:, :2] / (wts[:, 2:] + eps)
-    return out
 
 
 class Scores(NamedTuple):

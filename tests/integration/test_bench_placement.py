@@ -19,16 +19,13 @@ def test_bench_placement_reads_the_evidence_and_places_by_span(tmp_path, capsys)
     assert placement.main(["--data", str(tmp_path / "scene"), "--config", str(quick), *sets]) == 2  # not "bases"
     assert "deform.kind = 'bases'" in capsys.readouterr().err
     out = tmp_path / "placement.json"
-    assert placement.main(["--data", str(tmp_path / "scene"), "--config", str(quick), "--spans", "1;1,2", "--shares", "0;0.2",
-                           "--min-cos=-1;0", *sets,
+    assert placement.main(["--data", str(tmp_path / "scene"), "--config", str(quick), "--spans", "1;1,2", "--shares", "0;0.2", *sets,
                            "--set", "deform.kind=bases", "--set", "deform.init=flow", "--json", str(out)]) == 0
     (row,), text = json.loads(out.read_text()), capsys.readouterr().out
     parts = len(json.loads((tmp_path / "scene" / "gt" / "meta.json").read_text())["objects"])
     assert [e["spans"] for e in row["pixels"]] == [[1], [1, 2]]
-    assert [(e["spans"], e["camera_share"], e["min_cos"]) for e in row["placed"]] == [
-        (s, c, m) for s in ([1], [1, 2]) for c in (0.0, 0.2) for m in (-1.0, 0.0)]
-    for plain, gated in zip(row["placed"][::2], row["placed"][1::2]):  # the gate groups the same moving Gaussians
-        assert plain["parts"] == gated["parts"] and plain["others"] == gated["others"]
+    assert [(e["spans"], e["camera_share"]) for e in row["placed"]] == [([1], 0.0), ([1], 0.2), ([1, 2], 0.0),
+                                                                        ([1, 2], 0.2)]
     for e in row["pixels"]:
         assert len(e["parts"]) == parts and 0.0 <= e["static"] <= 1.0
     assert row["pixels"][0]["static"] < 0.3  # consecutive frames (64x48, 8 frames: the camera moves fast)
@@ -43,13 +40,11 @@ def test_bench_placement_reads_the_evidence_and_places_by_span(tmp_path, capsys)
         assert all(-1 <= c < e["clusters"] for c in e["part_cluster"])
         assert all(0.0 <= x <= y for x, y in zip(e["in_cluster"], e["parts"]) if x == x)  # in a cluster: freed
     assert max(max(x for x in e["parts"] if x == x) for e in row["placed"]) > 0.5  # a part is placed
-    assert "spans 1,2" in text and "share 0.2" in text and "min cos 0" in text and "part clusters" in text and "placed" in text and "warm-up" in text
+    assert "spans 1,2" in text and "share 0.2" in text and "part clusters" in text and "placed" in text and "warm-up" in text
     assert placement.main(["--data", str(tmp_path), "--pixels-only"]) == 2  # no gt/ there
     assert "gt/train/object_id.npy is missing" in capsys.readouterr().err
     assert placement.main(["--data", str(tmp_path / "scene"), "--shares", "0;-1", "--pixels-only"]) == 2
     assert "--shares must look like" in capsys.readouterr().err
-    assert placement.main(["--data", str(tmp_path / "scene"), "--min-cos", "0;2", "--pixels-only"]) == 2
-    assert "--min-cos must look like" in capsys.readouterr().err
     with __import__("pytest").raises(SystemExit, match="--spans"):
         placement.main(["--data", str(tmp_path / "scene"), "--spans", "0;1", "--pixels-only"])
 

@@ -458,50 +458,6 @@ def test_cluster_by_motion_edge_cases():
         C.cluster_by_motion(pts, bad, total, eps=0.015)
 
 
-def test_cluster_by_flow_cuts_two_handles_that_close_against_each_other():
-    """Two touching slabs (a tool's two handles, 150 and 100 points) whose image flows point at each other, with
-    per-point noise and a hinge-like growth of the flow along each slab, zero where under 1 px (as on the pixels
-    the placement does not mark moving): position alone chains them into one cluster; linking only neighbours whose
-    flow series agree in direction (cosine >= 0) gives one cluster per handle, and keeps the slabs one cluster when
-    both move alike. A point with no flow links to nothing."""
-    rng = np.random.default_rng(0)
-    a = rng.uniform([-0.3, 0.0, 0.0], [0.0, 0.1, 0.02], (150, 3))
-    b = rng.uniform([0.0, 0.0, 0.0], [0.2, 0.1, 0.02], (100, 3))
-    pts = np.concatenate([a, b])
-    truth = np.r_[np.zeros(150, int), np.ones(100, int)]
-    t = 6
-    active = (np.arange(t) >= 1) & (np.arange(t) <= 4)  # both move in pairs 1-4
-    reach = np.abs(pts[:, 0])[None, :, None] * 10.0  # the flow grows away from the seam, as about a hinge
-    direction = np.where(truth == 0, 1.0, -1.0)[None, :, None] * np.array([1.0, 0.3])
-    flows = active[:, None, None] * (reach * direction + rng.normal(0.0, 0.3, (t, 250, 2)))
-    flows *= np.linalg.norm(flows, axis=-1, keepdims=True) > 1.0
-    flows[:, 10] = 0.0  # a point with no flow
-    plain = C.cluster_by_flow(pts, flows, eps=0.03, min_samples=5, min_cos=-1.0)
-    from sklearn.cluster import DBSCAN  # reference: min_cos = -1 is plain DBSCAN
-
-    np.testing.assert_array_equal(plain, C.relabel_by_size(DBSCAN(eps=0.03, min_samples=5).fit_predict(pts)))
-    assert len(set(plain[plain >= 0])) == 1  # position alone: one cluster through the seam
-    lab = C.cluster_by_flow(pts, flows, eps=0.03, min_samples=5, min_cos=0.0)
-    ok, has = lab >= 0, np.linalg.norm(flows, axis=(0, 2)) > 0
-    assert ok[has].mean() > 0.9 and len(set(lab[ok])) == 2 and adjusted_rand_score(truth[ok], lab[ok]) > 0.95
-    assert not ok[~has].any() and lab[10] == -1  # the points with no flow (near the seam) link to nothing: noise
-    alike = active[:, None, None] * (np.array([3.0, 1.0]) + rng.normal(0.0, 0.3, (t, 250, 2)))  # one slide
-    assert len(set(C.cluster_by_flow(pts, alike, eps=0.03, min_cos=0.0).tolist()) - {-1}) == 1
-    auto = C.cluster_by_flow(pts, flows, eps=1.0, min_cos=0.0, auto_eps=True)
-    np.testing.assert_array_equal(auto, C.cluster_by_flow(pts, flows, eps=C.auto_eps(pts, 4), min_cos=0.0))
-    assert C.cluster_by_flow(pts[:3], flows[:, :3], eps=0.03).tolist() == [-1] * 3
-    for kw, msg in (({"eps": 0.0}, "eps"), ({"min_cos": 1.5}, "min_cos"), ({"min_samples": 0}, "min_samples"),
-                    ({"min_fraction": 1.0}, "min_fraction")):
-        with pytest.raises(ValueError, match=msg):
-            C.cluster_by_flow(pts, flows, **{"eps": 0.03, **kw})
-    with pytest.raises(ValueError, match=r"\[T, 250, 2\]"):
-        C.cluster_by_flow(pts, flows[:, :10], eps=0.03)
-    bad = flows.copy()
-    bad[2, 7, 0] = np.nan
-    with pytest.raises(ValueError, match="finite"):
-        C.cluster_by_flow(pts, bad, eps=0.03)
-
-
 def _turn(axis, pivot, deg, slide=0.0):
     """x -> R (x - p) + p + slide * a, R the turn by `deg` about unit `axis` (scipy's rotation vector, not the
     module under test): [4, 4]."""

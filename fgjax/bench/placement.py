@@ -18,7 +18,8 @@ viewmats_true.npy) and for each set of spans in ``--spans`` (sets separated by "
   its Gaussians and their share in it (`part_clusters`): two parts with the same cluster share one basis, which one
   rigid motion cannot fit.
 
-Results: docs/benchmarks.md, "The placement's frame spans" and "A floor that grows with the camera flow".
+Results: docs/benchmarks.md, "The placement's frame spans", "A floor that grows with the camera flow" and "Which
+parts share a cluster".
 """
 
 from __future__ import annotations

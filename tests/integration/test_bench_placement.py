@@ -40,7 +40,8 @@ def test_bench_placement_reads_the_evidence_and_places_by_span(tmp_path, capsys)
         assert all(-1 <= c < e["clusters"] for c in e["part_cluster"])
         assert all(0.0 <= x <= y for x, y in zip(e["in_cluster"], e["parts"]) if x == x)  # in a cluster: freed
     assert max(max(x for x in e["parts"] if x == x) for e in row["placed"]) > 0.5  # a part is placed
-    assert "spans 1,2" in text and "share 0.2" in text and "part clusters" in text and "placed" in text and "warm-up" in text
+    assert "spans 1,2" in text and "share 0.2" in text and "placed" in text and "warm-up" in text
+    assert "part clusters" in text
     assert placement.main(["--data", str(tmp_path), "--pixels-only"]) == 2  # no gt/ there
     assert "gt/train/object_id.npy is missing" in capsys.readouterr().err
     assert placement.main(["--data", str(tmp_path / "scene"), "--shares", "0;-1", "--pixels-only"]) == 2

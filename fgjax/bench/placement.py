@@ -92,9 +92,10 @@ def part_clusters(labels: np.ndarray, parts: list[np.ndarray]) -> tuple[list[int
     (`fgjax.method.bases_init.moving_clusters`: j >= 0 a cluster, negative none) that holds most of the part's
     Gaussians (-1: none of them is in a cluster) and the share of the part's Gaussians in it (NaN for a part with
     no Gaussians). Ties go to the lower cluster index (the larger cluster)."""
+    labels = np.asarray(labels)
     clusters, shares = [], []
     for p in parts:
-        lab = np.asarray(labels)[np.asarray(p, np.int64)]
+        lab = labels[np.asarray(p, np.int64)]
         lab = lab[lab >= 0]
         if not len(lab):
             clusters.append(-1)

@@ -11,12 +11,13 @@ viewmats_true.npy) and for each set of spans in ``--spans`` (sets separated by "
   spans marks a pixel of source frame a where any of its pairs starting at a does; a part counts at a where its
   state changes over the longest of those pairs. Beside it the share of static pixels marked (``static``);
 - ``placed``: stage 1 of the configuration (``--config`` and ``--set``) trained to the end of its warm-up, then the
-  placement: the share of each part's model Gaussians (`fgjax.bench.motion.part_gaussians`) that it frees (a
-  moving cluster or DBSCAN's noise), the number of other Gaussians freed (``others``: the region a part sweeps, and
-  false positives) and the placement's time; with ``--shares``, for each ``deform.camera_share`` listed (the floor
-  growing with the camera flow, 1 px + share |u_cam|). Beside it, per part, the moving cluster that holds most of
-  its Gaussians and their share in it (`part_clusters`): two parts with the same cluster share one basis, which one
-  rigid motion cannot fit.
+  placement: the share of each part's Gaussians that it frees (a moving cluster or DBSCAN's noise), where a part's
+  Gaussians are those that paint mostly its pixels in the training frames (`painted_parts`; their number is printed
+  as ``of``), the number of other Gaussians freed (``others``: Gaussians that paint mostly static pixels) and the
+  placement's time; with ``--shares``, for each ``deform.camera_share`` listed (the floor growing with the camera
+  flow, 1 px + share |u_cam|) and, with ``--split``, each ``deform.place_split``. Beside it, per part, the moving
+  cluster that holds most of its Gaussians and their share in it (`part_clusters`): two parts with the same cluster
+  share one basis, which one rigid motion cannot fit.
 
 Results: docs/benchmarks.md, "The placement's frame spans", "A floor that grows with the camera flow" and "Which
 parts share a cluster".
@@ -33,16 +34,16 @@ from pathlib import Path
 import numpy as np
 
 from fgjax import config as C
-from fgjax.bench.motion import part_gaussians
 from fgjax.data.loaders import load_scene
+from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
 from fgjax.io import atomic_write
 from fgjax.method import stage1
 from fgjax.method.bases_init import place_bases
-from fgjax.method.discover import camera_flow_from_depth
+from fgjax.method.discover import accumulate_scores, camera_flow_from_depth
 from fgjax.method.flows import estimate_training_flows, previous_frames
 
-__all__ = ["main", "part_clusters", "pixel_evidence", "placed_shares"]
+__all__ = ["main", "painted_parts", "part_clusters", "pixel_evidence", "placed_shares"]
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "experiments" / "family.toml"
 
@@ -87,6 +88,33 @@ def pixel_evidence(scene_dir: Path, span_sets: list[tuple[int, ...]], method: st
     return out
 
 
+def painted_parts(params, alive, scene, gt: Path, *, capacity: int, share: float = 0.5) -> list[np.ndarray]:
+    """Per part (gt/meta.json order), the indices of the live Gaussians of which more than ``share`` of what they
+    paint over the training frames lies on that part's pixels:
+
+        sum_t w_i(m_kt) / (sum_t w_i(1) + 0.1) > share,
+
+    with w_i(m) = sum_p m_p T_ip alpha_ip the rasterizer's compositing weights (`fgjax.method.discover.
+    accumulate_scores`), m_kt the pixels of part k in training frame t (``gt/train/object_id.npy`` equal to its
+    label), the canonical Gaussians of ``params`` (no deformation: what the placement reads) and the training cameras
+    of ``scene``. With ``share`` >= 0.5 a Gaussian belongs to one part at most. These are the Gaussians that render
+    the part, wherever the model put them in depth; `fgjax.bench.motion.part_gaussians` (centres within 0.05 scene
+    units of the true surface) counts only those already on the true surface, a few per part on a warm-up model."""
+    oid = np.load(gt / "train" / "object_id.npy")
+    if oid.shape != (len(scene.times), scene.height, scene.width):
+        raise ValueError(f"{gt / 'train' / 'object_id.npy'} has shape {oid.shape}, the training frames are "
+                         f"{(len(scene.times), scene.height, scene.width)}")
+    quats, scales, opac = activate(params["gaussians"], alive)
+    args = (np.asarray(params["gaussians"].means), np.asarray(quats), np.asarray(scales), np.asarray(opac),
+            np.asarray(scene.viewmats, np.float32), np.asarray(scene.Ks, np.float32))
+    live = np.asarray(alive, bool)
+    out = []
+    for o in json.loads((gt / "meta.json").read_text())["objects"]:
+        sc = accumulate_scores(*args, oid == o["label"], capacity=capacity)
+        out.append(np.flatnonzero(live & (sc.score > share)))
+    return out
+
+
 def part_clusters(labels: np.ndarray, parts: list[np.ndarray]) -> tuple[list[int], list[float]]:
     """Per part (its Gaussians' indices in ``parts``), the moving cluster of the placement's ``labels`` [N]
     (`fgjax.method.bases_init.moving_clusters`: j >= 0 a cluster, negative none) that holds most of the part's
@@ -108,31 +136,35 @@ def part_clusters(labels: np.ndarray, parts: list[np.ndarray]) -> tuple[list[int
 
 
 def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...]],
-                  camera_shares: list[float] | None = None) -> tuple[list[dict], float]:
-    """The ``placed`` measurement (module docstring) for each set of spans and each ``deform.camera_share`` in
-    ``camera_shares`` (None: the configuration's), on one warm-up model; and the warm-up's time (s)."""
+                  camera_shares: list[float] | None = None, splits: list[bool] | None = None
+                  ) -> tuple[list[dict], float]:
+    """The ``placed`` measurement (module docstring) for each set of spans, each ``deform.camera_share`` in
+    ``camera_shares`` and each ``deform.place_split`` in ``splits`` (None: the configuration's), on one warm-up
+    model; and the warm-up's time (s)."""
     scene = load_scene(scene_dir, "train")
     t0 = time.perf_counter()
     res = stage1.train_stage1(cfg, scene, None, stop_at=cfg.train.warmup_steps, progress=False, log=lambda *_: None)
     warm = time.perf_counter() - t0
     st, spec = res["state"], res["spec"]
     alive = np.asarray(st.densify.alive)
-    parts = part_gaussians(np.asarray(st.params["gaussians"].means), alive, Path(scene_dir) / "gt",
-                           scene.normalization)
+    parts = painted_parts(st.params, alive, scene, Path(scene_dir) / "gt", capacity=st.capacity)
     on_part = np.zeros(len(alive), bool)
     for p in parts:
         on_part[p] = True
     out = []
-    for spans, share in ((a, b) for a in span_sets for b in camera_shares or [cfg.deform.camera_share]):
-        c2 = C.apply_overrides(cfg, [f"deform.spans={','.join(map(str, spans))}", f"deform.camera_share={share}"])
+    for spans, share, split in ((a, b, c) for a in span_sets for b in camera_shares or [cfg.deform.camera_share]
+                                for c in splits or [cfg.deform.place_split]):
+        c2 = C.apply_overrides(cfg, [f"deform.spans={','.join(map(str, spans))}", f"deform.camera_share={share}",
+                                     f"deform.place_split={str(split).lower()}"])
         t1 = time.perf_counter()
         _, labels = place_bases(c2, st.params, st.densify.alive, spec, scene, None, capacity=st.capacity,
                                 log=lambda *_: None)
         free = (labels >= 0) | ((labels == -1) & alive)
         cl, in_cl = part_clusters(labels, parts)
-        out.append({"spans": list(spans), "camera_share": share,
+        out.append({"spans": list(spans), "camera_share": share, "split": split,
                     "parts": [float(free[p].mean()) if len(p) else float("nan") for p in parts],
                     "part_cluster": cl, "in_cluster": in_cl,
+                    "part_size": [len(p) for p in parts],
                     "others": int(np.sum(free & alive & ~on_part)), "clusters": int(labels.max()) + 1,
                     "seconds": time.perf_counter() - t1})
     return out, warm
@@ -154,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spans", default="1;1,2,4", help="sets of frame spans, ';'-separated (default: %(default)s)")
     p.add_argument("--shares", default=None, help="deform.camera_share values of the placement, ';'-separated "
                    "(default: the configuration's)")
+    p.add_argument("--split", default=None, help="deform.place_split values of the placement, ';'-separated, e.g. "
+                   "'off;on' (default: the configuration's)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="named configuration (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     p.add_argument("--pixels-only", action="store_true", help="skip the warm-up and the placement")
@@ -167,6 +201,11 @@ def main(argv: list[str] | None = None) -> int:
     if shares is not None and (not shares or not all(np.isfinite(x) and x >= 0 for x in shares)):
         print(f"fgjax bench placement: --shares must look like '0;0.1' (numbers >= 0); got {args.shares!r}",
               file=sys.stderr)
+        return 2
+    flags = {"off": False, "on": True, "false": False, "true": True}
+    splits = None if args.split is None else [flags.get(x.strip().lower()) for x in args.split.split(";") if x.strip()]
+    if splits is not None and (not splits or None in splits):
+        print(f"fgjax bench placement: --split must look like 'off;on'; got {args.split!r}", file=sys.stderr)
         return 2
     cfg = C.load_config(args.config, args.overrides)
     if not args.pixels_only and (cfg.deform.kind, cfg.deform.init) != ("bases", "flow"):
@@ -184,15 +223,17 @@ def main(argv: list[str] | None = None) -> int:
         row = {"data": str(scene_dir), "pixels": pixel_evidence(scene_dir, span_sets, cfg.flow.method)}
         row["pixels_seconds"] = time.perf_counter() - t0
         if not args.pixels_only:
-            row["placed"], row["warmup_seconds"] = placed_shares(cfg, scene_dir, span_sets, shares)
+            row["placed"], row["warmup_seconds"] = placed_shares(cfg, scene_dir, span_sets, shares, splits)
         rows.append(row)
         fmt = lambda xs: " ".join(f"{x:.2f}" for x in xs)
         print(f"{scene_dir}:")
         for e in row["pixels"]:
             print(f"  spans {','.join(map(str, e['spans'])):<8} pixels {fmt(e['parts'])} (static {e['static']:.3f})")
         for e in row.get("placed", []):
-            print(f"  spans {','.join(map(str, e['spans'])):<8} share {e['camera_share']:<5g} placed {fmt(e['parts'])} "
-                  f"(others {e['others']}, {e['clusters']} clusters, {e['seconds']:.1f} s); part clusters "
+            print(f"  spans {','.join(map(str, e['spans'])):<8} share {e['camera_share']:<5g} "
+                  f"split {'on ' if e['split'] else 'off'} placed {fmt(e['parts'])} "
+                  f"of {' '.join(map(str, e['part_size']))} (others {e['others']}, {e['clusters']} clusters, "
+                  f"{e['seconds']:.1f} s); part clusters "
                   f"{' '.join(map(str, e['part_cluster']))} holding {fmt(e['in_cluster'])}")
         print(f"  time: pixels {row['pixels_seconds']:.1f} s"
               + (f", warm-up {row['warmup_seconds']:.1f} s" if "warmup_seconds" in row else ""), flush=True)

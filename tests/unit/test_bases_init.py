@@ -68,13 +68,17 @@ def _pair_flow(means0, means1, quats, scales, opac, vm0, vm1, K, w, h):
     return np.where(a > 0.5, np.asarray(img)[..., :2] / np.maximum(a, 1e-6), np.nan).astype(np.float32)
 
 
-def _blob_scene(n, w, h, frames, shift):
+def _blob_scene(n, w, h, frames, shift, second=None):
     """A wall of n Gaussians and a blob of its first 30 in front of it that slides by ``shift`` along x over the
     clip, seen by a camera on an arc: (canonical Gaussians, times [T], viewmats [T, 4, 4], K, flow_of) with
-    flow_of(prev) the exact flows [T, H, W, 2] into each frame i from frame prev[i] (NaN where prev[i] < 0)."""
+    flow_of(prev) the exact flows [T, H, W, 2] into each frame i from frame prev[i] (NaN where prev[i] < 0).
+    With ``second`` = (shift_a, shift_b): Gaussians 30-59 form a second blob touching the first, the first slides
+    by shift_a along x in the first third of the clip and the second by shift_b along z in the last third."""
     rng = np.random.default_rng(0)
     means = np.stack([rng.uniform(-1.0, 1.0, n), rng.uniform(0.4, 0.6, n), rng.uniform(-0.8, 0.8, n)], 1)  # a wall
     means[:30] = rng.normal([-0.1, -0.2, 0.1], 0.06, (30, 3))  # the blob, in front of it
+    if second is not None:
+        means[30:60] = rng.normal([0.08, -0.2, 0.1], 0.06, (30, 3))
     quats = np.tile([1.0, 0, 0, 0], (n, 1))
     scales = np.full((n, 3), 0.08)
     opac = np.full(n, 0.9)
@@ -83,6 +87,10 @@ def _blob_scene(n, w, h, frames, shift):
     vms = np.stack([look_at(np.array([2.0 * np.sin(a), -2.0 * np.cos(a), 0.3]))
                     for a in 0.4 * (np.arange(frames) / (frames - 1) - 0.5)])
     at = [means + np.where(np.arange(n)[:, None] < 30, [shift * t, 0.0, 0.0], 0.0) for t in times]
+    if second is not None:
+        a, b = (np.arange(n) < 30)[:, None], ((np.arange(n) >= 30) & (np.arange(n) < 60))[:, None]
+        at = [means + np.where(a, [second[0] * min(3 * t, 1.0), 0.0, 0.0], 0.0)
+              + np.where(b, [0.0, 0.0, second[1] * max(3 * t - 2, 0.0)], 0.0) for t in times]
 
     def flow_of(prev):
         flows = np.full((frames, h, w, 2), np.nan, np.float32)
@@ -114,6 +122,29 @@ def test_moving_clusters_find_the_moving_blob_from_the_flow():
     assert np.mean(labels[blob] == 0) > 0.8, labels[blob]  # found, and one cluster
     assert np.mean(labels[~blob & alive] == -2) > 0.9  # the wall is static
     assert np.sum(labels == 0) <= 1.15 * np.sum(labels[blob] == 0)  # the cluster is the blob
+
+
+def test_moving_clusters_split_touching_blobs_that_move_at_different_times():
+    """Two touching blobs in front of a wall: the first slides in the first third of the clip, the second in the
+    last third. Position alone (DBSCAN) puts both on one cluster; with ``split`` (stage 2's `split_by_motion` on
+    each Gaussian's per-frame share of moving pixels) each blob gets its own."""
+    n, w, h, frames = 200, 48, 36, 12
+    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, 0.0, second=(0.4, 0.4))
+    prev = previous_frames(times)
+    flows = flow_of(prev)
+    kw = dict(width=w, height=h, capacity=1 << 15)
+    Ks = np.stack([K] * frames).astype(np.float32)
+    a, b = np.arange(n) < 30, (np.arange(n) >= 30) & (np.arange(n) < 60)
+    order = np.r_[np.arange(6, frames), np.arange(6)]  # frames stored out of time order
+    together = moving_clusters({"gaussians": g}, jnp.ones(n, bool), vms.astype(np.float32), Ks, flows, prev, **kw)
+    assert np.bincount(together[a | b][together[a | b] >= 0]).max() > 0.8 * 60  # one cluster holds both
+    split = moving_clusters({"gaussians": g}, jnp.ones(n, bool), vms[order].astype(np.float32), Ks[order],
+                            flows[order], np.argsort(order)[prev[order]] * (prev[order] >= 0) - (prev[order] < 0),
+                            split=True, times=times[order], **kw)
+    la, lb = (np.bincount(split[m][split[m] >= 0], minlength=2) for m in (a, b))
+    assert la.argmax() != lb.argmax(), split[a | b]
+    assert la.max() > 0.6 * 30 and lb.max() > 0.6 * 30
+    assert np.mean(split[~(a | b)] == -2) > 0.85
 
 
 def test_previous_frames_span_frames_back_in_time_order():

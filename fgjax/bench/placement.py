@@ -15,7 +15,7 @@ viewmats_true.npy) and for each set of spans in ``--spans`` (sets separated by "
   Gaussians are those that paint mostly its pixels in the training frames (`painted_parts`; their number is printed
   as ``of``), the number of other Gaussians freed (``others``: Gaussians that paint mostly static pixels) and the
   placement's time; with ``--shares``, for each ``deform.camera_share`` listed (the floor growing with the camera
-  flow, 1 px + share |u_cam|) and, with ``--split``, each ``deform.place_split``. Beside it, per part, the moving
+  flow, 1 px + share |u_cam|) and, with ``--vary``, each value of another setting. Beside it, per part, the moving
   cluster that holds most of its Gaussians and their share in it (`part_clusters`): two parts with the same cluster
   share one basis, which one rigid motion cannot fit.
 
@@ -136,11 +136,11 @@ def part_clusters(labels: np.ndarray, parts: list[np.ndarray]) -> tuple[list[int
 
 
 def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...]],
-                  camera_shares: list[float] | None = None, splits: list[bool] | None = None
+                  camera_shares: list[float] | None = None, variants: list[list[str]] | None = None
                   ) -> tuple[list[dict], float]:
     """The ``placed`` measurement (module docstring) for each set of spans, each ``deform.camera_share`` in
-    ``camera_shares`` and each ``deform.place_split`` in ``splits`` (None: the configuration's), on one warm-up
-    model; and the warm-up's time (s)."""
+    ``camera_shares`` (None: the configuration's) and each list of overrides in ``variants`` (None: none), on one
+    warm-up model; and the warm-up's time (s)."""
     scene = load_scene(scene_dir, "train")
     t0 = time.perf_counter()
     res = stage1.train_stage1(cfg, scene, None, stop_at=cfg.train.warmup_steps, progress=False, log=lambda *_: None)
@@ -152,16 +152,16 @@ def placed_shares(cfg: C.Config, scene_dir: Path, span_sets: list[tuple[int, ...
     for p in parts:
         on_part[p] = True
     out = []
-    for spans, share, split in ((a, b, c) for a in span_sets for b in camera_shares or [cfg.deform.camera_share]
-                                for c in splits or [cfg.deform.place_split]):
+    for spans, share, extra in ((a, b, c) for a in span_sets for b in camera_shares or [cfg.deform.camera_share]
+                                for c in variants or [[]]):
         c2 = C.apply_overrides(cfg, [f"deform.spans={','.join(map(str, spans))}", f"deform.camera_share={share}",
-                                     f"deform.place_split={str(split).lower()}"])
+                                     *extra])
         t1 = time.perf_counter()
         _, labels = place_bases(c2, st.params, st.densify.alive, spec, scene, None, capacity=st.capacity,
                                 log=lambda *_: None)
         free = (labels >= 0) | ((labels == -1) & alive)
         cl, in_cl = part_clusters(labels, parts)
-        out.append({"spans": list(spans), "camera_share": share, "split": split,
+        out.append({"spans": list(spans), "camera_share": share, "vary": list(extra),
                     "parts": [float(free[p].mean()) if len(p) else float("nan") for p in parts],
                     "part_cluster": cl, "in_cluster": in_cl,
                     "part_size": [len(p) for p in parts],
@@ -186,8 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spans", default="1;1,2,4", help="sets of frame spans, ';'-separated (default: %(default)s)")
     p.add_argument("--shares", default=None, help="deform.camera_share values of the placement, ';'-separated "
                    "(default: the configuration's)")
-    p.add_argument("--split", default=None, help="deform.place_split values of the placement, ';'-separated, e.g. "
-                   "'off;on' (default: the configuration's)")
+    p.add_argument("--vary", action="append", default=[], metavar="SECTION.KEY=A;B",
+                   help="measure the placement at each of these values of a setting (repeatable: every combination)")
     p.add_argument("--config", default=str(DEFAULT_CONFIG), help="named configuration (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE")
     p.add_argument("--pixels-only", action="store_true", help="skip the warm-up and the placement")
@@ -202,12 +202,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fgjax bench placement: --shares must look like '0;0.1' (numbers >= 0); got {args.shares!r}",
               file=sys.stderr)
         return 2
-    flags = {"off": False, "on": True, "false": False, "true": True}
-    splits = None if args.split is None else [flags.get(x.strip().lower()) for x in args.split.split(";") if x.strip()]
-    if splits is not None and (not splits or None in splits):
-        print(f"fgjax bench placement: --split must look like 'off;on'; got {args.split!r}", file=sys.stderr)
-        return 2
+    variants: list[list[str]] = [[]]
+    for v in args.vary:
+        key, _, values = v.partition("=")
+        vals = [x.strip() for x in values.split(";") if x.strip()]
+        if not key.strip() or not vals:
+            print(f"fgjax bench placement: --vary must look like 'deform.place_window=0;3'; got {v!r}",
+                  file=sys.stderr)
+            return 2
+        variants = [[*a, f"{key.strip()}={x}"] for a in variants for x in vals]
     cfg = C.load_config(args.config, args.overrides)
+    for extra in variants:  # a bad value is refused before any training, naming the key
+        C.apply_overrides(cfg, extra)
     if not args.pixels_only and (cfg.deform.kind, cfg.deform.init) != ("bases", "flow"):
         print("fgjax bench placement: the placement needs deform.kind = 'bases' and deform.init = 'flow' (pass "
               "--set deform.kind=bases --set deform.init=flow, or --pixels-only)", file=sys.stderr)
@@ -223,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
         row = {"data": str(scene_dir), "pixels": pixel_evidence(scene_dir, span_sets, cfg.flow.method)}
         row["pixels_seconds"] = time.perf_counter() - t0
         if not args.pixels_only:
-            row["placed"], row["warmup_seconds"] = placed_shares(cfg, scene_dir, span_sets, shares, splits)
+            row["placed"], row["warmup_seconds"] = placed_shares(cfg, scene_dir, span_sets, shares, variants)
         rows.append(row)
         fmt = lambda xs: " ".join(f"{x:.2f}" for x in xs)
         print(f"{scene_dir}:")
@@ -231,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  spans {','.join(map(str, e['spans'])):<8} pixels {fmt(e['parts'])} (static {e['static']:.3f})")
         for e in row.get("placed", []):
             print(f"  spans {','.join(map(str, e['spans'])):<8} share {e['camera_share']:<5g} "
-                  f"split {'on ' if e['split'] else 'off'} placed {fmt(e['parts'])} "
+                  f"{' '.join(e['vary']) + ' ' if e['vary'] else ''}placed {fmt(e['parts'])} "
                   f"of {' '.join(map(str, e['part_size']))} (others {e['others']}, {e['clusters']} clusters, "
                   f"{e['seconds']:.1f} s); part clusters "
                   f"{' '.join(map(str, e['part_cluster']))} holding {fmt(e['in_cluster'])}")

@@ -241,6 +241,7 @@ def validate_stage1(cfg: Config) -> None:
     need(finite(f.gauge) and f.gauge >= 0, "deform.gauge", "a finite number >= 0", f.gauge)
     need(finite(f.camera_share) and f.camera_share >= 0, "deform.camera_share", "a finite number >= 0",
          f.camera_share)
+    need(f.place_window >= 0, "deform.place_window", "an integer >= 0 (0: every pair)", f.place_window)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
          fl.gaussian_flow)

@@ -90,9 +90,10 @@ class DeformConfig:
     relative error times its parallax, so a moving camera, and a longer span, needs more evidence. 0: a fixed 1 px;
     with spans 1, 2, 4 the family's tuning seeds choose 0.2 (docs/benchmarks.md, "A floor that grows with the camera
     flow")."""
-    place_split: bool = False
-    """With init = "flow": split each placed cluster whose Gaussians move at different times
-    (`fgjax.cluster.split_by_motion`, stage 2's split; `fgjax.method.bases_init.moving_clusters`)."""
+    place_window: int = 0
+    """With init = "flow": > 0: a Gaussian's discovery score is its best run of this many consecutive pairs
+    (`fgjax.method.discover.windowed_score`) rather than the share over every pair, in which a part that moves in a
+    few pairs is diluted by those in which it rests; 0: every pair."""
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""

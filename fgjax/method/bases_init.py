@@ -13,9 +13,7 @@ instead; this is the same idea with the evidence stage 1 already has, at the end
    between consecutive frames, above it over four: docs/benchmarks.md, "The placement's frame spans");
 2. the moving pixels are back-projected onto the canonical Gaussians through the rasterizer's weights and the
    Gaussians that paint mostly moving pixels are selected, span by span (each with its own score threshold), and
-   the selections united; DBSCAN (`fgjax.cluster.cluster_dynamic`, automatic radius) groups them, and with
-   ``deform.place_split`` the clusters whose Gaussians move at different times are split as stage 2 splits its
-   own (`fgjax.cluster.split_by_motion`);
+   the selections united; DBSCAN (`fgjax.cluster.cluster_dynamic`, automatic radius) groups them;
 3. the logits network is fitted, by class-balanced cross-entropy with label smoothing, to put cluster j
    (largest first, j < K - 1) on basis j + 1 and every unselected Gaussian on basis 0; selected Gaussians that
    DBSCAN calls noise, and clusters beyond K - 1, are left to the training. With per-slot weights
@@ -56,7 +54,7 @@ __all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases"
 def moving_clusters(
     params, alive, viewmats, Ks, flows, prev, *, width: int, height: int, capacity: int,
     background=(0.0, 0.0, 0.0), threshold_px: float = 1.0, camera_share: float = 0.0, min_fraction: float = 0.02,
-    split: bool = False, times=None,
+    window: int = 0, times=None,
 ) -> np.ndarray:
     """Label every Gaussian slot: -2 static, -1 dead or moving but DBSCAN noise, j >= 0 moving cluster j (the
     largest first), from the canonical Gaussians (``params["gaussians"]``, no deformation) and the training flows.
@@ -75,42 +73,33 @@ def moving_clusters(
             u_cam's error is the canonical depth's relative error times its parallax, and the optical flow's own
             error grows with the displacement, so a moving camera needs more evidence than a still one.
         min_fraction: clusters smaller than this share of the moving Gaussians are noise.
-        split: then split each cluster whose members move at different times (`fgjax.cluster.split_by_motion`, as
-            stage 2 does), on each Gaussian's per-frame share of moving pixels, the terms of every span's pairs
-            added up by the pair's first frame, in the order of ``times`` [T] (None: the frames' order).
+        window: > 0: a Gaussian's score is the best run of this many consecutive pairs of a span, in the order of
+            ``times`` (`fgjax.method.discover.windowed_score`), so that a part that moves in a few pairs is not
+            diluted by the pairs in which it rests; 0: the score over all pairs.
+        times: [T] the frames' times (None: the frames are in time order).
     """
     sets = list(zip(flows, prev)) if isinstance(flows, list | tuple) else [(flows, prev)]
     alive_np = np.asarray(alive, bool)
     labels = np.where(alive_np, -2, -1).astype(np.int64)
     dyn = np.zeros_like(alive_np)
-    moving_t = np.zeros((len(viewmats), len(alive_np))) if split else None
-    total_t = np.zeros_like(moving_t) if split else None
     for f, p in sets:
-        d, terms = _moving_gaussians(params, alive, viewmats, Ks, f, p, width, height, capacity, background,
-                                     threshold_px, camera_share, per_frame=split)
-        dyn |= d
-        if split and terms is not None:
-            src, mv, tt = terms
-            np.add.at(moving_t, src, mv)
-            np.add.at(total_t, src, tt)
+        dyn |= _moving_gaussians(params, alive, viewmats, Ks, f, p, width, height, capacity, background, threshold_px,
+                                 camera_share, window, times)
     dyn &= alive_np
     if dyn.sum() >= 2:
-        means = np.asarray(params["gaussians"].means)[dyn]
-        lab = cluster.cluster_dynamic(means, auto_eps=True, min_fraction=min_fraction)
-        if split and (lab >= 0).any():
-            order = np.arange(len(moving_t)) if times is None else np.argsort(np.asarray(times), kind="stable")
-            lab = cluster.split_by_motion(means, lab, moving_t[order][:, dyn], total_t[order][:, dyn])
-        labels[dyn] = lab
+        labels[dyn] = cluster.cluster_dynamic(np.asarray(params["gaussians"].means)[dyn], auto_eps=True,
+                                              min_fraction=min_fraction)
     return labels
 
 
 def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, capacity, background, threshold_px,
-                      camera_share=0.0, per_frame=False):
-    """([N] bool: `discover`'s dynamic Gaussians of one set of pairs; with ``per_frame`` (each pair's first frame
-    [P], its moving and total terms [P, N] of `fgjax.method.discover.Scores`), else None) (`moving_clusters`)."""
+                      camera_share=0.0, window=0, times=None):
+    """[N] bool: `discover`'s dynamic Gaussians of one set of pairs (`moving_clusters`)."""
     pairs = [i for i in range(len(prev)) if prev[i] >= 0]
+    if times is not None:  # in the time order of their first frames
+        pairs = sorted(pairs, key=lambda i: (float(times[prev[i]]), int(prev[i])))
     if not pairs or not np.asarray(alive, bool).any():
-        return np.zeros(np.shape(alive), bool), None
+        return np.zeros(np.shape(alive), bool)
     g = params["gaussians"]
     quats, scales, opac = activate(g, alive)
     c2w = viewmat_to_c2w(np.asarray(viewmats, np.float64))
@@ -132,9 +121,8 @@ def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, c
                      np.asarray(viewmats, np.float32)[src], np.asarray(Ks, np.float32)[src], u, cams,
                      valid=np.stack(valid), capacity=capacity,
                      threshold_px=threshold_px + camera_share * np.linalg.norm(cams, axis=-1)
-                     if camera_share > 0 else threshold_px, per_frame=per_frame)
-    terms = (np.asarray(src), found.scores.moving_t, found.scores.total_t) if per_frame else None
-    return np.asarray(found.dynamic, bool), terms
+                     if camera_share > 0 else threshold_px, window=window)
+    return np.asarray(found.dynamic, bool)
 
 
 def basis_targets(labels: np.ndarray, num_bases: int, smoothing: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
@@ -188,7 +176,7 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
     labels = moving_clusters(params, alive, scene.viewmats, scene.Ks, sets,
                              [previous_frames(scene.times, s) for s in spans], width=scene.width, height=scene.height,
                              capacity=capacity, background=tuple(cfg.model.background),
-                             camera_share=cfg.deform.camera_share, split=cfg.deform.place_split,
+                             camera_share=cfg.deform.camera_share, window=cfg.deform.place_window,
                              times=scene.times)
     sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
     target, weight = basis_targets(labels, spec.bases)

@@ -43,6 +43,7 @@ __all__ = [
     "camera_flow_from_depth",
     "Scores",
     "accumulate_scores",
+    "windowed_score",
     "Discovery",
     "discover",
 ]
@@ -244,6 +245,33 @@ def accumulate_scores(
     return Scores(score=moving / (total + eps), moving=moving, total=total, moving_t=mt, total_t=tt)
 
 
+def windowed_score(
+    moving_t: Float[np.ndarray, "T N"], total_t: Float[np.ndarray, "T N"], window: int, *, eps: float = 0.1
+) -> Float[np.ndarray, " N"]:
+    """The discovery score over the best run of ``window`` consecutive pairs (pairs in time order):
+
+        score_i = max_s sum_{t=s}^{s+window-1} moving_it / (sum_{t=s}^{s+window-1} total_it + eps).
+
+    The score of `accumulate_scores` divides by everything a Gaussian paints over the whole clip, so a part that
+    moves in a fifth of the pairs scores at most a fifth however clearly those pairs show it; over a window the
+    pairs in which it rests do not dilute it. ``window`` >= T is that score (one window of every pair). Returns
+    [N] float64 in [0, 1); all zero for T = 0.
+    """
+    mv = np.asarray(moving_t, np.float64)
+    tt = np.asarray(total_t, np.float64)
+    if mv.ndim != 2 or tt.shape != mv.shape:
+        raise ValueError(f"windowed_score: moving_t and total_t must both have shape [T, N], got {list(mv.shape)} "
+                         f"and {list(tt.shape)}")
+    if window < 1:
+        raise ValueError(f"windowed_score: window must be >= 1, got {window}")
+    if len(mv) == 0:
+        return np.zeros(mv.shape[1])
+    w = min(int(window), len(mv))
+    cm = np.concatenate([np.zeros((1, mv.shape[1])), np.cumsum(mv, 0)])
+    ct = np.concatenate([np.zeros((1, tt.shape[1])), np.cumsum(tt, 0)])
+    return ((cm[w:] - cm[:-w]) / (ct[w:] - ct[:-w] + eps)).max(0)
+
+
 class Discovery(NamedTuple):
     """Result of `discover`.
 
@@ -278,6 +306,7 @@ def discover(
     eps: float = 0.1,
     capacity: int | None = None,
     per_frame: bool = False,
+    window: int = 0,
 ) -> Discovery:
     """Select the dynamic Gaussians D from optical flow and camera flow (step 5), over T pairs.
 
@@ -298,6 +327,8 @@ def discover(
         eps: see `accumulate_scores`.
         capacity: rasterizer capacity (static).
         per_frame: keep the per-frame terms in ``scores`` (see `Scores`).
+        window: > 0: each Gaussian's score is its best run of this many consecutive pairs (`windowed_score`; the
+            pairs must then be in time order); 0: the score over all pairs.
 
     Returns:
         `Discovery`.
@@ -305,8 +336,14 @@ def discover(
     masks = binarize(residual_flow(flows, camera_flows), threshold_px, valid=valid, min_px=min_px)
     if masks.ndim != 3:
         raise ValueError(f"discover: flows must have shape [T, H, W, 2], got {np.shape(flows)}")
+    if window < 0:
+        raise ValueError(f"discover: window must be >= 0, got {window}")
     sc = accumulate_scores(means, quats, scales, opacities, viewmats, K, masks, eps=eps, capacity=capacity,
-                           per_frame=per_frame)
+                           per_frame=per_frame or window > 0)
+    if window > 0:
+        sc = sc._replace(score=windowed_score(sc.moving_t, sc.total_t, window, eps=eps))
+        if not per_frame:
+            sc = sc._replace(moving_t=None, total_t=None)
     ok = sc.total > min_total
     if isinstance(score_threshold, str):
         thr = cluster.otsu_threshold(sc.score[ok]) if ok.any() else float("inf")

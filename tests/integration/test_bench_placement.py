@@ -8,6 +8,7 @@ import pathlib
 import numpy as np
 from conftest import synth
 
+from fgjax import config as C
 from fgjax.bench import placement
 
 
@@ -19,13 +20,13 @@ def test_bench_placement_reads_the_evidence_and_places_by_span(tmp_path, capsys)
     assert placement.main(["--data", str(tmp_path / "scene"), "--config", str(quick), *sets]) == 2  # not "bases"
     assert "deform.kind = 'bases'" in capsys.readouterr().err
     out = tmp_path / "placement.json"
-    assert placement.main(["--data", str(tmp_path / "scene"), "--config", str(quick), "--spans", "1;1,2", "--shares", "0;0.2", "--split", "off;on", *sets,
+    assert placement.main(["--data", str(tmp_path / "scene"), "--config", str(quick), "--spans", "1;1,2", "--shares", "0;0.2", "--vary", "deform.place_window=0;3", *sets,
                            "--set", "deform.kind=bases", "--set", "deform.init=flow", "--json", str(out)]) == 0
     (row,), text = json.loads(out.read_text()), capsys.readouterr().out
     parts = len(json.loads((tmp_path / "scene" / "gt" / "meta.json").read_text())["objects"])
     assert [e["spans"] for e in row["pixels"]] == [[1], [1, 2]]
-    assert [(e["spans"], e["camera_share"], e["split"]) for e in row["placed"]] == [
-        (s, c, x) for s in ([1], [1, 2]) for c in (0.0, 0.2) for x in (False, True)]
+    assert [(e["spans"], e["camera_share"], e["vary"]) for e in row["placed"]] == [
+        (s, c, [f"deform.place_window={x}"]) for s in ([1], [1, 2]) for c in (0.0, 0.2) for x in (0, 3)]
     for e in row["pixels"]:
         assert len(e["parts"]) == parts and 0.0 <= e["static"] <= 1.0
     assert row["pixels"][0]["static"] < 0.3  # consecutive frames (64x48, 8 frames: the camera moves fast)
@@ -41,13 +42,15 @@ def test_bench_placement_reads_the_evidence_and_places_by_span(tmp_path, capsys)
         assert all(0.0 <= x <= y for x, y in zip(e["in_cluster"], e["parts"]) if x == x)  # in a cluster: freed
     assert max(max(x for x in e["parts"] if x == x) for e in row["placed"]) > 0.5  # a part is placed
     assert "spans 1,2" in text and "share 0.2" in text and "placed" in text and "warm-up" in text
-    assert "part clusters" in text and "split on" in text and "split off" in text
+    assert "part clusters" in text and "deform.place_window=3 placed" in text
     assert placement.main(["--data", str(tmp_path), "--pixels-only"]) == 2  # no gt/ there
     assert "gt/train/object_id.npy is missing" in capsys.readouterr().err
     assert placement.main(["--data", str(tmp_path / "scene"), "--shares", "0;-1", "--pixels-only"]) == 2
     assert "--shares must look like" in capsys.readouterr().err
-    assert placement.main(["--data", str(tmp_path / "scene"), "--split", "maybe", "--pixels-only"]) == 2
-    assert "--split must look like" in capsys.readouterr().err
+    assert placement.main(["--data", str(tmp_path / "scene"), "--vary", "deform.place_window", "--pixels-only"]) == 2
+    assert "--vary must look like" in capsys.readouterr().err
+    with __import__("pytest").raises(C.ConfigError, match="deform.place_window"):
+        placement.main(["--data", str(tmp_path / "scene"), "--vary", "deform.place_window=0;-2", "--pixels-only"])
     with __import__("pytest").raises(SystemExit, match="--spans"):
         placement.main(["--data", str(tmp_path / "scene"), "--spans", "0;1", "--pixels-only"])
 

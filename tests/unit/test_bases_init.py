@@ -72,8 +72,8 @@ def _blob_scene(n, w, h, frames, shift, second=None):
     """A wall of n Gaussians and a blob of its first 30 in front of it that slides by ``shift`` along x over the
     clip, seen by a camera on an arc: (canonical Gaussians, times [T], viewmats [T, 4, 4], K, flow_of) with
     flow_of(prev) the exact flows [T, H, W, 2] into each frame i from frame prev[i] (NaN where prev[i] < 0).
-    With ``second`` = (shift_a, shift_b): Gaussians 30-59 form a second blob touching the first, the first slides
-    by shift_a along x in the first third of the clip and the second by shift_b along z in the last third."""
+    With ``second``, a function of time t in [0, 1] to the displacements ([3], [3]) of two blobs: Gaussians 30-59
+    form a second blob touching the first, and the two move by those displacements instead."""
     rng = np.random.default_rng(0)
     means = np.stack([rng.uniform(-1.0, 1.0, n), rng.uniform(0.4, 0.6, n), rng.uniform(-0.8, 0.8, n)], 1)  # a wall
     means[:30] = rng.normal([-0.1, -0.2, 0.1], 0.06, (30, 3))  # the blob, in front of it
@@ -89,8 +89,8 @@ def _blob_scene(n, w, h, frames, shift, second=None):
     at = [means + np.where(np.arange(n)[:, None] < 30, [shift * t, 0.0, 0.0], 0.0) for t in times]
     if second is not None:
         a, b = (np.arange(n) < 30)[:, None], ((np.arange(n) >= 30) & (np.arange(n) < 60))[:, None]
-        at = [means + np.where(a, [second[0] * min(3 * t, 1.0), 0.0, 0.0], 0.0)
-              + np.where(b, [0.0, 0.0, second[1] * max(3 * t - 2, 0.0)], 0.0) for t in times]
+        at = [means + np.where(a, np.asarray(second(t)[0]), 0.0) + np.where(b, np.asarray(second(t)[1]), 0.0)
+              for t in times]
 
     def flow_of(prev):
         flows = np.full((frames, h, w, 2), np.nan, np.float32)
@@ -124,27 +124,28 @@ def test_moving_clusters_find_the_moving_blob_from_the_flow():
     assert np.sum(labels == 0) <= 1.15 * np.sum(labels[blob] == 0)  # the cluster is the blob
 
 
-def test_moving_clusters_split_touching_blobs_that_move_at_different_times():
+def test_moving_clusters_window_reads_the_pairs_in_time_order():
     """Two touching blobs in front of a wall: the first slides in the first third of the clip, the second in the
-    last third. Position alone (DBSCAN) puts both on one cluster; with ``split`` (stage 2's `split_by_motion` on
-    each Gaussian's per-frame share of moving pixels) each blob gets its own."""
+    last third. With a window of three pairs (`fgjax.method.discover.windowed_score`) the placement finds both,
+    and the same Gaussians when the frames are stored out of time order (the windows run over ``times``)."""
     n, w, h, frames = 200, 48, 36, 12
-    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, 0.0, second=(0.4, 0.4))
+    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, 0.0, second=lambda t: (
+        [0.4 * min(3 * t, 1.0), 0.0, 0.0], [0.0, 0.0, 0.4 * max(3 * t - 2, 0.0)]))
     prev = previous_frames(times)
     flows = flow_of(prev)
-    kw = dict(width=w, height=h, capacity=1 << 15)
+    kw = dict(width=w, height=h, capacity=1 << 15, window=3)
     Ks = np.stack([K] * frames).astype(np.float32)
-    a, b = np.arange(n) < 30, (np.arange(n) >= 30) & (np.arange(n) < 60)
+    blobs = np.arange(n) < 60
+    ordered = moving_clusters({"gaussians": g}, jnp.ones(n, bool), vms.astype(np.float32), Ks, flows, prev,
+                              times=times, **kw)
+    assert np.mean(ordered[:30] >= 0) > 0.6 and np.mean(ordered[30:60] >= 0) > 0.6, ordered[:60]
+    assert np.mean(ordered[~blobs] == -2) > 0.8  # measured 0.84: the windows also lift some of the wall
     order = np.r_[np.arange(6, frames), np.arange(6)]  # frames stored out of time order
-    together = moving_clusters({"gaussians": g}, jnp.ones(n, bool), vms.astype(np.float32), Ks, flows, prev, **kw)
-    assert np.bincount(together[a | b][together[a | b] >= 0]).max() > 0.8 * 60  # one cluster holds both
-    split = moving_clusters({"gaussians": g}, jnp.ones(n, bool), vms[order].astype(np.float32), Ks[order],
-                            flows[order], np.argsort(order)[prev[order]] * (prev[order] >= 0) - (prev[order] < 0),
-                            split=True, times=times[order], **kw)
-    la, lb = (np.bincount(split[m][split[m] >= 0], minlength=2) for m in (a, b))
-    assert la.argmax() != lb.argmax(), split[a | b]
-    assert la.max() > 0.6 * 30 and lb.max() > 0.6 * 30
-    assert np.mean(split[~(a | b)] == -2) > 0.85
+    back = np.argsort(order)
+    shuffled = moving_clusters({"gaussians": g}, jnp.ones(n, bool), vms[order].astype(np.float32), Ks[order],
+                               flows[order], np.where(prev[order] >= 0, back[np.maximum(prev[order], 0)], -1),
+                               times=times[order], **kw)
+    np.testing.assert_array_equal(shuffled, ordered)
 
 
 def test_previous_frames_span_frames_back_in_time_order():

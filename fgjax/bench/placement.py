@@ -99,7 +99,7 @@ def painted_parts(params, alive, scene, gt: Path, *, capacity: int, share: float
     label), the canonical Gaussians of ``params`` (no deformation: what the placement reads) and the training cameras
     of ``scene``. With ``share`` >= 0.5 a Gaussian belongs to one part at most. These are the Gaussians that render
     the part, wherever the model put them in depth; `fgjax.bench.motion.part_gaussians` (centres within 0.05 scene
-    units of the true surface) counts only those already on the true surface, a few per part on a warm-up model."""
+    units of the true surface) counts only those already on it, a few dozen per part on a warm-up model."""
     oid = np.load(gt / "train" / "object_id.npy")
     if oid.shape != (len(scene.times), scene.height, scene.width):
         raise ValueError(f"{gt / 'train' / 'object_id.npy'} has shape {oid.shape}, the training frames are "

@@ -180,6 +180,19 @@ def _spans(text: str) -> list[tuple[int, ...]]:
     return sets
 
 
+def _variants(vary: list[str]) -> list[list[str]]:
+    """Every combination of the ``--vary`` values, as override lists: ["a=1;2", "b=x"] -> [["a=1", "b=x"],
+    ["a=2", "b=x"]]; no ``--vary``: one empty list."""
+    out: list[list[str]] = [[]]
+    for v in vary:
+        key, _, values = v.partition("=")
+        vals = [x.strip() for x in values.split(";") if x.strip()]
+        if not key.strip() or not vals:
+            raise ValueError(f"--vary must look like 'deform.place_window=0;3'; got {v!r}")
+        out = [[*a, f"{key.strip()}={x}"] for a in out for x in vals]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="fgjax bench placement", description=__doc__.splitlines()[0])
     p.add_argument("--data", action="append", required=True, help="scene folder with gt/ (repeatable)")
@@ -202,15 +215,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fgjax bench placement: --shares must look like '0;0.1' (numbers >= 0); got {args.shares!r}",
               file=sys.stderr)
         return 2
-    variants: list[list[str]] = [[]]
-    for v in args.vary:
-        key, _, values = v.partition("=")
-        vals = [x.strip() for x in values.split(";") if x.strip()]
-        if not key.strip() or not vals:
-            print(f"fgjax bench placement: --vary must look like 'deform.place_window=0;3'; got {v!r}",
-                  file=sys.stderr)
-            return 2
-        variants = [[*a, f"{key.strip()}={x}"] for a in variants for x in vals]
+    try:
+        variants = _variants(args.vary)
+    except ValueError as e:
+        print(f"fgjax bench placement: {e}", file=sys.stderr)
+        return 2
     cfg = C.load_config(args.config, args.overrides)
     for extra in variants:  # a bad value is refused before any training, naming the key
         C.apply_overrides(cfg, extra)

@@ -20,6 +20,9 @@ seed and as the mean, and written to ``DIR/family.json``::
 With ``--depth-maps`` every scene also carries its true depth as a measured one (`fgjax.synth.SynthConfig.depth_maps`:
 an ideal RGB-D sensor), which ``model.init = "depth"`` and ``train.depth_weight`` use.
 
+Progress goes to stderr: per seed, stage 1's and stage 2's own lines at most one a minute (`progress_log`), and
+each stage's time when it ends.
+
 A PNG sheet per seed, ``DIR/seed_NNN/sheet.png``: for each "view" test frame, the gt ids, the predicted ids, the
 controlled render and the gt image. The protocol (seeds 0-5 tune, 6-11 validate) is in docs/benchmarks.md.
 """
@@ -100,6 +103,24 @@ def _sheet(run, scene_dir: Path, path: Path) -> None:
         atomic_write(path, lambda f: iio.imwrite(f, sheet, extension=".png"))
 
 
+PROGRESS_EVERY_S = 60.0  # the longest silence of a stage's progress lines
+
+
+def progress_log(say, prefix: str, seconds: float = PROGRESS_EVERY_S, clock=time.monotonic):
+    """A log for a long stage that `say`s ``prefix + message``: the first message, every warning or error at once,
+    and any other message only when `seconds` have passed since the last one said (a stage 1 of 3,000 steps logs a
+    line per 100 steps; this shows one a minute). `clock` gives seconds."""
+    last = [-np.inf]
+
+    def log(message, *_):
+        text, now = str(message), clock()
+        if text.lower().startswith(("warning", "error")) or now - last[0] >= seconds:
+            last[0] = now
+            say(prefix + text)
+
+    return log
+
+
 def _copy_stage1(src: Path, dst: Path) -> None:
     """The stage-1 run folder `src` copied to `dst` without its stage-2 results (its flow cache, RUN/flow_cache, which
     stage 1 and stage 2 share, comes along)."""
@@ -135,10 +156,13 @@ def run_seed(seed: int, out: Path, cfg: Config, *, size=None, frames=None, trace
     else:
         scene_dir = _scene(seed, root, size, frames, say, depth_maps)
         t0 = time.perf_counter()
-        stage1.run(cfg, scene_dir, run_dir, log=quiet, overwrite=True)
+        stage1.run(cfg, scene_dir, run_dir, log=progress_log(say, f"bench family: seed {seed}: stage 1: "),
+                   overwrite=True)
         say(f"bench family: seed {seed}: stage 1 done ({time.perf_counter() - t0:.0f} s)")
     train = load_scene(scene_dir, "train")
-    run = discover_objects(cfg, scene_dir, run_dir, log=quiet)
+    t2 = time.perf_counter()
+    run = discover_objects(cfg, scene_dir, run_dir, log=progress_log(say, f"bench family: seed {seed}: stage 2: "))
+    say(f"bench family: seed {seed}: stage 2 done ({time.perf_counter() - t2:.0f} s)")
     res = write_control_metrics(run, scene_dir, log=quiet) or {}
     wall = time.perf_counter() - t0
     row = {"seed": seed, "ari": res.get("ari", float("nan")), "parts_true": res.get("parts_true", 0),

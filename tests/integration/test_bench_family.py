@@ -67,8 +67,13 @@ def test_bench_family_end_to_end(tmp_path, capsys):
     args = ["bench", "family", "--seeds", "1,2", "--size", "48x36", "--frames", "6", "--config", str(QUICK),
             "--out", str(out), "--trace", "--set", "stage2.photo_steps=0", "--set", "stage2.distill_steps=20"]
     assert cli(args) == 0
-    text = capsys.readouterr().out
+    said = capsys.readouterr()
+    text = said.out
     assert "mean" in text and "parts found" in text
+    for seed in (1, 2):  # each stage's progress on stderr: its first line at once, then its time
+        assert f"bench family: seed {seed}: stage 1: train: 6 frames 48x36" in said.err, said.err
+        assert f"seed {seed}: stage 1 done" in said.err and f"seed {seed}: stage 2 done" in said.err
+        assert f"bench family: seed {seed}: stage 2: " in said.err
     doc = json.loads((out / "family.json").read_text())
     keys = {"seed", "ari", "parts_true", "parts_found", "state_psnr", "state_psnr_moving", "stage1_psnr", "wall_s"}
     assert [r["seed"] for r in doc["seeds"]] == [1, 2]
@@ -90,6 +95,19 @@ def test_bench_family_end_to_end(tmp_path, capsys):
     assert not (paper / "seed_001" / "scene").exists()  # the earlier benchmark's scene was used in place
     assert cli(["bench", "family", "--seeds", "2", "--stage1-from", str(paper), "--out", str(tmp_path / "x")]) == 2
     assert "--stage1-from" in capsys.readouterr().err
+
+
+def test_progress_log_says_the_first_line_warnings_at_once_and_then_one_line_a_minute():
+    from fgjax.bench.family import progress_log
+
+    said, now = [], [0.0]
+    log = progress_log(said.append, "seed 3: ", 60.0, clock=lambda: now[0])
+    for t, msg in [(0, "train: 8 frames"), (10, "step 100"), (59, "step 200"), (61, "step 300"), (62, "Warning: x"),
+                   (100, "step 400"), (122, "step 500"), (183, "error: y")]:
+        now[0] = float(t)
+        log(msg)
+    assert said == ["seed 3: train: 8 frames", "seed 3: step 300", "seed 3: Warning: x", "seed 3: step 500",
+                    "seed 3: error: y"]
 
 
 def test_bench_family_rejects_bad_arguments(tmp_path, capsys):

@@ -103,7 +103,7 @@ def test_progress_log_says_the_first_line_warnings_at_once_and_then_one_line_a_m
     said, now = [], [0.0]
     log = progress_log(said.append, "seed 3: ", 60.0, clock=lambda: now[0])
     for t, msg in [(0, "train: 8 frames"), (10, "step 100"), (59, "step 200"), (61, "step 300"), (62, "Warning: x"),
-                   (100, "step 400"), (122, "step 500"), (183, "error: y")]:
+                   (100, "step 400"), (122, "step 500"), (130, "error: y")]:
         now[0] = float(t)
         log(msg)
     assert said == ["seed 3: train: 8 frames", "seed 3: step 300", "seed 3: Warning: x", "seed 3: step 500",

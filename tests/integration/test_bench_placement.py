@@ -6,6 +6,7 @@ import json
 import pathlib
 
 import numpy as np
+import pytest
 from conftest import synth
 
 from fgjax import config as C
@@ -49,9 +50,9 @@ def test_bench_placement_reads_the_evidence_and_places_by_span(tmp_path, capsys)
     assert "--shares must look like" in capsys.readouterr().err
     assert placement.main(["--data", str(tmp_path / "scene"), "--vary", "deform.place_window", "--pixels-only"]) == 2
     assert "--vary must look like" in capsys.readouterr().err
-    with __import__("pytest").raises(C.ConfigError, match="deform.place_window"):
+    with pytest.raises(C.ConfigError, match="deform.place_window"):
         placement.main(["--data", str(tmp_path / "scene"), "--vary", "deform.place_window=0;-2", "--pixels-only"])
-    with __import__("pytest").raises(SystemExit, match="--spans"):
+    with pytest.raises(SystemExit, match="--spans"):
         placement.main(["--data", str(tmp_path / "scene"), "--spans", "0;1", "--pixels-only"])
 
 
@@ -62,7 +63,7 @@ def test_vary_measures_every_combination():
     assert placement._variants(["a=1;2", "b=x;y"]) == [["a=1", "b=x"], ["a=1", "b=y"], ["a=2", "b=x"],
                                                       ["a=2", "b=y"]]
     for bad in ("deform.place_window", "=3", "deform.place_window=;"):
-        with __import__("pytest").raises(ValueError, match="--vary must look like"):
+        with pytest.raises(ValueError, match="--vary must look like"):
             placement._variants([bad])
 
 
@@ -117,5 +118,5 @@ def test_painted_parts_counts_the_gaussians_that_render_a_part(tmp_path):
     assert n - 2 not in one and n - 1 not in one  # hidden behind the wall; dead
     assert all(u[i] < w / 2 + 2 for i in one)  # nothing from the static right half
     scene.height = h + 1
-    with __import__("pytest").raises(ValueError, match="object_id.npy has shape"):
+    with pytest.raises(ValueError, match="object_id.npy has shape"):
         placement.painted_parts({"gaussians": g}, alive, scene, gt, capacity=4096)

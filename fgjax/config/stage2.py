@@ -31,6 +31,10 @@ class Stage2Config:
     """Floor of the Otsu threshold (pixels)."""
     min_alpha: float = 0.5
     """Pixels whose rendered alpha is below this have no trusted depth and are left out of the masks."""
+    agree_sigma: float = 0.0
+    """Weight each pixel's back-projection by the agreement of the stage-1 rendering with the image there,
+    exp(-e^2 / (2 agree_sigma^2)) for an RMS colour error e (`fgjax.method.discover.agreement`): a moving pixel the
+    model paints wrongly (a part it has not moved) is given to no Gaussian. 0: every pixel weighs 1."""
     score_threshold: float | str = "otsu"
     """Cut of the per-Gaussian discovery scores: "otsu" or a number in [0, 1]."""
     min_score: float = 0.05
@@ -241,6 +245,8 @@ def validate_stage2(cfg: Stage2Config) -> None:
     for name in ("min_px", "min_alpha", "min_score", "eps", "min_fraction", "flow_weight", "flow_threshold"):
         if not float(getattr(cfg, name)) >= 0:
             raise bad(name, "a number >= 0")
+    if not 0 <= float(cfg.agree_sigma) < float("inf"):
+        raise bad("agree_sigma", "a finite number >= 0 (0: off)")
     if not cfg.eps > 0:
         raise bad("eps", "> 0")
     if not cfg.lr > 0:

@@ -20,6 +20,10 @@ splat overlapping a moving edge collects weight from every mask pixel it touches
 pixel contributes 1) damps Gaussians that are barely ever seen. `select_dynamic` then thresholds the
 scores (Otsu by default), and `fgjax.cluster.cluster_dynamic` groups the selected canonical centres.
 
+Optionally each pixel p of frame t carries a confidence c_tp in [0, 1] (`agreement`: how well the model's rendering
+matches the image there), and both sums weight p by it:
+score_i = sum_t w_i(c_t mask_t) / (sum_t w_i(c_t) + eps).
+
 Nothing here knows of stage-1 models: `discover` takes the deformed Gaussians per pair as arrays.
 """
 
@@ -42,6 +46,7 @@ __all__ = [
     "binarize",
     "camera_flow_from_depth",
     "Scores",
+    "agreement",
     "accumulate_scores",
     "windowed_score",
     "Discovery",
@@ -148,12 +153,11 @@ def camera_flow_from_depth(
 
 
 @functools.partial(jax.jit, static_argnames=("width", "height", "capacity"))
-def _pair_weights(means, quats, scales, opacities, viewmat, K, mask, *, width, height, capacity):
-    """(w_i(mask), w_i(ones)) for one frame: two backward passes of the rasterizer."""
+def _pair_weights(means, quats, scales, opacities, viewmat, K, mask, confidence, *, width, height, capacity):
+    """(w_i(mask * confidence), w_i(confidence)) for one frame: two backward passes of the rasterizer."""
     kw = {} if capacity is None else {"capacity": capacity}
-    moving = gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height, mask, **kw)
-    total = gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height,
-                             jnp.ones_like(mask), **kw)
+    moving = gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height, mask * confidence, **kw)
+    total = gaussian_weights(means, quats, scales, opacities, viewmat, K, width, height, confidence, **kw)
     return moving, total
 
 
@@ -171,6 +175,29 @@ class Scores(NamedTuple):
     total: Float[np.ndarray, " N"]
     moving_t: Float[np.ndarray, "T N"] | None = None
     total_t: Float[np.ndarray, "T N"] | None = None
+
+
+def agreement(
+    rendered: Float[np.ndarray, "*T H W C"], observed: Float[np.ndarray, "*T H W C"], sigma: float
+) -> Float[np.ndarray, "*T H W"]:
+    """Per-pixel agreement of a rendering with the image, c = exp(-e^2 / (2 sigma^2)) in (0, 1], where e is the
+    root-mean-square colour difference over the C channels (colours in [0, 1]).
+
+    Discovery back-projects a moving pixel onto the Gaussians the model paints there. Where the model does not yet
+    move a part, the part's moved pixels are painted by what it covered or uncovered (the static scene, or the part
+    at rest), and those Gaussians would collect the part's motion; the model then renders those pixels wrongly, so
+    weighting each pixel by c gives the motion to the Gaussians that paint it correctly (`accumulate_scores`).
+    ``sigma`` is the colour error (same units) at which a pixel keeps exp(-1/2) = 0.61 of its weight.
+    """
+    r = np.asarray(rendered, np.float32)
+    o = np.asarray(observed, np.float32)
+    if r.shape != o.shape or r.ndim < 3:
+        raise ValueError(f"agreement: rendered and observed must both have shape [..., H, W, C], got {r.shape} and "
+                         f"{o.shape}")
+    if not sigma > 0:
+        raise ValueError(f"agreement: sigma must be > 0, got {sigma}")
+    e2 = np.mean(np.square(np.nan_to_num(r - o, nan=np.inf, posinf=np.inf, neginf=np.inf)), axis=-1)
+    return np.exp(-0.5 * e2 / float(sigma) ** 2).astype(np.float32)
 
 
 def _per_frame(x, t: int, tail: tuple[int, ...], name: str) -> np.ndarray:
@@ -196,13 +223,16 @@ def accumulate_scores(
     eps: float = 0.1,
     capacity: int | None = None,
     per_frame: bool = False,
+    confidence: Float[np.ndarray, "T H W"] | None = None,
 ) -> Scores:
     """Back-project moving-pixel masks onto Gaussians and accumulate over frames (step 5).
 
-    score_i = sum_t w_i(mask_t) / (sum_t w_i(1) + eps), w_i(m) = sum_p m_p T_ip alpha_ip
+    score_i = sum_t w_i(c_t mask_t) / (sum_t w_i(c_t) + eps), w_i(m) = sum_p m_p T_ip alpha_ip
     (`fgjax.render.api.gaussian_weights`, the rasterizer's own compositing weights); see the module
     docstring for why the ratio. Frame t here is the first frame of pair t: the Gaussians are those
-    deformed to time t-1 and the camera that of frame t-1.
+    deformed to time t-1 and the camera that of frame t-1. The per-pixel confidence c_t in [0, 1]
+    (default 1) says how far the Gaussians that paint a pixel are the ones the image shows there
+    (`agreement`): a pixel the model renders wrongly gives its weight to no Gaussian.
 
     Args:
         means, quats, scales, opacities: activated Gaussians per frame, [T, N, ...] (or shared
@@ -214,6 +244,7 @@ def accumulate_scores(
         capacity: the rasterizer's intersection capacity (static; None: its default). One
             compile serves every frame when it is fixed.
         per_frame: also return the per-frame terms (memory T x N).
+        confidence: [T, H, W] per-pixel weights in [0, 1] (None: all 1).
 
     Returns:
         `Scores` (numpy float64).
@@ -222,6 +253,15 @@ def accumulate_scores(
     if m.ndim != 3:
         raise ValueError(f"accumulate_scores: masks must have shape [T, H, W], got {list(m.shape)}")
     t, h, w = m.shape
+    if confidence is None:
+        conf = np.ones((t, h, w), np.float32)
+    else:
+        conf = np.asarray(confidence, np.float32)
+        if conf.shape != m.shape:
+            raise ValueError(f"accumulate_scores: confidence must have the masks' shape {list(m.shape)}, "
+                             f"got {list(conf.shape)}")
+        if not np.all((conf >= 0) & (conf <= 1)):
+            raise ValueError("accumulate_scores: confidence must lie in [0, 1] (NaN is not allowed)")
     means_a = np.asarray(means)
     n = means_a.shape[-2] if means_a.ndim >= 2 else -1
     means_a = _per_frame(means_a, t, (n, 3), "accumulate_scores: means")
@@ -237,7 +277,8 @@ def accumulate_scores(
     f32 = lambda x: jnp.asarray(np.asarray(x, dtype=np.float32))
     for i in range(t):
         mv, tot = _pair_weights(f32(means_a[i]), f32(quats_a[i]), f32(scales_a[i]), f32(opac_a[i]),
-                                f32(vm_a[i]), f32(k_a[i]), f32(m[i]), width=w, height=h, capacity=capacity)
+                                f32(vm_a[i]), f32(k_a[i]), f32(m[i]), jnp.asarray(conf[i]), width=w, height=h,
+                                capacity=capacity)
         moving += np.asarray(mv, np.float64)
         total += np.asarray(tot, np.float64)
         if per_frame:
@@ -307,6 +348,7 @@ def discover(
     capacity: int | None = None,
     per_frame: bool = False,
     window: int = 0,
+    confidence: Float[np.ndarray, "T H W"] | None = None,
 ) -> Discovery:
     """Select the dynamic Gaussians D from optical flow and camera flow (step 5), over T pairs.
 
@@ -329,6 +371,8 @@ def discover(
         per_frame: keep the per-frame terms in ``scores`` (see `Scores`).
         window: > 0: each Gaussian's score is its best run of this many consecutive pairs (`windowed_score`; the
             pairs must then be in time order); 0: the score over all pairs.
+        confidence: [T, H, W] per-pixel weights in [0, 1] of the back-projection (`accumulate_scores`,
+            `agreement`; None: all 1).
 
     Returns:
         `Discovery`.
@@ -339,7 +383,7 @@ def discover(
     if window < 0:
         raise ValueError(f"discover: window must be >= 0, got {window}")
     sc = accumulate_scores(means, quats, scales, opacities, viewmats, K, masks, eps=eps, capacity=capacity,
-                           per_frame=per_frame or window > 0)
+                           per_frame=per_frame or window > 0, confidence=confidence)
     if window > 0:
         sc = sc._replace(score=windowed_score(sc.moving_t, sc.total_t, window, eps=eps))
         if not per_frame:

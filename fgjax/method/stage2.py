@@ -36,7 +36,7 @@ from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
 from fgjax.method.camera import camera_correction
 from fgjax.method.control import train_control
-from fgjax.method.discover import Discovery, camera_flow_from_depth, discover
+from fgjax.method.discover import Discovery, agreement, camera_flow_from_depth, discover
 from fgjax.method.result import (
     FORMAT_VERSION,
     STAGE2_NAME,
@@ -44,6 +44,7 @@ from fgjax.method.result import (
     Stage2Error,
     Stage2Result,
     load_stage2,
+    render_capacity,
     save_stage2,
     with_geometry,
 )
@@ -92,7 +93,8 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
     """Step 5 on a stage-1 run (`discover` on every training pair in time order).
 
     For each pair (t-1, t): the stage-1 Gaussians deformed to time t-1 are rendered from camera t-1 for their
-    expected depth; the camera flow is `camera_flow_from_depth` of that depth (with ``cfg.camera_correction``, camera
+    expected depth (and, with ``cfg.agree_sigma`` > 0, their colours, whose agreement with image t-1 weights each
+    pixel of the back-projection: `fgjax.method.discover.agreement`); the camera flow is `camera_flow_from_depth` of that depth (with ``cfg.camera_correction``, camera
     t's pose first corrected from the static flow, `fgjax.method.camera.camera_correction`); the optical flow
     t-1 -> t comes from `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``).
 
@@ -107,7 +109,7 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
     alive = run.state.densify.alive
     w, h = scene.width, scene.height
     means_t, quats_t, centres = [], [], []
-    depths, alphas = [], []
+    depths, alphas, agree = [], [], []
     g = run.state.params["gaussians"]
     for i in order:
         m, q, ls = run.deformed(float(scene.times[i]))
@@ -122,6 +124,10 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
                                        tile_size=run.cfg.train.tile_size)
         depths.append(np.asarray(info["depth"]))
         alphas.append(np.asarray(alpha))
+        if cfg.agree_sigma > 0:
+            img, _, _ = run.render_geometry(m, q, ls, scene.viewmats[i], scene.Ks[i], w, h,
+                                            capacity=render_capacity(run))
+            agree.append(agreement(np.asarray(img), np.asarray(scene.images[i], np.float32), cfg.agree_sigma))
     _, sa, oa = activate(g, alive)
     c2w = viewmat_to_c2w(scene.viewmats[order])
     flows, cams, valid = [], [], []
@@ -151,7 +157,8 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
     disc = discover(np.stack(means_t[:n]), np.stack(quats_t[:n]), np.asarray(sa), np.asarray(oa),
                     scene.viewmats[order][:n], scene.Ks[order][:n], np.stack(flows), np.stack(cams),
                     valid=np.stack(valid), threshold_px=thr, min_px=cfg.min_px,
-                    score_threshold=cfg.score_threshold, min_score=cfg.min_score, per_frame=per_frame)
+                    score_threshold=cfg.score_threshold, min_score=cfg.min_score, per_frame=per_frame,
+                    confidence=np.stack(agree[:n]) if agree else None)
     dyn = disc.dynamic & np.asarray(alive)
     return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))
 

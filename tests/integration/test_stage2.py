@@ -295,6 +295,32 @@ def test_camera_correction_config_is_checked_and_wired_into_discovery(tiny, monk
     assert res(on[3][2]) < 0.8 * res(base[3][2])
 
 
+def test_agree_sigma_weights_discovery_by_the_stage1_renders_agreement_with_the_images(tiny, tmp_path):
+    """With ``stage2.agree_sigma`` > 0 each pixel's back-projection is weighted by the agreement of the stage-1
+    render with the image: a frame whose image is that render keeps every weight, the others lose some."""
+    import dataclasses
+
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+
+    run = result.load_stage2(tiny[0], require_stage2=False)
+    scene = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
+    first = int(np.argsort(scene.times, kind="stable")[0])
+    m, q, ls = run.deformed(float(scene.times[first]))
+    img, _, _ = run.render_geometry(m, q, ls, scene.viewmats[first], scene.Ks[first], scene.width, scene.height,
+                                    capacity=result.render_capacity(run))
+    images = np.array(scene.images)
+    images[first] = np.asarray(img)
+    scene = dataclasses.replace(scene, images=images)
+    base = discover_run(run, scene, Stage2Config(), tmp_path, per_frame=True, log=lambda m: None)[0].scores
+    gated = discover_run(run, scene, Stage2Config(agree_sigma=0.05), tmp_path, per_frame=True,
+                         log=lambda m: None)[0].scores
+    np.testing.assert_allclose(gated.total_t[0], base.total_t[0], rtol=1e-3, atol=1e-3)
+    assert np.all(gated.total_t <= base.total_t + 1e-3)
+    assert gated.total_t[1:].sum() < 0.99 * base.total_t[1:].sum()
+    assert np.all(gated.moving_t <= gated.total_t + 1e-3) and np.all(np.isfinite(gated.score))
+
+
 def _moved_scene(run, sc, labels, poses):
     """The training scene with its images replaced by renders of the stage-1 model at t0 whose labelled
     Gaussians move by `poses` [1, T, 4, 4] (frames in time order)."""

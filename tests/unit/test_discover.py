@@ -239,7 +239,68 @@ def test_accumulate_scores_contract(scene):
     np.testing.assert_allclose(full.score, full.total / (full.total + 0.5), rtol=1e-6)
     np.testing.assert_allclose(full.total_t.sum(0), full.total, rtol=1e-5)
     np.testing.assert_allclose(full.total, empty.total, rtol=1e-6)
+    # a confidence c weights each pixel: moving = w(mask c), total = w(c); all ones is no confidence
+    rng = np.random.default_rng(0)
+    mask = rng.random((2, h, w)) < 0.3
+    c = rng.random((2, h, w)).astype(np.float32)
+    plain = D.accumulate_scores(means, quats, sc.scales, sc.opacities, vm, sc.K, mask)
+    ones = D.accumulate_scores(means, quats, sc.scales, sc.opacities, vm, sc.K, mask, confidence=np.ones((2, h, w)))
+    np.testing.assert_array_equal(ones.moving, plain.moving)
+    np.testing.assert_array_equal(ones.total, plain.total)
+    gated = D.accumulate_scores(means, quats, sc.scales, sc.opacities, vm, sc.K, mask, confidence=c)
+    soft = D.accumulate_scores(means, quats, sc.scales, sc.opacities, vm, sc.K, mask * c)
+    as_mask = D.accumulate_scores(means, quats, sc.scales, sc.opacities, vm, sc.K, c)
+    np.testing.assert_allclose(gated.moving, soft.moving, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(gated.total, as_mask.moving, rtol=1e-5, atol=1e-6)
+    assert np.all(gated.total < plain.total + 1e-6) and gated.total.sum() < 0.6 * plain.total.sum()
+    for bad, what in ((c[:1], "shape"), (np.where(c > 0.5, np.nan, c), "NaN"), (c + 1, r"\[0, 1\]")):
+        with pytest.raises(ValueError, match=what):
+            D.accumulate_scores(means, quats, sc.scales, sc.opacities, vm, sc.K, mask, confidence=bad)
     with pytest.raises(ValueError, match="masks"):
         D.accumulate_scores(means, quats, sc.scales, sc.opacities, vm, sc.K, np.ones((h, w), bool))
     with pytest.raises(ValueError, match="viewmats"):
         D.accumulate_scores(means, quats, sc.scales, sc.opacities, vm[:1], sc.K, np.ones((2, h, w), bool))
+
+
+def test_agreement_of_a_rendering_with_the_image():
+    """c = exp(-e^2 / (2 sigma^2)) of the RMS colour error e; non-finite colours give 0; bad input raises."""
+    img = np.full((2, 3, 4, 3), 0.5, np.float32)
+    np.testing.assert_allclose(D.agreement(img, img, 0.1), 1.0)
+    off = img.copy()
+    off[0, 1, 2] += 0.1  # e = 0.1 on one pixel
+    off[1, 0, 0, 0] = np.nan
+    c = D.agreement(off, img, 0.1)
+    assert c.shape == (2, 3, 4) and c.dtype == np.float32
+    np.testing.assert_allclose(c[0, 1, 2], np.exp(-0.5), rtol=1e-5)
+    assert c[1, 0, 0] == 0.0 and np.sum(c < 1) == 2
+    with pytest.raises(ValueError, match="shape"):
+        D.agreement(img[0], img, 0.1)
+    with pytest.raises(ValueError, match="sigma"):
+        D.agreement(img, img, 0.0)
+
+
+def test_agreement_gives_a_stale_models_motion_to_the_parts(scene):
+    """A model that never moves the parts (every Gaussian at the first frame's state) paints a moved part's pixels
+    with what the part covered or uncovered, and discovery collects those Gaussians; weighted by the agreement of
+    that model's renders with the images (sigma 0.1), D holds far fewer Gaussians off the parts and most of the
+    parts' own. Measured (ground-truth flow): precision 0.80 -> 0.97, part Gaussians in D 888 -> 802."""
+    sc, f, vm = scene["sc"], scene["f"], scene["vm"]
+    n = len(vm) - 1
+    times = np.arange(n + 1) / n
+    first = np.repeat(synth.scene_states(sc, times[:1]), n + 1, 0)
+    stale = synth.render_sequence(sc, vm, first)
+    m0, q0 = synth.deform(sc, first[0])
+    valid = f["flow_valid"] & ~f["flow_occluded"]
+    truth = sc.labels > 0
+
+    def run(confidence):
+        dyn = D.discover(np.broadcast_to(m0, (n, *m0.shape)), np.broadcast_to(q0, (n, *q0.shape)), sc.scales,
+                         sc.opacities, vm[:-1], sc.K, f["flow"], f["camera_flow"], valid=valid,
+                         confidence=confidence).dynamic
+        return float(np.sum(truth & dyn) / max(dyn.sum(), 1)), int(np.sum(truth & dyn))
+
+    prec0, true0 = run(None)
+    prec1, true1 = run(D.agreement(stale.rgb[:-1], scene["r"].rgb[:-1], 0.1))
+    print(f"stale model: precision {prec0:.3f} -> {prec1:.3f}, part Gaussians in D {true0} -> {true1}")
+    assert prec0 < 0.85 and prec1 > 0.93
+    assert true1 > 0.85 * true0

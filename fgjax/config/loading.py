@@ -242,6 +242,8 @@ def validate_stage1(cfg: Config) -> None:
     need(finite(f.camera_share) and f.camera_share >= 0, "deform.camera_share", "a finite number >= 0",
          f.camera_share)
     need(f.place_window >= 0, "deform.place_window", "an integer >= 0 (0: every pair)", f.place_window)
+    need(finite(f.place_agree_sigma) and f.place_agree_sigma >= 0, "deform.place_agree_sigma",
+         "a finite number >= 0 (0: off)", f.place_agree_sigma)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
          fl.gaussian_flow)

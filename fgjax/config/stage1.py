@@ -94,6 +94,11 @@ class DeformConfig:
     """With init = "flow": > 0: a Gaussian's discovery score is its best run of this many consecutive pairs
     (`fgjax.method.discover.windowed_score`) rather than the share over every pair, in which a part that moves in a
     few pairs is diluted by those in which it rests; 0: every pair."""
+    place_agree_sigma: float = 0.0
+    """With init = "flow": > 0: each pixel's back-projection is weighted by the agreement of the warm-up model's
+    render with the image, exp(-e^2 / (2 place_agree_sigma^2)) for an RMS colour error e
+    (`fgjax.method.discover.agreement`): the warm-up model does not move the parts, so a part's moved pixels are
+    painted by what it covered or uncovered, which then renders wrongly there. 0: every pixel weighs 1."""
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""

@@ -13,7 +13,10 @@ instead; this is the same idea with the evidence stage 1 already has, at the end
    between consecutive frames, above it over four: docs/benchmarks.md, "The placement's frame spans");
 2. the moving pixels are back-projected onto the canonical Gaussians through the rasterizer's weights and the
    Gaussians that paint mostly moving pixels are selected, span by span (each with its own score threshold), and
-   the selections united; DBSCAN (`fgjax.cluster.cluster_dynamic`, automatic radius) groups them;
+   the selections united (with ``deform.place_agree_sigma`` > 0 each pixel weighs by the agreement of the warm-up
+   model's render with the image, `fgjax.method.discover.agreement`: the warm-up model does not move the parts, so a
+   part's moved pixels are painted by what it covered or uncovered, which renders wrongly there); DBSCAN
+   (`fgjax.cluster.cluster_dynamic`, automatic radius) groups them;
 3. the logits network is fitted, by class-balanced cross-entropy with label smoothing, to put cluster j
    (largest first, j < K - 1) on basis j + 1 and every unselected Gaussian on basis 0; selected Gaussians that
    DBSCAN calls noise, and clusters beyond K - 1, are left to the training. With per-slot weights
@@ -43,7 +46,7 @@ from fgjax import cluster
 from fgjax.config import Config
 from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
-from fgjax.method.discover import camera_flow_from_depth, discover
+from fgjax.method.discover import agreement, camera_flow_from_depth, discover
 from fgjax.method.flows import estimate_training_flows, previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits
 from fgjax.models.model import render_params
@@ -54,7 +57,7 @@ __all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases"
 def moving_clusters(
     params, alive, viewmats, Ks, flows, prev, *, width: int, height: int, capacity: int,
     background=(0.0, 0.0, 0.0), threshold_px: float = 1.0, camera_share: float = 0.0, min_fraction: float = 0.02,
-    window: int = 0, times=None,
+    window: int = 0, times=None, images=None, agree_sigma: float = 0.0, sh_degree: int = 0,
 ) -> np.ndarray:
     """Label every Gaussian slot: -2 static, -1 dead or moving but DBSCAN noise, j >= 0 moving cluster j (the
     largest first), from the canonical Gaussians (``params["gaussians"]``, no deformation) and the training flows.
@@ -77,14 +80,19 @@ def moving_clusters(
             ``times`` (`fgjax.method.discover.windowed_score`), so that a part that moves in a few pairs is not
             diluted by the pairs in which it rests; 0: the score over all pairs.
         times: [T] the frames' times (None: the frames are in time order).
+        images, agree_sigma, sh_degree: with ``agree_sigma`` > 0, the training images [T, H, W, 3] in [0, 1]: each
+            pixel's back-projection is weighted by the agreement of the canonical model's render (SH up to
+            ``sh_degree``) with image ``prev[i]`` (`fgjax.method.discover.agreement`).
     """
+    if agree_sigma > 0 and images is None:
+        raise ValueError("moving_clusters: agree_sigma > 0 needs the training images")
     sets = list(zip(flows, prev)) if isinstance(flows, list | tuple) else [(flows, prev)]
     alive_np = np.asarray(alive, bool)
     labels = np.where(alive_np, -2, -1).astype(np.int64)
     dyn = np.zeros_like(alive_np)
     for f, p in sets:
         dyn |= _moving_gaussians(params, alive, viewmats, Ks, f, p, width, height, capacity, background, threshold_px,
-                                 camera_share, window, times)
+                                 camera_share, window, times, images, agree_sigma, sh_degree)
     dyn &= alive_np
     if dyn.sum() >= 2:
         labels[dyn] = cluster.cluster_dynamic(np.asarray(params["gaussians"].means)[dyn], auto_eps=True,
@@ -93,7 +101,7 @@ def moving_clusters(
 
 
 def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, capacity, background, threshold_px,
-                      camera_share=0.0, window=0, times=None):
+                      camera_share=0.0, window=0, times=None, images=None, agree_sigma=0.0, sh_degree=0):
     """[N] bool: `discover`'s dynamic Gaussians of one set of pairs (`moving_clusters`)."""
     pairs = [i for i in range(len(prev)) if prev[i] >= 0]
     if times is not None:  # in the time order of their first frames
@@ -104,13 +112,16 @@ def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, c
     quats, scales, opac = activate(g, alive)
     c2w = viewmat_to_c2w(np.asarray(viewmats, np.float64))
     bg = jnp.asarray(background, jnp.float32)
-    cam_flows, valid = [], []
+    cam_flows, valid, agree = [], [], []
+    gate = agree_sigma > 0
     for i in pairs:
         a = int(prev[i])
-        _, alpha, info, _ = render_params(params, alive, jnp.asarray(viewmats[a], jnp.float32),
-                                          jnp.asarray(Ks[a], jnp.float32), 0.0, spec=None, sh_degree=0,
-                                          width=width, height=height, background=bg, capacity=capacity,
-                                          render_depth=True)
+        img, alpha, info, _ = render_params(params, alive, jnp.asarray(viewmats[a], jnp.float32),
+                                            jnp.asarray(Ks[a], jnp.float32), 0.0, spec=None,
+                                            sh_degree=sh_degree if gate else 0, width=width, height=height,
+                                            background=bg, capacity=capacity, render_depth=True)
+        if gate:
+            agree.append(agreement(np.asarray(img), np.asarray(images[a], np.float32), agree_sigma))
         cam, ok = camera_flow_from_depth(np.asarray(info["depth"]), Ks[a], c2w[a], c2w[i])
         cam_flows.append(cam)
         valid.append(ok & (np.asarray(alpha) >= 0.5) & np.all(np.isfinite(flows[i]), axis=-1))
@@ -121,7 +132,8 @@ def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, c
                      np.asarray(viewmats, np.float32)[src], np.asarray(Ks, np.float32)[src], u, cams,
                      valid=np.stack(valid), capacity=capacity,
                      threshold_px=threshold_px + camera_share * np.linalg.norm(cams, axis=-1)
-                     if camera_share > 0 else threshold_px, window=window)
+                     if camera_share > 0 else threshold_px, window=window,
+                     confidence=np.stack(agree) if gate else None)
     return np.asarray(found.dynamic, bool)
 
 
@@ -177,7 +189,8 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
                              [previous_frames(scene.times, s) for s in spans], width=scene.width, height=scene.height,
                              capacity=capacity, background=tuple(cfg.model.background),
                              camera_share=cfg.deform.camera_share, window=cfg.deform.place_window,
-                             times=scene.times)
+                             times=scene.times, images=scene.images, agree_sigma=cfg.deform.place_agree_sigma,
+                             sh_degree=cfg.model.sh_degree)
     sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
     target, weight = basis_targets(labels, spec.bases)
     free = (labels >= 0) | ((labels == -1) & np.asarray(alive, bool))

@@ -124,6 +124,34 @@ def test_moving_clusters_find_the_moving_blob_from_the_flow():
     assert np.sum(labels == 0) <= 1.15 * np.sum(labels[blob] == 0)  # the cluster is the blob
 
 
+def test_moving_clusters_weight_each_pixel_by_the_renders_agreement_with_the_image():
+    """With ``agree_sigma`` > 0 each pixel of frame prev[i] weighs by the agreement of the canonical model's render
+    with image prev[i]: images that are those renders change no label; images that disagree everywhere leave no
+    moving Gaussian; without images it is an error."""
+    from fgjax.models.model import render_params
+
+    n, w, h, frames = 200, 48, 36, 6
+    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, shift=0.3)
+    prev = previous_frames(times)
+    flows = flow_of(prev)
+    Ks = np.stack([K] * frames).astype(np.float32)
+    kw = dict(width=w, height=h, capacity=1 << 15)
+    alive = jnp.ones(n, bool)
+    renders = np.stack([np.asarray(render_params({"gaussians": g}, alive, jnp.asarray(vm, jnp.float32),
+                                                 jnp.asarray(K, jnp.float32), 0.0, spec=None, sh_degree=0,
+                                                 background=jnp.zeros(3), **kw)[0]) for vm in vms])
+    plain = moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prev, **kw)
+    assert np.mean(plain[:30] == 0) > 0.8
+    same = moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prev, images=renders,
+                           agree_sigma=0.05, **kw)
+    np.testing.assert_array_equal(same, plain)
+    wrong = moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prev,
+                            images=1 - renders, agree_sigma=0.05, **kw)
+    assert np.all(wrong == -2)
+    with pytest.raises(ValueError, match="images"):
+        moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prev, agree_sigma=0.05, **kw)
+
+
 def test_moving_clusters_window_reads_the_pairs_in_time_order():
     """Two touching blobs in front of a wall: the first slides in the first third of the clip, the second in the
     last third. With a window of three pairs (`fgjax.method.discover.windowed_score`) the placement finds both,

@@ -94,9 +94,10 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
 
     For each pair (t-1, t): the stage-1 Gaussians deformed to time t-1 are rendered from camera t-1 for their
     expected depth (and, with ``cfg.agree_sigma`` > 0, their colours, whose agreement with image t-1 weights each
-    pixel of the back-projection: `fgjax.method.discover.agreement`); the camera flow is `camera_flow_from_depth` of that depth (with ``cfg.camera_correction``, camera
-    t's pose first corrected from the static flow, `fgjax.method.camera.camera_correction`); the optical flow
-    t-1 -> t comes from `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``).
+    pixel of the back-projection: `fgjax.method.discover.agreement`); the camera flow is `camera_flow_from_depth` of
+    that depth (with ``cfg.camera_correction``, camera t's pose first corrected from the static flow,
+    `fgjax.method.camera.camera_correction`); the optical flow t-1 -> t comes from
+    `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``).
 
     Returns:
         (`Discovery` with D restricted to alive Gaussians, deformed centres [T, N, 3] in time order, times [T],

@@ -245,7 +245,7 @@ def validate_stage2(cfg: Stage2Config) -> None:
     for name in ("min_px", "min_alpha", "min_score", "eps", "min_fraction", "flow_weight", "flow_threshold"):
         if not float(getattr(cfg, name)) >= 0:
             raise bad(name, "a number >= 0")
-    if not 0 <= float(cfg.agree_sigma) < float("inf"):
+    if not (finite(cfg.agree_sigma) and cfg.agree_sigma >= 0):
         raise bad("agree_sigma", "a finite number >= 0 (0: off)")
     if not cfg.eps > 0:
         raise bad("eps", "> 0")

@@ -29,6 +29,10 @@ class Stage2Config:
     """Binarisation of |u - u_cam|: "otsu" (per frame) or a number of pixels."""
     min_px: float = 0.5
     """Floor of the Otsu threshold (pixels)."""
+    threshold_sigmas: float = 0.0
+    """Raise each pair's threshold to the noise of its residual, median + k * 1.4826 MAD of |u - u_cam| over the
+    pair's valid pixels, with k this (`fgjax.method.discover.binarize`): a pair whose camera flow is wrong
+    everywhere by a pixel is not marked moving. 0: off."""
     min_alpha: float = 0.5
     """Pixels whose rendered alpha is below this have no trusted depth and are left out of the masks."""
     agree_sigma: float = 0.0
@@ -245,6 +249,8 @@ def validate_stage2(cfg: Stage2Config) -> None:
     for name in ("min_px", "min_alpha", "min_score", "eps", "min_fraction", "flow_weight", "flow_threshold"):
         if not float(getattr(cfg, name)) >= 0:
             raise bad(name, "a number >= 0")
+    if not (finite(cfg.threshold_sigmas) and cfg.threshold_sigmas >= 0):
+        raise bad("threshold_sigmas", "a finite number >= 0 (0: off)")
     if not (finite(cfg.agree_sigma) and cfg.agree_sigma >= 0):
         raise bad("agree_sigma", "a finite number >= 0 (0: off)")
     if not cfg.eps > 0:

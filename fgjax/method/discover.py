@@ -72,12 +72,22 @@ def binarize(
     *,
     valid: Bool[np.ndarray, "*T H W"] | None = None,
     min_px: float = 0.5,
+    noise_sigmas: float = 0.0,
 ) -> Bool[np.ndarray, "*T H W"]:
     """Moving-pixel masks: |r| above a threshold, per frame.
 
     The threshold is `threshold_px` pixels (one number, or one per pixel), or (``"otsu"`` / None)
     Otsu's threshold of the frame's valid magnitudes, never below `min_px`: a frame where nothing
     moves has unimodal noise that Otsu would still cut in two, and the floor keeps it empty.
+
+    With `noise_sigmas` k > 0 each frame's threshold is raised, where lower, to the noise level of its
+    residual: median(|r|) + k sigma, sigma = 1.4826 MAD(|r|) (the median absolute deviation, scaled to a
+    Gaussian's standard deviation), over the frame's valid pixels. Both statistics are those of the static
+    pixels while these are the majority of the valid ones (the assumption the camera correction makes too,
+    `fgjax.method.camera.camera_correction`), so a pair whose camera flow is off by a pixel everywhere (a
+    hand-held camera, a depth error) is cut above that error instead of being marked moving, and a pair with
+    sub-pixel noise keeps `threshold_px`. docs/benchmarks.md, "Discovery's threshold from the residual's
+    noise".
 
     Args:
         residual: [H, W, 2] or [T, H, W, 2] residual flow.
@@ -86,10 +96,13 @@ def binarize(
         valid: [H, W] or [T, H, W] pixels where the residual is defined (others are False);
             non-finite residuals are invalid too.
         min_px: floor of the Otsu threshold (pixels).
+        noise_sigmas: k above (>= 0; 0: the threshold is not raised).
 
     Returns:
         bool masks, [H, W] or [T, H, W].
     """
+    if not (np.isfinite(noise_sigmas) and noise_sigmas >= 0):
+        raise ValueError(f"binarize: noise_sigmas must be a finite number >= 0, got {noise_sigmas}")
     r = np.asarray(residual, dtype=np.float64)
     if r.ndim not in (3, 4) or r.shape[-1] != 2:
         raise ValueError(f"binarize: residual must have shape [H, W, 2] or [T, H, W, 2], got {r.shape}")
@@ -119,8 +132,22 @@ def binarize(
             thr = max(cluster.otsu_threshold(mag[t][ok[t]]), float(min_px))
         else:
             thr = threshold_px[t] if np.ndim(threshold_px) else float(threshold_px)
+        if noise_sigmas > 0 and ok[t].any():
+            thr = np.maximum(thr, noise_threshold(mag[t][ok[t]], noise_sigmas))
         out[t] = ok[t] & (np.where(ok[t], mag[t], 0.0) > thr)
     return out[0] if single else out
+
+
+def noise_threshold(magnitudes: Float[np.ndarray, "..."], sigmas: float) -> float:
+    """median(m) + `sigmas` * 1.4826 * median(|m - median(m)|) of the finite values `magnitudes` (any shape):
+    a robust "k standard deviations above the typical value" (the MAD's factor makes sigma a normal
+    distribution's standard deviation). +inf for no finite value. See `binarize`."""
+    m = np.asarray(magnitudes, np.float64).ravel()
+    m = m[np.isfinite(m)]
+    if m.size == 0:
+        return float("inf")
+    med = float(np.median(m))
+    return med + float(sigmas) * 1.4826 * float(np.median(np.abs(m - med)))
 
 
 def camera_flow_from_depth(
@@ -349,6 +376,7 @@ def discover(
     per_frame: bool = False,
     window: int = 0,
     confidence: Float[np.ndarray, "T H W"] | None = None,
+    noise_sigmas: float = 0.0,
 ) -> Discovery:
     """Select the dynamic Gaussians D from optical flow and camera flow (step 5), over T pairs.
 
@@ -362,7 +390,7 @@ def discover(
         flows: [T, H, W, 2] optical flow t-1 -> t.
         camera_flows: [T, H, W, 2] camera flow of frame t-1 (`camera_flow_from_depth`).
         valid: [T, H, W] pixels where both flows are trusted (None: all finite ones).
-        threshold_px, min_px: see `binarize`.
+        threshold_px, min_px, noise_sigmas: see `binarize`.
         score_threshold, min_score: see `fgjax.cluster.select_dynamic`.
         min_total: Gaussians painting fewer pixel-equivalents than this over all frames are not
             selected (never seen, nothing to say about them).
@@ -377,7 +405,8 @@ def discover(
     Returns:
         `Discovery`.
     """
-    masks = binarize(residual_flow(flows, camera_flows), threshold_px, valid=valid, min_px=min_px)
+    masks = binarize(residual_flow(flows, camera_flows), threshold_px, valid=valid, min_px=min_px,
+                     noise_sigmas=noise_sigmas)
     if masks.ndim != 3:
         raise ValueError(f"discover: flows must have shape [T, H, W, 2], got {np.shape(flows)}")
     if window < 0:

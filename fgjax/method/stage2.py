@@ -158,6 +158,7 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
     disc = discover(np.stack(means_t[:n]), np.stack(quats_t[:n]), np.asarray(sa), np.asarray(oa),
                     scene.viewmats[order][:n], scene.Ks[order][:n], np.stack(flows), np.stack(cams),
                     valid=np.stack(valid), threshold_px=thr, min_px=cfg.min_px,
+                    noise_sigmas=cfg.threshold_sigmas,
                     score_threshold=cfg.score_threshold, min_score=cfg.min_score, per_frame=per_frame,
                     confidence=np.stack(agree[:n]) if agree else None)
     dyn = disc.dynamic & np.asarray(alive)

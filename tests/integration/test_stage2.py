@@ -321,6 +321,20 @@ def test_agree_sigma_weights_discovery_by_the_stage1_renders_agreement_with_the_
     assert np.all(gated.moving_t <= gated.total_t + 1e-3) and np.all(np.isfinite(gated.score))
 
 
+def test_threshold_sigmas_raises_each_pairs_threshold_to_its_residuals_noise(tiny, tmp_path):
+    """``stage2.threshold_sigmas`` reaches the binarisation: each pair's masks shrink to a subset of the fixed
+    threshold's (`fgjax.method.discover.binarize` is tested for the values), and far above the noise none is left."""
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+
+    run = result.load_stage2(tiny[0], require_stage2=False)
+    scene = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
+    masks = {k: discover_run(run, scene, Stage2Config(threshold_px=0.5, threshold_sigmas=k), tmp_path,
+                             log=lambda m: None)[0].masks for k in (0.0, 3.0, 1e4)}
+    assert masks[0.0].any() and not masks[1e4].any()
+    assert np.all(masks[3.0] <= masks[0.0]) and masks[3.0].sum() < masks[0.0].sum()
+
+
 def _moved_scene(run, sc, labels, poses):
     """The training scene with its images replaced by renders of the stage-1 model at t0 whose labelled
     Gaussians move by `poses` [1, T, 4, 4] (frames in time order)."""

@@ -182,6 +182,49 @@ def test_residual_and_binarize():
         D.binarize(r, "median")  # type: ignore[arg-type]
 
 
+def test_noise_threshold_is_the_median_plus_k_scaled_mads():
+    # magnitudes 0, 1, 2, 3, 100 (and a NaN, ignored): median 2, |m - 2| = 2, 1, 0, 1, 98, MAD 1
+    m = np.array([[0.0, 1.0, 2.0], [3.0, 100.0, np.nan]])
+    assert D.noise_threshold(m, 3.0) == pytest.approx(2.0 + 3.0 * 1.4826)
+    assert D.noise_threshold(m, 0.0) == 2.0
+    assert D.noise_threshold(np.full(4, np.nan), 3.0) == float("inf")
+    # a normal sample: k sigma above the median, within the estimate's error
+    x = np.abs(np.random.default_rng(1).normal(5.0, 0.5, 200_000))
+    assert D.noise_threshold(x, 3.0) == pytest.approx(5.0 + 1.5, abs=0.02)
+
+
+def test_binarize_raises_the_threshold_to_the_residuals_noise():
+    """A pair whose residual is 1.5 px of noise on every static pixel (a camera flow off everywhere) and 8 px on
+    a moving block: a 0.5 px threshold marks most static pixels, `noise_sigmas` = 3 marks the block and almost
+    nothing else; a pair with 0.1 px of noise keeps the fixed threshold exactly, so its mask does not change."""
+    rng = np.random.default_rng(2)
+    h, w = 48, 64
+    truth = np.zeros((h, w), bool)
+    truth[10:20, 10:30] = True  # 200 of 3072 pixels move
+    for scale, kept in ((1.5, False), (0.1, True)):
+        r = rng.normal(scale=scale, size=(2, h, w, 2))
+        r[:, truth] = (8.0, 0.0)
+        fixed = D.binarize(r, 0.5)
+        noisy = D.binarize(r, 0.5, noise_sigmas=3.0)
+        assert noisy[:, truth].all() and fixed[:, truth].all()
+        if kept:
+            np.testing.assert_array_equal(noisy, fixed)
+        else:
+            assert fixed[:, ~truth].mean() > 0.6
+            assert noisy[:, ~truth].mean() < 0.02
+        # the same raise over Otsu's threshold and over a threshold per pixel
+        np.testing.assert_array_equal(D.binarize(r, np.full((2, h, w), 0.5), noise_sigmas=3.0), noisy)
+        assert D.binarize(r, "otsu", noise_sigmas=3.0)[:, ~truth].mean() < 0.02
+    # only valid pixels set the noise level: the block alone, marked valid, is all "typical" and nothing moves
+    r = rng.normal(scale=0.1, size=(h, w, 2))
+    r[truth] = (8.0, 0.0)
+    assert not D.binarize(r, 0.5, valid=truth, noise_sigmas=3.0).any()
+    assert D.binarize(r, 0.5, valid=truth).sum() == truth.sum()
+    for k in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="noise_sigmas"):
+            D.binarize(r, 0.5, noise_sigmas=k)
+
+
 def test_windowed_score_matches_the_sums_over_each_run_of_pairs():
     rng = np.random.default_rng(0)
     tt = rng.uniform(0, 5, (9, 40))

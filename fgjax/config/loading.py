@@ -244,6 +244,8 @@ def validate_stage1(cfg: Config) -> None:
     need(f.place_window >= 0, "deform.place_window", "an integer >= 0 (0: every pair)", f.place_window)
     need(finite(f.place_agree_sigma) and f.place_agree_sigma >= 0, "deform.place_agree_sigma",
          "a finite number >= 0 (0: off)", f.place_agree_sigma)
+    need(finite(f.place_noise_sigmas) and f.place_noise_sigmas >= 0, "deform.place_noise_sigmas",
+         "a finite number >= 0 (0: off)", f.place_noise_sigmas)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
          fl.gaussian_flow)

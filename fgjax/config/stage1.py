@@ -99,6 +99,10 @@ class DeformConfig:
     render with the image, exp(-e^2 / (2 place_agree_sigma^2)) for an RMS colour error e
     (`fgjax.method.discover.agreement`): the warm-up model does not move the parts, so a part's moved pixels are
     painted by what it covered or uncovered, which then renders wrongly there. 0: every pixel weighs 1."""
+    place_noise_sigmas: float = 0.0
+    """With init = "flow": > 0: each pair's 1 px floor is raised, where lower, to the noise of its residual, median +
+    place_noise_sigmas * 1.4826 MAD of |u - u_cam| over the pair's valid pixels (`fgjax.method.discover.binarize`,
+    as ``stage2.threshold_sigmas``). 0: off."""
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""

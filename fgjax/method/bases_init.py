@@ -57,7 +57,7 @@ __all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases"
 def moving_clusters(
     params, alive, viewmats, Ks, flows, prev, *, width: int, height: int, capacity: int,
     background=(0.0, 0.0, 0.0), threshold_px: float = 1.0, camera_share: float = 0.0, min_fraction: float = 0.02,
-    window: int = 0, times=None, images=None, agree_sigma: float = 0.0, sh_degree: int = 0,
+    window: int = 0, times=None, images=None, agree_sigma: float = 0.0, sh_degree: int = 0, noise_sigmas: float = 0.0,
 ) -> np.ndarray:
     """Label every Gaussian slot: -2 static, -1 dead or moving but DBSCAN noise, j >= 0 moving cluster j (the
     largest first), from the canonical Gaussians (``params["gaussians"]``, no deformation) and the training flows.
@@ -83,6 +83,9 @@ def moving_clusters(
         images, agree_sigma, sh_degree: with ``agree_sigma`` > 0, the training images [T, H, W, 3] in [0, 1]: each
             pixel's back-projection is weighted by the agreement of the canonical model's render (SH up to
             ``sh_degree``) with image ``prev[i]`` (`fgjax.method.discover.agreement`).
+        noise_sigmas: > 0: each pair's floor is raised, where lower, to median + noise_sigmas * 1.4826 MAD of the
+            pair's |u - u_cam| (`fgjax.method.discover.binarize`): the warm-up depth's camera-flow error on a moving
+            camera is a noise level of its own pair, not a share of |u_cam| fixed in advance.
     """
     if agree_sigma > 0 and images is None:
         raise ValueError("moving_clusters: agree_sigma > 0 needs the training images")
@@ -92,7 +95,7 @@ def moving_clusters(
     dyn = np.zeros_like(alive_np)
     for f, p in sets:
         dyn |= _moving_gaussians(params, alive, viewmats, Ks, f, p, width, height, capacity, background, threshold_px,
-                                 camera_share, window, times, images, agree_sigma, sh_degree)
+                                 camera_share, window, times, images, agree_sigma, sh_degree, noise_sigmas)
     dyn &= alive_np
     if dyn.sum() >= 2:
         labels[dyn] = cluster.cluster_dynamic(np.asarray(params["gaussians"].means)[dyn], auto_eps=True,
@@ -101,7 +104,8 @@ def moving_clusters(
 
 
 def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, capacity, background, threshold_px,
-                      camera_share=0.0, window=0, times=None, images=None, agree_sigma=0.0, sh_degree=0):
+                      camera_share=0.0, window=0, times=None, images=None, agree_sigma=0.0, sh_degree=0,
+                      noise_sigmas=0.0):
     """[N] bool: `discover`'s dynamic Gaussians of one set of pairs (`moving_clusters`)."""
     pairs = [i for i in range(len(prev)) if prev[i] >= 0]
     if times is not None:  # in the time order of their first frames
@@ -132,7 +136,7 @@ def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, c
                      np.asarray(viewmats, np.float32)[src], np.asarray(Ks, np.float32)[src], u, cams,
                      valid=np.stack(valid), capacity=capacity,
                      threshold_px=threshold_px + camera_share * np.linalg.norm(cams, axis=-1)
-                     if camera_share > 0 else threshold_px, window=window,
+                     if camera_share > 0 else threshold_px, window=window, noise_sigmas=noise_sigmas,
                      confidence=np.stack(agree) if gate else None)
     return np.asarray(found.dynamic, bool)
 
@@ -190,7 +194,7 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
                              capacity=capacity, background=tuple(cfg.model.background),
                              camera_share=cfg.deform.camera_share, window=cfg.deform.place_window,
                              times=scene.times, images=scene.images, agree_sigma=cfg.deform.place_agree_sigma,
-                             sh_degree=cfg.model.sh_degree)
+                             sh_degree=cfg.model.sh_degree, noise_sigmas=cfg.deform.place_noise_sigmas)
     sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
     target, weight = basis_targets(labels, spec.bases)
     free = (labels >= 0) | ((labels == -1) & np.asarray(alive, bool))

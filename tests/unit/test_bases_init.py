@@ -152,6 +152,31 @@ def test_moving_clusters_weight_each_pixel_by_the_renders_agreement_with_the_ima
         moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prev, agree_sigma=0.05, **kw)
 
 
+def test_moving_clusters_raise_the_floor_to_each_pairs_noise():
+    """The blob slides by 1.5 (about 10 px a pair) and uncovers part of the wall, whose Gaussians are then rightly
+    taken for moving (about a quarter of them on the exact flows). Flows with 1.5 px of noise everywhere (a camera
+    flow off by that much) make the fixed 1 px floor take most of the wall for moving; with ``noise_sigmas`` = 3
+    the floor rises to each pair's noise and the wall is as static as on the exact flows, the blob still found.
+    On the exact flows the raise changes no label."""
+    n, w, h, frames = 200, 48, 36, 6
+    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, shift=1.5)
+    prev = previous_frames(times)
+    flows = flow_of(prev)
+    Ks = np.stack([K] * frames).astype(np.float32)
+    kw = dict(width=w, height=h, capacity=1 << 15)
+    args = ({"gaussians": g}, jnp.ones(n, bool), vms.astype(np.float32), Ks)
+    blob = np.arange(n) < 30
+    exact = moving_clusters(*args, flows, prev, **kw)
+    np.testing.assert_array_equal(moving_clusters(*args, flows, prev, noise_sigmas=3.0, **kw), exact)
+    assert np.all(exact[blob] >= 0)
+    noisy = flows + np.random.default_rng(0).normal(scale=1.5, size=flows.shape).astype(np.float32)
+    fooled = moving_clusters(*args, noisy, prev, **kw)
+    assert np.mean(fooled[~blob] == -2) < 0.5
+    raised = moving_clusters(*args, noisy, prev, noise_sigmas=3.0, **kw)
+    assert np.mean(raised[blob] >= 0) > 0.8
+    assert np.mean(raised[~blob] == -2) >= np.mean(exact[~blob] == -2) - 0.02
+
+
 def test_moving_clusters_window_reads_the_pairs_in_time_order():
     """Two touching blobs in front of a wall: the first slides in the first third of the clip, the second in the
     last third. With a window of three pairs (`fgjax.method.discover.windowed_score`) the placement finds both,

@@ -113,6 +113,8 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
                                           ("deform.place_window=-1", "deform.place_window"),
                                           ("deform.place_agree_sigma=-0.1", "deform.place_agree_sigma"),
                                           ("deform.place_agree_sigma=nan", "deform.place_agree_sigma"),
+                                          ("deform.place_noise_sigmas=-1", "deform.place_noise_sigmas"),
+                                          ("deform.place_noise_sigmas=inf", "deform.place_noise_sigmas"),
                                           ("deform.bases=1", "deform.bases"), ("deform.knots=1", "deform.knots"),
                                           ("flow.gaussian_flow=affine", "flow.gaussian_flow"),
                                           ("flow.camera_depth=median", "flow.camera_depth"),

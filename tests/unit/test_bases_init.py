@@ -104,6 +104,16 @@ def _blob_scene(n, w, h, frames, shift, second=None):
     return g, times, vms, K, flow_of
 
 
+def _blob_inputs(shift):
+    """`_blob_scene` of 200 Gaussians seen in 6 frames of 48x36, with its pair flows: (Gaussians, viewmats
+    [T, 4, 4] float32, Ks [T, 3, 3], prev [T], flows [T, H, W, 2], the rendering keywords of `moving_clusters`)."""
+    n, w, h, frames = 200, 48, 36, 6
+    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, shift=shift)
+    prev = previous_frames(times)
+    Ks = np.stack([K] * frames).astype(np.float32)
+    return g, vms.astype(np.float32), Ks, prev, flow_of(prev), dict(width=w, height=h, capacity=1 << 15)
+
+
 def test_moving_clusters_find_the_moving_blob_from_the_flow():
     """200 Gaussians seen by a camera on an arc; 30 of them (a blob in front of a wall) slide by 0.3 over the clip.
     From the exact flow of every pair and the Gaussians in their first state, the blob's Gaussians are the moving
@@ -130,26 +140,18 @@ def test_moving_clusters_weight_each_pixel_by_the_renders_agreement_with_the_ima
     moving Gaussian; without images it is an error."""
     from fgjax.models.model import render_params
 
-    n, w, h, frames = 200, 48, 36, 6
-    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, shift=0.3)
-    prev = previous_frames(times)
-    flows = flow_of(prev)
-    Ks = np.stack([K] * frames).astype(np.float32)
-    kw = dict(width=w, height=h, capacity=1 << 15)
-    alive = jnp.ones(n, bool)
-    renders = np.stack([np.asarray(render_params({"gaussians": g}, alive, jnp.asarray(vm, jnp.float32),
-                                                 jnp.asarray(K, jnp.float32), 0.0, spec=None, sh_degree=0,
-                                                 background=jnp.zeros(3), **kw)[0]) for vm in vms])
-    plain = moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prev, **kw)
+    g, vms, Ks, prev, flows, kw = _blob_inputs(0.3)
+    alive = jnp.ones(len(g.means), bool)
+    renders = np.stack([np.asarray(render_params({"gaussians": g}, alive, jnp.asarray(vm), jnp.asarray(K), 0.0,
+                                                 spec=None, sh_degree=0, background=jnp.zeros(3), **kw)[0])
+                        for vm, K in zip(vms, Ks, strict=True)])
+    args = ({"gaussians": g}, alive, vms, Ks, flows, prev)
+    plain = moving_clusters(*args, **kw)
     assert np.mean(plain[:30] == 0) > 0.8
-    same = moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prev, images=renders,
-                           agree_sigma=0.05, **kw)
-    np.testing.assert_array_equal(same, plain)
-    wrong = moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prev,
-                            images=1 - renders, agree_sigma=0.05, **kw)
-    assert np.all(wrong == -2)
+    np.testing.assert_array_equal(moving_clusters(*args, images=renders, agree_sigma=0.05, **kw), plain)
+    assert np.all(moving_clusters(*args, images=1 - renders, agree_sigma=0.05, **kw) == -2)
     with pytest.raises(ValueError, match="images"):
-        moving_clusters({"gaussians": g}, alive, vms.astype(np.float32), Ks, flows, prev, agree_sigma=0.05, **kw)
+        moving_clusters(*args, agree_sigma=0.05, **kw)
 
 
 def test_moving_clusters_raise_the_floor_to_each_pairs_noise():
@@ -158,14 +160,9 @@ def test_moving_clusters_raise_the_floor_to_each_pairs_noise():
     flow off by that much) make the fixed 1 px floor take most of the wall for moving; with ``noise_sigmas`` = 3
     the floor rises to each pair's noise and the wall is as static as on the exact flows, the blob still found.
     On the exact flows the raise changes no label."""
-    n, w, h, frames = 200, 48, 36, 6
-    g, times, vms, K, flow_of = _blob_scene(n, w, h, frames, shift=1.5)
-    prev = previous_frames(times)
-    flows = flow_of(prev)
-    Ks = np.stack([K] * frames).astype(np.float32)
-    kw = dict(width=w, height=h, capacity=1 << 15)
-    args = ({"gaussians": g}, jnp.ones(n, bool), vms.astype(np.float32), Ks)
-    blob = np.arange(n) < 30
+    g, vms, Ks, prev, flows, kw = _blob_inputs(1.5)
+    args = ({"gaussians": g}, jnp.ones(len(g.means), bool), vms, Ks)
+    blob = np.arange(len(g.means)) < 30
     exact = moving_clusters(*args, flows, prev, **kw)
     np.testing.assert_array_equal(moving_clusters(*args, flows, prev, noise_sigmas=3.0, **kw), exact)
     assert np.all(exact[blob] >= 0)

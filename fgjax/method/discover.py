@@ -5,7 +5,8 @@ For each training pair (t-1, t):
 1. residual flow r = u - u_cam: optical flow minus the flow the camera alone would cause
    (`camera_flow_from_depth`: exact reprojection or the first-order motion field, from the rendered
    depth of frame t-1 and the two poses);
-2. binarise |r| per frame (`binarize`: a fixed threshold in pixels or Otsu's, with a floor);
+2. binarise |r| per frame (`binarize`: a fixed threshold in pixels or Otsu's, with a floor, optionally raised
+   to the pair's noise level, `noise_threshold`);
 3. back-project the mask through the rasterizer: w_i(m) = sum_p m_p T_ip alpha_ip
    (`fgjax.render.api.gaussian_weights`) with the Gaussians deformed to time t-1 and camera t-1.
 
@@ -44,6 +45,7 @@ from fgjax.render.api import gaussian_weights
 __all__ = [
     "residual_flow",
     "binarize",
+    "noise_threshold",
     "camera_flow_from_depth",
     "Scores",
     "agreement",

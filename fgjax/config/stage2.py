@@ -33,6 +33,10 @@ class Stage2Config:
     """Raise each pair's threshold to the noise of its residual, median + k * 1.4826 MAD of |u - u_cam| over the
     pair's valid pixels, with k this (`fgjax.method.discover.binarize`): a pair whose camera flow is wrong
     everywhere by a pixel is not marked moving. 0: off."""
+    depth_tolerance: float = 0.0
+    """The rendered depth's relative error delta that discovery allows: u_cam is the camera flow, among the depths
+    Z / (1 + delta) .. Z (1 + delta), nearest the optical flow (`fgjax.method.discover.nearest_on_segment`), so a
+    static pixel whose depth stage 1 got wrong is not marked moving. 0: the rendered depth as it is (the paper)."""
     min_alpha: float = 0.5
     """Pixels whose rendered alpha is below this have no trusted depth and are left out of the masks."""
     agree_sigma: float = 0.0
@@ -251,6 +255,8 @@ def validate_stage2(cfg: Stage2Config) -> None:
             raise bad(name, "a number >= 0")
     if not (finite(cfg.threshold_sigmas) and cfg.threshold_sigmas >= 0):
         raise bad("threshold_sigmas", "a finite number >= 0 (0: off)")
+    if not (finite(cfg.depth_tolerance) and cfg.depth_tolerance >= 0):
+        raise bad("depth_tolerance", "a finite number >= 0 (0: off)")
     if not (finite(cfg.agree_sigma) and cfg.agree_sigma >= 0):
         raise bad("agree_sigma", "a finite number >= 0 (0: off)")
     if not cfg.eps > 0:

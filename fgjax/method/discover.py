@@ -4,7 +4,8 @@ For each training pair (t-1, t):
 
 1. residual flow r = u - u_cam: optical flow minus the flow the camera alone would cause
    (`camera_flow_from_depth`: exact reprojection or the first-order motion field, from the rendered
-   depth of frame t-1 and the two poses);
+   depth of frame t-1 and the two poses; with the depth trusted only within a relative tolerance, u_cam is the
+   point nearest u on the image of that depth interval, `nearest_on_segment`);
 2. binarise |r| per frame (`binarize`: a fixed threshold in pixels or Otsu's, with a floor, optionally raised
    to the pair's noise level, `noise_threshold`);
 3. back-project the mask through the rasterizer: w_i(m) = sum_p m_p T_ip alpha_ip
@@ -47,6 +48,7 @@ __all__ = [
     "binarize",
     "noise_threshold",
     "camera_flow_from_depth",
+    "nearest_on_segment",
     "Scores",
     "agreement",
     "accumulate_scores",
@@ -150,6 +152,31 @@ def noise_threshold(magnitudes: Float[np.ndarray, "..."], sigmas: float) -> floa
         return float("inf")
     med = float(np.median(m))
     return med + float(sigmas) * 1.4826 * float(np.median(np.abs(m - med)))
+
+
+def nearest_on_segment(
+    flow: Float[np.ndarray, "*B 2"], near: Float[np.ndarray, "*B 2"], far: Float[np.ndarray, "*B 2"]
+) -> Float[np.ndarray, "*B 2"]:
+    """The point of each segment [far, near] closest to `flow` (all [..., 2]): far + clip(s, 0, 1) (near - far) with
+    s = <flow - far, near - far> / |near - far|^2 (a degenerate segment gives `far`).
+
+    A static pixel's camera flow is one point of its epipolar line per depth; with the depth known only within a
+    relative tolerance delta, it is anywhere on the segment between the camera flows at depths Z / (1 + delta)
+    (``near``) and Z (1 + delta) (``far``), the image of that depth interval. ``flow`` minus this point is the
+    part of the observed flow that no depth in the interval explains (`fgjax.method.stage2.discover_run`,
+    ``stage2.depth_tolerance``): the residual of the paper's step 4 at delta = 0, and the distance from the
+    epipolar line as delta grows.
+    """
+    f = np.asarray(flow, np.float64)
+    a = np.asarray(far, np.float64)
+    b = np.asarray(near, np.float64)
+    if not (f.shape == a.shape == b.shape and f.shape[-1:] == (2,)):
+        raise ValueError(f"nearest_on_segment: flow, near and far must have one shape [..., 2]; got {f.shape}, "
+                         f"{b.shape}, {a.shape}")
+    d = b - a
+    dd = np.sum(d * d, -1, keepdims=True)
+    s = np.where(dd > 1e-12, np.sum((f - a) * d, -1, keepdims=True) / np.where(dd > 1e-12, dd, 1.0), 0.0)
+    return a + np.clip(np.nan_to_num(s), 0.0, 1.0) * d
 
 
 def camera_flow_from_depth(

@@ -36,7 +36,7 @@ from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
 from fgjax.method.camera import camera_correction
 from fgjax.method.control import train_control
-from fgjax.method.discover import Discovery, agreement, camera_flow_from_depth, discover
+from fgjax.method.discover import Discovery, agreement, camera_flow_from_depth, discover, nearest_on_segment
 from fgjax.method.result import (
     FORMAT_VERSION,
     STAGE2_NAME,
@@ -96,7 +96,9 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
     expected depth (and, with ``cfg.agree_sigma`` > 0, their colours, whose agreement with image t-1 weights each
     pixel of the back-projection: `fgjax.method.discover.agreement`); the camera flow is `camera_flow_from_depth` of
     that depth (with ``cfg.camera_correction``, camera t's pose first corrected from the static flow,
-    `fgjax.method.camera.camera_correction`); the optical flow t-1 -> t comes from
+    `fgjax.method.camera.camera_correction`; with ``cfg.depth_tolerance`` delta > 0, the camera flow of the depth
+    in Z / (1 + delta) .. Z (1 + delta) nearest the optical flow, `fgjax.method.discover.nearest_on_segment`); the
+    optical flow t-1 -> t comes from
     `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``).
 
     Returns:
@@ -147,6 +149,12 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
             c2w_b = viewmat_to_c2w(vm_b[None])[0]
             rms_all.append(rms)
         cf, ok = camera_flow_from_depth(depths[j], scene.Ks[a], c2w[j], c2w_b)
+        if cfg.depth_tolerance > 0:  # u_cam: the camera flow of the depth in Z / (1 + delta) .. Z (1 + delta) nearest u
+            grow = 1.0 + cfg.depth_tolerance
+            near, ok_n = camera_flow_from_depth(depths[j] / grow, scene.Ks[a], c2w[j], c2w_b)
+            far, ok_f = camera_flow_from_depth(depths[j] * grow, scene.Ks[a], c2w[j], c2w_b)
+            cf = nearest_on_segment(flows[-1], near, far).astype(np.float32)
+            ok = ok & ok_n & ok_f
         cams.append(cf)
         valid.append(ok & trusted)
     log(f"stage 2: optical flow of {len(flows)} pairs ({time.perf_counter() - t_flow:.1f} s)"

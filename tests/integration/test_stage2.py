@@ -335,6 +335,26 @@ def test_threshold_sigmas_raises_each_pairs_threshold_to_its_residuals_noise(tin
     assert np.all(masks[3.0] <= masks[0.0]) and masks[3.0].sum() < masks[0.0].sum()
 
 
+def test_depth_tolerance_reaches_the_camera_flow(tiny, tmp_path):
+    """``stage2.depth_tolerance`` reaches discovery: the camera flow returned is the point of the depth interval's
+    segment nearest the optical flow, so each pair's masks shrink to a subset of the exact camera flow's (the
+    tiny scene's camera moves), and the residual never grows (`fgjax.method.discover.nearest_on_segment` is
+    tested for the values)."""
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+
+    run = result.load_stage2(tiny[0], require_stage2=False)
+    scene = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
+    out = {d: discover_run(run, scene, Stage2Config(threshold_px=0.5, depth_tolerance=d), tmp_path,
+                           log=lambda m: None) for d in (0.0, 0.5)}
+    m0, m5 = out[0.0][0].masks, out[0.5][0].masks
+    assert m0.any() and np.all(m5 <= m0) and m5.sum() < m0.sum()
+    flows, cam0, cam5 = out[0.0][3][1], out[0.0][3][2], out[0.5][3][2]
+    np.testing.assert_array_equal(out[0.5][3][1], flows)
+    r0, r5 = np.linalg.norm(flows - cam0, axis=-1), np.linalg.norm(flows - cam5, axis=-1)
+    assert np.all(r5 <= r0 + 1e-4) and np.all(np.isfinite(cam5))
+
+
 def _moved_scene(run, sc, labels, poses):
     """The training scene with its images replaced by renders of the stage-1 model at t0 whose labelled
     Gaussians move by `poses` [1, T, 4, 4] (frames in time order)."""

@@ -225,6 +225,48 @@ def test_binarize_raises_the_threshold_to_the_residuals_noise():
             D.binarize(r, 0.5, noise_sigmas=k)
 
 
+def test_nearest_on_segment():
+    """Projection onto [far, near], clipped to the ends; a degenerate segment returns its point; bad shapes raise."""
+    far = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [1.0, 1.0]])
+    near = np.array([[2.0, 0.0], [2.0, 0.0], [2.0, 0.0], [1.0, 1.0]])
+    flow = np.array([[1.0, 5.0], [-3.0, 1.0], [4.0, -1.0], [7.0, 7.0]])
+    np.testing.assert_allclose(D.nearest_on_segment(flow, near, far), [[1, 0], [0, 0], [2, 0], [1, 1]])
+    with pytest.raises(ValueError, match="nearest_on_segment"):
+        D.nearest_on_segment(flow[:, :1], near, far)
+
+
+def test_depth_tolerance_clears_a_wrong_depth_and_keeps_a_moving_part():
+    """A sideways camera step over a wall whose rendered depth is 20 % too small in one band: the residual of the
+    exact camera flow (delta = 0) marks the band moving; with delta = 0.25 its camera flow lies within the depth
+    interval and the band is clear, while a block moving across the epipolar lines (vertically here) stays moving;
+    a still camera (no baseline) gives the same residual at any delta."""
+    h, w = 60, 80
+    K = np.array([[80.0, 0, 40], [0, 80.0, 30], [0, 0, 1]])
+    depth = np.full((h, w), 4.0)
+    c2w0, c2w1 = np.eye(4), np.eye(4)
+    c2w1[0, 3] = 0.3  # camera 1 is 0.3 to the right: static flow (-80 * 0.3 / 4) = -6 px along x
+    true_flow, _ = D.camera_flow_from_depth(depth, K, c2w0, c2w1)
+    flow = np.array(true_flow)
+    block = (slice(10, 20), slice(50, 70))
+    flow[block] += (0.0, 3.0)  # a part moving down by 3 px
+    rendered = depth.copy()
+    rendered[35:50] *= 0.8  # the band's rendered depth is 20 % short
+    cam, _ = D.camera_flow_from_depth(rendered, K, c2w0, c2w1)
+    exact = D.binarize(D.residual_flow(flow, cam), 0.5)
+    assert exact[35:50].all()
+    grow = 1.25
+    near, _ = D.camera_flow_from_depth(rendered / grow, K, c2w0, c2w1)
+    far, _ = D.camera_flow_from_depth(rendered * grow, K, c2w0, c2w1)
+    tolerant = D.binarize(D.residual_flow(flow, D.nearest_on_segment(flow, near, far)), 0.5)
+    assert not tolerant[35:50].any()
+    assert tolerant[block].all() and exact[block].all()
+    assert tolerant.sum() == tolerant[block].sum()
+    still, _ = D.camera_flow_from_depth(rendered, K, c2w0, c2w0)
+    n0, _ = D.camera_flow_from_depth(rendered / grow, K, c2w0, c2w0)
+    f0, _ = D.camera_flow_from_depth(rendered * grow, K, c2w0, c2w0)
+    np.testing.assert_allclose(D.nearest_on_segment(flow, n0, f0), still, atol=1e-6)
+
+
 def test_windowed_score_matches_the_sums_over_each_run_of_pairs():
     rng = np.random.default_rng(0)
     tt = rng.uniform(0, 5, (9, 40))

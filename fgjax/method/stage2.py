@@ -98,8 +98,7 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
     that depth (with ``cfg.camera_correction``, camera t's pose first corrected from the static flow,
     `fgjax.method.camera.camera_correction`; with ``cfg.depth_tolerance`` delta > 0, the camera flow of the depth
     in Z / (1 + delta) .. Z (1 + delta) nearest the optical flow, `fgjax.method.discover.nearest_on_segment`); the
-    optical flow t-1 -> t comes from
-    `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``).
+    optical flow t-1 -> t comes from `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``).
 
     Returns:
         (`Discovery` with D restricted to alive Gaussians, deformed centres [T, N, 3] in time order, times [T],
@@ -148,13 +147,14 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
                                              scene.Ks[a])
             c2w_b = viewmat_to_c2w(vm_b[None])[0]
             rms_all.append(rms)
-        cf, ok = camera_flow_from_depth(depths[j], scene.Ks[a], c2w[j], c2w_b)
         if cfg.depth_tolerance > 0:  # u_cam: the camera flow of the depth in Z / (1 + delta) .. Z (1 + delta) nearest u
             grow = 1.0 + cfg.depth_tolerance
             near, ok_n = camera_flow_from_depth(depths[j] / grow, scene.Ks[a], c2w[j], c2w_b)
             far, ok_f = camera_flow_from_depth(depths[j] * grow, scene.Ks[a], c2w[j], c2w_b)
-            cf = nearest_on_segment(flows[-1], near, far).astype(np.float32)
-            ok = ok & ok_n & ok_f
+            # Z lies between both ends on its ray, so it is valid (positive, in front of camera t) where both are
+            cf, ok = nearest_on_segment(flows[-1], near, far).astype(np.float32), ok_n & ok_f
+        else:
+            cf, ok = camera_flow_from_depth(depths[j], scene.Ks[a], c2w[j], c2w_b)
         cams.append(cf)
         valid.append(ok & trusted)
     log(f"stage 2: optical flow of {len(flows)} pairs ({time.perf_counter() - t_flow:.1f} s)"

@@ -253,12 +253,10 @@ def validate_stage2(cfg: Stage2Config) -> None:
     for name in ("min_px", "min_alpha", "min_score", "eps", "min_fraction", "flow_weight", "flow_threshold"):
         if not float(getattr(cfg, name)) >= 0:
             raise bad(name, "a number >= 0")
-    if not (finite(cfg.threshold_sigmas) and cfg.threshold_sigmas >= 0):
-        raise bad("threshold_sigmas", "a finite number >= 0 (0: off)")
-    if not (finite(cfg.depth_tolerance) and cfg.depth_tolerance >= 0):
-        raise bad("depth_tolerance", "a finite number >= 0 (0: off)")
-    if not (finite(cfg.agree_sigma) and cfg.agree_sigma >= 0):
-        raise bad("agree_sigma", "a finite number >= 0 (0: off)")
+    for name in ("threshold_sigmas", "depth_tolerance", "agree_sigma"):
+        v = getattr(cfg, name)
+        if not (finite(v) and v >= 0):
+            raise bad(name, "a finite number >= 0 (0: off)")
     if not cfg.eps > 0:
         raise bad("eps", "> 0")
     if not cfg.lr > 0:

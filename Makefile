@@ -34,4 +34,4 @@ bench: $(STAMP_RUN)
 	$(BIN)/fgjax bench raster
 
 clean:
-	rm -rf $(VENV) outputs
+	rm -rf $(VENV) outputs .cache

@@ -81,9 +81,10 @@ def _one_line(e: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fgjax.xla_env import use_fast_cpu_compile
+    from fgjax.xla_env import use_compilation_cache, use_fast_cpu_compile
 
     use_fast_cpu_compile()  # before any computation starts XLA's backend
+    use_compilation_cache()  # before anything imports JAX
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(_usage())

@@ -7,8 +7,15 @@ environment.
 ``--xla_cpu_use_fusion_emitters=false`` shortens XLA:CPU compile times, which dominate fgjax's small runs
 (the quick demo, the tests; about a third shorter on a 2-core CPU with jaxlib 0.10); the results change only by
 rounding, and the steps of large scenes (20k Gaussians) may run about 10 % slower. XLA aborts on a flag it does not know, so the flag is only added for the
-jaxlib releases listed in `MEASURED_JAXLIB`; it only affects the CPU backend. ``FGJAX_XLA_DEFAULTS=0`` leaves
-``XLA_FLAGS`` alone.
+jaxlib releases listed in `MEASURED_JAXLIB`; it only affects the CPU backend.
+
+`use_compilation_cache` turns on JAX's persistent compilation cache (a folder of compiled executables keyed by the
+program, the compile options and the jax/jaxlib versions): a program compiled again, in the same run (a function
+jitted anew for each call or object) or in a later one, is read back instead of compiled. Every executable is kept
+(``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0``): fgjax's runs compile many small programs more than once. The
+folder is pruned, oldest first, when it grows past `CACHE_BYTES`. JAX reads these settings from the environment
+when it is imported, so an entry point calls this before anything imports JAX; settings already in the environment
+are kept. ``FGJAX_XLA_DEFAULTS=0`` leaves the environment alone (neither flag nor cache).
 """
 
 from __future__ import annotations
@@ -16,9 +23,11 @@ from __future__ import annotations
 import importlib.metadata
 import os
 from collections.abc import MutableMapping
+from pathlib import Path
 
 FAST_CPU_COMPILE = "--xla_cpu_use_fusion_emitters=false"
 MEASURED_JAXLIB = ((0, 10),)  # (major, minor) releases the flag was measured with
+CACHE_BYTES = 2 << 30  # the compilation cache's folder is pruned to half this when it grows past it
 
 
 def _jaxlib_release() -> tuple[int, int] | None:
@@ -43,3 +52,65 @@ def use_fast_cpu_compile(environ: MutableMapping[str, str] | None = None,
         return False
     env["XLA_FLAGS"] = f"{flags} {FAST_CPU_COMPILE}".strip()
     return True
+
+
+def default_cache_dir(environ: MutableMapping[str, str] | None = None) -> Path:
+    """The command line's compilation cache: ``$XDG_CACHE_HOME/fgjax/jax`` (default ``~/.cache/fgjax/jax``)."""
+    env = os.environ if environ is None else environ
+    base = env.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "fgjax" / "jax"
+
+
+def use_compilation_cache(path: str | os.PathLike | None = None, environ: MutableMapping[str, str] | None = None,
+                          max_bytes: int = CACHE_BYTES) -> Path | None:
+    """Points JAX's persistent compilation cache at `path` (default: `default_cache_dir`) through
+    ``JAX_COMPILATION_CACHE_DIR`` and ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0`` in ``environ`` (default:
+    ``os.environ``), each unless already set, and prunes the folder (`prune_cache`). Returns the folder in use, or
+    None when ``FGJAX_XLA_DEFAULTS=0`` or an empty ``JAX_COMPILATION_CACHE_DIR`` turns the cache off or `path`
+    cannot be made or written (then nothing is set). Takes effect only when called before JAX is imported."""
+    env = os.environ if environ is None else environ
+    if env.get("FGJAX_XLA_DEFAULTS", "1") == "0":
+        return None
+    if "JAX_COMPILATION_CACHE_DIR" not in env:
+        folder = Path(default_cache_dir(env) if path is None else path)
+        try:  # a folder that cannot be made or written (a read-only home): no cache rather than a failed compile
+            folder.mkdir(parents=True, exist_ok=True)
+            if not os.access(folder, os.W_OK):
+                return None
+        except OSError:
+            return None
+        env["JAX_COMPILATION_CACHE_DIR"] = str(folder)
+    env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    folder = env["JAX_COMPILATION_CACHE_DIR"]
+    if not folder:
+        return None
+    prune_cache(Path(folder), max_bytes)
+    return Path(folder)
+
+
+def prune_cache(folder: Path, max_bytes: int) -> int:
+    """When the files directly in `folder` hold more than `max_bytes`, deletes them oldest first (by modification
+    time) until they hold at most half of it; returns how many were deleted. A file another process deletes or
+    reads meanwhile is skipped (JAX compiles again what it cannot read)."""
+    try:
+        entries = []
+        for e in os.scandir(folder):
+            if e.is_file(follow_symlinks=False):
+                st = e.stat(follow_symlinks=False)
+                entries.append((st.st_mtime, st.st_size, e.path))
+    except FileNotFoundError:
+        return 0
+    total = sum(size for _, size, _ in entries)
+    if total <= max_bytes:
+        return 0
+    deleted = 0
+    for _, size, name in sorted(entries):
+        if total <= max_bytes // 2:
+            break
+        try:
+            os.remove(name)
+        except FileNotFoundError:
+            pass
+        total -= size
+        deleted += 1
+    return deleted

@@ -1,13 +1,18 @@
-"""Test-wide JAX settings: float64 available, full-precision matmuls, and shared helpers."""
+"""Test-wide JAX settings: the entry points' XLA settings and compilation cache, float64 available, full-precision
+matmuls; and shared helpers."""
 
 from __future__ import annotations
 
 import os
 import pathlib
 
-from fgjax.xla_env import use_fast_cpu_compile
+from fgjax.xla_env import use_compilation_cache, use_fast_cpu_compile
 
+REPO = pathlib.Path(__file__).resolve().parents[1]
 use_fast_cpu_compile()  # as the command line does; before jax starts its backend
+# as the command line does, but in the repository (.cache/, ignored by git): a clean clone starts with none, and
+# the workers of `pytest -n` share it
+use_compilation_cache(REPO / ".cache" / "jax")
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -19,7 +24,6 @@ jax.config.update("jax_default_matmul_precision", "highest")
 # re-exported for the tests: `from conftest import synth`
 from fgjax import cli, synth  # noqa: E402, F401
 
-REPO = pathlib.Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
 

@@ -1,8 +1,15 @@
-"""The entry points' XLA settings (`fgjax.xla_env`): added once, only for measured jaxlib releases."""
+"""The entry points' XLA settings (`fgjax.xla_env`): the compile flag added once, only for measured jaxlib releases;
+the persistent compilation cache written, read back and pruned."""
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
 
 from fgjax import xla_env
 
@@ -29,3 +36,56 @@ def test_the_test_process_runs_with_the_entry_points_settings():
     """conftest.py applies the same settings as `fgjax.cli.main`, so the tests run what users run."""
     if xla_env._jaxlib_release() in xla_env.MEASURED_JAXLIB and os.environ.get("FGJAX_XLA_DEFAULTS", "1") != "0":
         assert "--xla_cpu_use_fusion_emitters=" in os.environ.get("XLA_FLAGS", "")
+    if os.environ.get("FGJAX_XLA_DEFAULTS", "1") != "0":  # and the compilation cache, shared by the workers
+        assert jax.config.jax_compilation_cache_dir == os.environ["JAX_COMPILATION_CACHE_DIR"] != ""
+        assert jax.config.jax_persistent_cache_min_compile_time_secs == float(
+            os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])
+
+
+def test_compilation_cache_defaults_keep_the_users_settings_and_turn_off(tmp_path):
+    env = {"XDG_CACHE_HOME": str(tmp_path)}
+    assert xla_env.use_compilation_cache(None, env) == tmp_path / "fgjax" / "jax"
+    assert env["JAX_COMPILATION_CACHE_DIR"] == str(tmp_path / "fgjax" / "jax")
+    assert env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0" and (tmp_path / "fgjax" / "jax").is_dir()
+    (tmp_path / "file").write_text("")
+    env = {}  # a folder that cannot be made (under a file): no cache, nothing set
+    assert xla_env.use_compilation_cache(tmp_path / "file" / "jax", env) is None and env == {}
+    env = {"JAX_COMPILATION_CACHE_DIR": "/mine", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "1.5"}
+    assert xla_env.use_compilation_cache("/other", env) == Path("/mine")  # the user's choice wins
+    assert env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "1.5"
+    env = {"JAX_COMPILATION_CACHE_DIR": ""}  # empty: off
+    assert xla_env.use_compilation_cache("/other", env) is None
+    env = {"FGJAX_XLA_DEFAULTS": "0"}
+    assert xla_env.use_compilation_cache("/other", env) is None and env == {"FGJAX_XLA_DEFAULTS": "0"}
+    assert xla_env.default_cache_dir({}) == Path(os.path.expanduser("~")) / ".cache" / "fgjax" / "jax"
+
+
+def test_prune_cache_deletes_the_oldest_files_down_to_half(tmp_path):
+    for i in range(10):  # file i: 100 bytes, modified at time 1000 + i
+        (tmp_path / f"e{i}").write_bytes(bytes(100))
+        os.utime(tmp_path / f"e{i}", (1000 + i, 1000 + i))
+    assert xla_env.prune_cache(tmp_path, 1000) == 0  # not past the limit: kept
+    assert xla_env.prune_cache(tmp_path, 999) == 6  # 1000 > 999: the six oldest go, 400 <= 499 stays
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["e6", "e7", "e8", "e9"]
+    assert xla_env.prune_cache(tmp_path / "absent", 0) == 0
+
+
+def test_compiled_programs_are_written_to_the_cache_and_read_back_by_another_process(tmp_path):
+    """Through `use_compilation_cache` before JAX's import, as the command line does: a first process writes a jitted
+    program's executable into the folder; a second compiles nothing and reads it back."""
+    code = textwrap.dedent(f"""
+        from fgjax.xla_env import use_compilation_cache
+        use_compilation_cache({str(tmp_path / "cache")!r})
+        import jax, jax.numpy as jnp
+        hits = []
+        jax.monitoring.register_event_listener(
+            lambda event, **_: hits.append(event) if event == "/jax/compilation_cache/cache_hits" else None)
+        print(float(jax.jit(lambda x: jnp.sin(x) * 3.0 + x ** 2)(jnp.float32(0.5))), len(hits))
+    """)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
+    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+            for _ in range(2)]
+    assert len(list((tmp_path / "cache").iterdir())) >= 1, runs
+    first, second = (r.split() for r in runs)
+    assert first[0] == second[0] and int(first[1]) == 0 and int(second[1]) >= 1, runs

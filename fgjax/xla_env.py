@@ -12,7 +12,8 @@ jaxlib releases listed in `MEASURED_JAXLIB`; it only affects the CPU backend.
 `use_compilation_cache` turns on JAX's persistent compilation cache (a folder of compiled executables keyed by the
 program, the compile options and the jax/jaxlib versions): a program compiled again, in the same run (a function
 jitted anew for each call or object) or in a later one, is read back instead of compiled. Every executable is kept
-(``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0``): fgjax's runs compile many small programs more than once. The
+(``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0``): most of fgjax's compiles take under a second, and a rerun reads
+them all back (docs/benchmarks.md, "The compilation cache"). The
 folder is pruned, oldest first, when it grows past `CACHE_BYTES`. JAX reads these settings from the environment
 when it is imported, so an entry point calls this before anything imports JAX; settings already in the environment
 are kept. ``FGJAX_XLA_DEFAULTS=0`` leaves the environment alone (neither flag nor cache).
@@ -90,15 +91,20 @@ def use_compilation_cache(path: str | os.PathLike | None = None, environ: Mutabl
 
 def prune_cache(folder: Path, max_bytes: int) -> int:
     """When the files directly in `folder` hold more than `max_bytes`, deletes them oldest first (by modification
-    time) until they hold at most half of it; returns how many were deleted. A file another process deletes or
-    reads meanwhile is skipped (JAX compiles again what it cannot read)."""
+    time) until they hold at most half of it; returns how many were deleted. A folder or file that cannot be read
+    or deleted (another process pruned it first) is skipped: pruning never stops a run, and JAX compiles again
+    what it cannot read."""
+    entries = []
     try:
-        entries = []
-        for e in os.scandir(folder):
-            if e.is_file(follow_symlinks=False):
-                st = e.stat(follow_symlinks=False)
-                entries.append((st.st_mtime, st.st_size, e.path))
-    except FileNotFoundError:
+        with os.scandir(folder) as it:
+            for e in it:
+                try:
+                    if e.is_file(follow_symlinks=False):
+                        st = e.stat(follow_symlinks=False)
+                        entries.append((st.st_mtime, st.st_size, e.path))
+                except OSError:
+                    continue
+    except OSError:
         return 0
     total = sum(size for _, size, _ in entries)
     if total <= max_bytes:
@@ -109,8 +115,8 @@ def prune_cache(folder: Path, max_bytes: int) -> int:
             break
         try:
             os.remove(name)
-        except FileNotFoundError:
+            deleted += 1
+        except OSError:
             pass
         total -= size
-        deleted += 1
     return deleted

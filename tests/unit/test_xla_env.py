@@ -68,6 +68,7 @@ def test_prune_cache_deletes_the_oldest_files_down_to_half(tmp_path):
     assert xla_env.prune_cache(tmp_path, 999) == 6  # 1000 > 999: the six oldest go, 400 <= 499 stays
     assert sorted(p.name for p in tmp_path.iterdir()) == ["e6", "e7", "e8", "e9"]
     assert xla_env.prune_cache(tmp_path / "absent", 0) == 0
+    assert xla_env.prune_cache(tmp_path / "e6", 0) == 0  # not a folder: nothing to prune, no error
 
 
 def test_compiled_programs_are_written_to_the_cache_and_read_back_by_another_process(tmp_path):

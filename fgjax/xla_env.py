@@ -66,27 +66,30 @@ def use_compilation_cache(path: str | os.PathLike | None = None, environ: Mutabl
                           max_bytes: int = CACHE_BYTES) -> Path | None:
     """Points JAX's persistent compilation cache at `path` (default: `default_cache_dir`) through
     ``JAX_COMPILATION_CACHE_DIR`` and ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0`` in ``environ`` (default:
-    ``os.environ``), each unless already set, and prunes the folder (`prune_cache`). Returns the folder in use, or
+    ``os.environ``), each unless already set. The folder it sets is made and pruned (`prune_cache`); a folder
+    already named in ``environ`` (the user's, or an earlier call's) is used as it is. Returns the folder in use, or
     None when ``FGJAX_XLA_DEFAULTS=0`` or an empty ``JAX_COMPILATION_CACHE_DIR`` turns the cache off or `path`
     cannot be made or written (then nothing is set). Takes effect only when called before JAX is imported."""
     env = os.environ if environ is None else environ
     if env.get("FGJAX_XLA_DEFAULTS", "1") == "0":
         return None
-    if "JAX_COMPILATION_CACHE_DIR" not in env:
-        folder = Path(default_cache_dir(env) if path is None else path)
-        try:  # a folder that cannot be made or written (a read-only home): no cache rather than a failed compile
-            folder.mkdir(parents=True, exist_ok=True)
-            if not os.access(folder, os.W_OK):
-                return None
-        except OSError:
+    if "JAX_COMPILATION_CACHE_DIR" in env:
+        named = env["JAX_COMPILATION_CACHE_DIR"]
+        if not named:
             return None
-        env["JAX_COMPILATION_CACHE_DIR"] = str(folder)
-    env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-    folder = env["JAX_COMPILATION_CACHE_DIR"]
-    if not folder:
+        env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+        return Path(named)
+    folder = Path(default_cache_dir(env) if path is None else path)
+    try:  # a folder that cannot be made or written (a read-only home): no cache rather than a failed compile
+        folder.mkdir(parents=True, exist_ok=True)
+        if not os.access(folder, os.W_OK):
+            return None
+    except OSError:
         return None
-    prune_cache(Path(folder), max_bytes)
-    return Path(folder)
+    env["JAX_COMPILATION_CACHE_DIR"] = str(folder)
+    env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    prune_cache(folder, max_bytes)
+    return folder
 
 
 def prune_cache(folder: Path, max_bytes: int) -> int:

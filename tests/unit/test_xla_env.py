@@ -69,6 +69,12 @@ def test_prune_cache_deletes_the_oldest_files_down_to_half(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["e6", "e7", "e8", "e9"]
     assert xla_env.prune_cache(tmp_path / "absent", 0) == 0
     assert xla_env.prune_cache(tmp_path / "e6", 0) == 0  # not a folder: nothing to prune, no error
+    # the folder `use_compilation_cache` sets is pruned; one already named in the environment is left as it is
+    env = {"JAX_COMPILATION_CACHE_DIR": str(tmp_path)}
+    assert xla_env.use_compilation_cache(tmp_path / "x", env, max_bytes=1) == tmp_path
+    assert len(list(tmp_path.iterdir())) == 4
+    assert xla_env.use_compilation_cache(tmp_path, {}, max_bytes=1) == tmp_path
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_compiled_programs_are_written_to_the_cache_and_read_back_by_another_process(tmp_path):

@@ -1,5 +1,15 @@
 """Test-wide JAX settings: the entry points' XLA settings and compilation cache, float64 available, full-precision
-matmuls; and shared helpers."""
+matmuls, XLA's backend optimisation per test (below); and shared helpers.
+
+Most tests compile far more than they run: compiling is about half of the suite's time, and XLA:CPU's LLVM
+optimisation is most of each compile. So a test compiles with ``jax_disable_most_optimizations`` (a third of the
+compile time; the programs run several times slower) unless it is marked ``@pytest.mark.optimized``: the tests
+whose time goes into running long fits (the quality floors, the field and placement benchmarks, the photometric
+trackers, the hinge search) or whose assertion sits on a trained run's number near a threshold, which run compiled
+as the command line compiles. ``FGJAX_TEST_OPTIMIZE=1`` compiles every test as the command line does. The marked
+tests go first, so that each pytest-xdist worker changes the level about once; where it changes, ``jax.clear_caches``
+drops every compiled program, so that no test runs a program compiled at the other level (the persistent cache keys
+the two apart by their compile options)."""
 
 from __future__ import annotations
 
@@ -49,6 +59,35 @@ def key():
 
 
 os.environ.setdefault("FGJAX_TEST", "1")
+
+OPTIMIZE_ALL = os.environ.get("FGJAX_TEST_OPTIMIZE", "") == "1"
+_compiled_optimized: list[bool] = []  # this process's current level (empty: not set yet)
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "optimized: compiled with XLA's full backend optimisation, as the command "
+                            "line compiles (module docstring)")
+
+
+def pytest_collection_modifyitems(config, items):
+    items.sort(key=lambda item: item.get_closest_marker("optimized") is None)  # stable: marked tests first
+
+
+def optimized(item) -> bool:
+    """Whether `item` compiles with XLA's full backend optimisation."""
+    return OPTIMIZE_ALL or item.get_closest_marker("optimized") is not None
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    """Before the test's fixtures: XLA's optimisation level for everything it compiles (module docstring)."""
+    want = optimized(item)
+    if _compiled_optimized == [want]:
+        return
+    if _compiled_optimized:
+        jax.clear_caches()
+    jax.config.update("jax_disable_most_optimizations", not want)
+    _compiled_optimized[:] = [want]
 
 
 def look_at(centre, target=(0.0, 0.0, 0.0)) -> np.ndarray:

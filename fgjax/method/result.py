@@ -21,6 +21,7 @@ is a readable summary. Both are written atomically.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import zipfile
 from pathlib import Path
@@ -106,17 +107,16 @@ def _atomic_bytes(path: Path, write) -> None:
     atomic_write(path, write)
 
 
-def _deformed_fn(spec, static: bool):
-    """jitted (params, alive, t) -> (means, raw quats, log_scales) of the stage-1 model at time t."""
-
-    def f(params, t):
-        g: Gaussians = params["gaussians"]
-        if static or spec is None:
-            return g.means, g.quats, g.log_scales
-        dx, dq, ds = deform_apply(spec, params["deform"], g.means, t, quats=g.quats)
-        return g.means + dx, g.quats + dq, g.log_scales + ds
-
-    return jax.jit(f)
+@functools.partial(jax.jit, static_argnames=("spec", "static"))
+def _deformed(params: dict, t: Float[ArrayLike, ""], *, spec, static: bool):
+    """(means, raw quats, log_scales) of the stage-1 model at time t: the canonical Gaussians plus the field's
+    (dX, dq, ds) at t (unchanged when the run is static or has no field). One jitted function for every loaded
+    run: JAX keeps one program per (spec, static, parameter shapes), so loading a run again compiles nothing."""
+    g: Gaussians = params["gaussians"]
+    if static or spec is None:
+        return g.means, g.quats, g.log_scales
+    dx, dq, ds = deform_apply(spec, params["deform"], g.means, t, quats=g.quats)
+    return g.means + dx, g.quats + dq, g.log_scales + ds
 
 
 def with_geometry(params: dict, means: Float[ArrayLike, "N 3"], quats: Float[ArrayLike, "N 4"],
@@ -201,10 +201,7 @@ class LoadedRun:
 
     def deformed(self, t: float):
         """(means, raw quats, log_scales) of the stage-1 model at time t."""
-        f = self.__dict__.get("_deformed_jit")
-        if f is None:
-            f = self.__dict__["_deformed_jit"] = _deformed_fn(self.spec, self.static)
-        return f(self.state.params, jnp.asarray(t, jnp.float32))
+        return _deformed(self.state.params, jnp.asarray(t, jnp.float32), spec=self.spec, static=self.static)
 
     def base(self):
         """(means, raw quats, log_scales) of the controlled scene's reference: stage 2's re-fitted Gaussians

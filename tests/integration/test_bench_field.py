@@ -16,6 +16,8 @@ import pytest
 from fgjax.bench import field
 from fgjax.config import load_config
 
+pytestmark = pytest.mark.optimized  # run-time-bound: compiled as the command line compiles (tests/conftest.py)
+
 CONFIG = Path(__file__).resolve().parents[2] / "experiments" / "family.toml"
 
 

@@ -12,6 +12,8 @@ from conftest import synth
 from fgjax import config as C
 from fgjax.bench import placement
 
+pytestmark = pytest.mark.optimized  # run-time-bound: compiled as the command line compiles (tests/conftest.py)
+
 
 def test_bench_placement_reads_the_evidence_and_places_by_span(tmp_path, capsys):
     synth.generate(synth.SynthConfig(width=64, height=48, frames=8), tmp_path / "scene", overwrite=True,

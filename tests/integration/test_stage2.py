@@ -182,6 +182,16 @@ def test_cluster_map_of_the_stage1_source_is_the_stage1_model_at_t(tiny):
     assert expect.any()
 
 
+def test_deformed_compiles_once_per_field(tiny):
+    """A run loaded again (or a second run of the same field and size) reuses the jitted deformation: stage 2,
+    the evaluation and the viewer each load runs, and a program per load was a compile per load."""
+    first = result.load_stage2(tiny[0]).deformed(0.5)
+    size = result._deformed._cache_size()
+    again = result.load_stage2(tiny[0]).deformed(0.25)
+    assert result._deformed._cache_size() == size
+    assert all(np.isfinite(np.asarray(a)).all() for a in (*first, *again))
+
+
 def test_write_cluster_maps(tiny, tmp_path):
     from fgjax.data.cameras import read_cameras
     from fgjax.data.scene import Normalization
@@ -961,6 +971,7 @@ def test_refit_relabelling_returns_mislabelled_gaussians_to_their_part(tiny):
     assert before == 0.0 and after > 0.6 and kept_right > 0.9, (after, kept_right)
 
 
+@pytest.mark.optimized  # run-time-bound: photometric tracking
 def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, monkeypatch):
     """`track_photo` replaces the flow-based tracking: the log shows the photometric fit, one articulation
     per object and the re-fit, and the result is written; `track_only_moving`, `track_subset_margin` and the steps

@@ -33,7 +33,7 @@ from fgjax.method.stage2 import run_stage2
 from fgjax.pipeline import write_control_pictures
 from fgjax.viz import to_u8
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.optimized]  # long fits: compiled as the command line compiles
 
 REPO = Path(__file__).resolve().parents[2]
 FLOORS = {  # name -> (objects found at least, ari_controlled at least, held-out state PSNR at least)

@@ -192,6 +192,7 @@ def _point_error(poses, true, pts):
     return np.linalg.norm(a - b, axis=-1).mean(1)  # [T]
 
 
+@pytest.mark.optimized  # run-time-bound: the image search of the hinge
 def test_search_articulations_finds_the_hinge_from_the_images_when_the_fitted_joint_is_wrong():
     """A box turning 0.12 rad a frame about a vertical hinge at its edge (`test_track._hinge_scene`, the box
     flattened so that its principal axes are its sides), imaged; the

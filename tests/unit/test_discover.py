@@ -31,6 +31,8 @@ from sklearn.metrics import adjusted_rand_score
 from fgjax import cluster
 from fgjax.method import discover as D
 
+pytestmark = pytest.mark.optimized  # run-time-bound: compiled as the command line compiles (tests/conftest.py)
+
 
 @pytest.fixture(scope="module")
 def scene():

@@ -197,6 +197,7 @@ def test_joint_poses_warns_of_a_hinge_far_off_its_part(far):
     assert not any("explains its tracked poses poorly" in m for m in logs), logs
 
 
+@pytest.mark.optimized  # run-time-bound: joint fits
 def test_joint_poses_on_the_default_scenes_tracked_drawer_and_door():
     """The per-frame poses the photometric tracker gave the default scene's drawer and door in a full demo
     (tests/data/SOURCE.txt). The door turns 70 degrees in 4 of 60 frames: fitted as a hinge about the vertical,
@@ -253,6 +254,7 @@ def test_track_photometric_starts_from_earlier_poses_when_they_render_closer():
         track_photometric(g, np.ones(len(labels), bool), labels, 1, imgs, vms, Ks, init_poses=true, **kw)
 
 
+@pytest.mark.optimized  # run-time-bound: photometric tracking
 def test_track_photometric_soft_membership_tolerates_mislabelled_gaussians():
     """A fifth of the part marked static and a patch of the wall behind it marked as the part: with the labels
     as they are (radius 0) the fitted turn falls short; with the soft membership (candidates within 0.3)

@@ -10,6 +10,8 @@ import textwrap
 from pathlib import Path
 
 import jax
+import numpy as np
+import pytest
 
 from fgjax import xla_env
 
@@ -96,3 +98,20 @@ def test_compiled_programs_are_written_to_the_cache_and_read_back_by_another_pro
     assert len(list((tmp_path / "cache").iterdir())) >= 1, runs
     first, second = (r.split() for r in runs)
     assert first[0] == second[0] and int(first[1]) == 0 and int(second[1]) >= 1, runs
+
+
+def test_a_test_compiles_without_most_optimisations_unless_marked():
+    """tests/conftest.py: an unmarked test compiles with ``jax_disable_most_optimizations`` (unless
+    FGJAX_TEST_OPTIMIZE=1), and its programs still compute what the optimised ones do."""
+    import jax.numpy as jnp
+    from conftest import OPTIMIZE_ALL
+
+    assert jax.config.values["jax_disable_most_optimizations"] is (not OPTIMIZE_ALL)
+    x = jnp.linspace(-3.0, 3.0, 101, dtype=jnp.float32)
+    np.testing.assert_allclose(np.asarray(jax.jit(jax.grad(lambda v: jnp.sum(jnp.tanh(v) ** 2)))(x)),
+                               2 * np.tanh(np.asarray(x)) / np.cosh(np.asarray(x)) ** 2, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.optimized
+def test_a_marked_test_compiles_as_the_command_line_does():
+    assert jax.config.values["jax_disable_most_optimizations"] is False

@@ -73,22 +73,22 @@ def use_compilation_cache(path: str | os.PathLike | None = None, environ: Mutabl
     env = os.environ if environ is None else environ
     if env.get("FGJAX_XLA_DEFAULTS", "1") == "0":
         return None
-    if "JAX_COMPILATION_CACHE_DIR" in env:
-        named = env["JAX_COMPILATION_CACHE_DIR"]
+    named = env.get("JAX_COMPILATION_CACHE_DIR")
+    if named is not None:  # the user's folder (or an earlier call's), used as it is
         if not named:
             return None
-        env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-        return Path(named)
-    folder = Path(default_cache_dir(env) if path is None else path)
-    try:  # a folder that cannot be made or written (a read-only home): no cache rather than a failed compile
-        folder.mkdir(parents=True, exist_ok=True)
-        if not os.access(folder, os.W_OK):
+        folder = Path(named)
+    else:
+        folder = Path(default_cache_dir(env) if path is None else path)
+        try:  # a folder that cannot be made or written (a read-only home): no cache rather than a failed compile
+            folder.mkdir(parents=True, exist_ok=True)
+            if not os.access(folder, os.W_OK):
+                return None
+        except OSError:
             return None
-    except OSError:
-        return None
-    env["JAX_COMPILATION_CACHE_DIR"] = str(folder)
+        env["JAX_COMPILATION_CACHE_DIR"] = str(folder)
+        prune_cache(folder, max_bytes)
     env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-    prune_cache(folder, max_bytes)
     return folder
 
 

@@ -61,7 +61,6 @@ def key():
 os.environ.setdefault("FGJAX_TEST", "1")
 
 OPTIMIZE_ALL = os.environ.get("FGJAX_TEST_OPTIMIZE", "") == "1"
-_compiled_optimized: list[bool] = []  # this process's current level (empty: not set yet)
 
 
 def pytest_configure(config):
@@ -73,21 +72,13 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: item.get_closest_marker("optimized") is None)  # stable: marked tests first
 
 
-def optimized(item) -> bool:
-    """Whether `item` compiles with XLA's full backend optimisation."""
-    return OPTIMIZE_ALL or item.get_closest_marker("optimized") is not None
-
-
 @pytest.hookimpl(tryfirst=True)
 def pytest_runtest_setup(item):
     """Before the test's fixtures: XLA's optimisation level for everything it compiles (module docstring)."""
-    want = optimized(item)
-    if _compiled_optimized == [want]:
-        return
-    if _compiled_optimized:
+    disable = not (OPTIMIZE_ALL or item.get_closest_marker("optimized") is not None)
+    if jax.config.values["jax_disable_most_optimizations"] is not disable:
         jax.clear_caches()
-    jax.config.update("jax_disable_most_optimizations", not want)
-    _compiled_optimized[:] = [want]
+        jax.config.update("jax_disable_most_optimizations", disable)
 
 
 def look_at(centre, target=(0.0, 0.0, 0.0)) -> np.ndarray:

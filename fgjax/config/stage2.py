@@ -43,6 +43,11 @@ class Stage2Config:
     """Weight each pixel's back-projection by the agreement of the stage-1 rendering with the image there,
     exp(-e^2 / (2 agree_sigma^2)) for an RMS colour error e (`fgjax.method.discover.agreement`): a moving pixel the
     model paints wrongly (a part it has not moved) is given to no Gaussian. 0: every pixel weighs 1."""
+    backproject: str = "pair"
+    """Where each pair's moving pixels are credited to Gaussians: "pair", to the Gaussians the stage-1 model paints
+    there at the pair's first time (the paper's step 5); "track", where a track of the first frame's pixels reaches
+    them (optical flow chained, round-trip checked), to the Gaussians that paint the track's pixel in the first
+    frame, and elsewhere as "pair" (`fgjax.method.discover.Reference`)."""
     score_threshold: float | str = "otsu"
     """Cut of the per-Gaussian discovery scores: "otsu" or a number in [0, 1]."""
     min_score: float = 0.05
@@ -244,6 +249,8 @@ def validate_stage2(cfg: Stage2Config) -> None:
         raise bad("camera_correction", "'auto', 'on' or 'off'")
     if cfg.cluster_method not in ("dbscan", "hdbscan"):
         raise bad("cluster_method", "'dbscan' or 'hdbscan'")
+    if cfg.backproject not in ("pair", "track"):
+        raise bad("backproject", "'pair' or 'track'")
     if cfg.control_encoding not in ("frequency", "hashgrid"):
         raise bad("control_encoding", "'frequency' or 'hashgrid'")
     for name in ("threshold_px", "score_threshold"):

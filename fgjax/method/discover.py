@@ -22,6 +22,12 @@ splat overlapping a moving edge collects weight from every mask pixel it touches
 pixel contributes 1) damps Gaussians that are barely ever seen. `select_dynamic` then thresholds the
 scores (Otsu by default), and `fgjax.cluster.cluster_dynamic` groups the selected canonical centres.
 
+With a reference frame r (`Reference`: its optical-flow tracks through the video, its Gaussians and camera), each
+moving pixel of frame t-1 that a track of r reaches is back-projected at frame r instead, onto the Gaussians that
+paint that track's pixel there (`carry_masks`), and the others as above; both sums add the two parts:
+score_i = sum_t [w_i^r(c'_t) + w_i^t(mask_t (1 - k_t))] / (sum_t [w_i^r(s_t) + w_i^t(1 - k_t)] + eps), with
+c'_t, s_t the carried mask and the tracked pixels of r, and k_t the pixels of frame t-1 the tracks cover.
+
 Optionally each pixel p of frame t carries a confidence c_tp in [0, 1] (`agreement`: how well the model's rendering
 matches the image there), and both sums weight p by it:
 score_i = sum_t w_i(c_t mask_t) / (sum_t w_i(c_t) + eps).
@@ -37,7 +43,8 @@ from typing import Literal, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Bool, Float
+from jaxtyping import Bool, Float, Float32
+from scipy import ndimage
 
 from fgjax import cluster
 from fgjax import flow as fl
@@ -52,7 +59,9 @@ __all__ = [
     "Scores",
     "agreement",
     "accumulate_scores",
+    "carry_masks",
     "windowed_score",
+    "Reference",
     "Discovery",
     "discover",
 ]
@@ -342,6 +351,49 @@ def accumulate_scores(
     return Scores(score=moving / (total + eps), moving=moving, total=total, moving_t=mt, total_t=tt)
 
 
+def carry_masks(
+    masks: Bool[np.ndarray, "T H W"], tracks: Float[np.ndarray, "T+1 H W 2"]
+) -> tuple[Float32[np.ndarray, "T H W"], Float32[np.ndarray, "T H W"], Bool[np.ndarray, "T H W"]]:
+    """Each pair's moving-pixel mask read along the tracks of a reference frame r: (carried, seen) [T, H, W] float32
+    on frame r's grid, and covered [T, H, W] bool on each pair's own grid.
+
+    The pairs are consecutive in time: pair k maps frame k to frame k+1 of the sequence, and ``masks[k]`` lies on
+    frame k's grid; ``tracks[k]`` is the displacement of each pixel p of frame r into frame k (NaN where the track is
+    lost: `fgjax.data.opticalflow.chained_tracks`, whose output this is). Then seen[k, p] = 1 where p's track is
+    alive in both frames of pair k (in frame k+1 too: the pair's flow there passed the round-trip check, so a point
+    about to be hidden by what moves over it is not counted), and carried[k, p] = seen[k, p] *
+    masks[k](p + tracks[k, p]) (nearest pixel); covered[k] marks the pixels of frame k within one pixel (3 x 3) of
+    where a track seen in pair k lies, the part of frame k that frame r accounts for.
+
+    Why: `accumulate_scores` credits a moving pixel of frame k to the Gaussians the model paints there at k, and
+    where stage 1 draws a part in the wrong place (it has not learned the part's motion, issue 53), what the part
+    moved over, or its blurred states, collect the motion. Carried back to frame r, the pixel is credited to the
+    Gaussians that paint the same surface point in frame r, before it moved (r is the first frame; with
+    ``deform.anchor = "first"`` the model's canonical scene). `discover` with a `Reference` back-projects the
+    covered pixels of each pair there and the others at their own frame, so that a point hidden in frame r, or
+    whose track is lost, still counts. docs/benchmarks.md, "Discovery along the tracks".
+    """
+    m = np.asarray(masks)
+    d = np.asarray(tracks, np.float32)
+    if m.ndim != 3 or d.shape != (len(m) + 1, *m.shape[1:], 2):
+        raise ValueError(f"carry_masks: masks must have shape [T, H, W] and tracks [T+1, H, W, 2]; got "
+                         f"{list(m.shape)} and {list(d.shape)}")
+    t, h, w = m.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)  # array indices = pixel coordinates - 0.5, as chained_tracks
+    x, y = xs + d[..., 0], ys + d[..., 1]
+    alive = np.isfinite(x) & np.isfinite(y) & (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+    seen = alive[:-1] & alive[1:]
+    ix = np.clip(np.rint(np.where(alive, x, 0.0)).astype(np.intp), 0, w - 1)[:-1]
+    iy = np.clip(np.rint(np.where(alive, y, 0.0)).astype(np.intp), 0, h - 1)[:-1]
+    flat = (iy * w + ix).reshape(t, -1)
+    carried = np.take_along_axis(m.reshape(t, -1), flat, axis=1).reshape(t, h, w)
+    covered = np.zeros((t, h * w), bool)
+    k, j = np.nonzero(seen.reshape(t, -1))
+    covered[k, flat[k, j]] = True
+    covered = ndimage.binary_dilation(covered.reshape(t, h, w), np.ones((1, 3, 3), bool))
+    return np.where(seen, carried, 0).astype(np.float32), seen.astype(np.float32), covered
+
+
 def windowed_score(
     moving_t: Float[np.ndarray, "T N"], total_t: Float[np.ndarray, "T N"], window: int, *, eps: float = 0.1
 ) -> Float[np.ndarray, " N"]:
@@ -367,6 +419,18 @@ def windowed_score(
     cm = np.concatenate([np.zeros((1, mv.shape[1])), np.cumsum(mv, 0)])
     ct = np.concatenate([np.zeros((1, tt.shape[1])), np.cumsum(tt, 0)])
     return ((cm[w:] - cm[:-w]) / (ct[w:] - ct[:-w] + eps)).max(0)
+
+
+class Reference(NamedTuple):
+    """A reference frame r for `discover`: the tracks of its pixels into every frame of the pairs (``tracks``
+    [T+1, H, W, 2], time order, NaN where lost; `carry_masks`), and its Gaussians (activated ``means`` [N, 3],
+    ``quats`` [N, 4]) and camera (``viewmat`` [4, 4] world-to-camera, ``K`` [3, 3])."""
+
+    tracks: Float[np.ndarray, "T+1 H W 2"]
+    means: Float[np.ndarray, "N 3"]
+    quats: Float[np.ndarray, "N 4"]
+    viewmat: Float[np.ndarray, "4 4"]
+    K: Float[np.ndarray, "3 3"]
 
 
 class Discovery(NamedTuple):
@@ -406,6 +470,7 @@ def discover(
     window: int = 0,
     confidence: Float[np.ndarray, "T H W"] | None = None,
     noise_sigmas: float = 0.0,
+    reference: Reference | None = None,
 ) -> Discovery:
     """Select the dynamic Gaussians D from optical flow and camera flow (step 5), over T pairs.
 
@@ -430,9 +495,13 @@ def discover(
             pairs must then be in time order); 0: the score over all pairs.
         confidence: [T, H, W] per-pixel weights in [0, 1] of the back-projection (`accumulate_scores`,
             `agreement`; None: all 1).
+        reference: a reference frame r (`Reference`; the pairs must then be consecutive in time), or None. Given,
+            each moving pixel is back-projected once: at frame r where one of r's tracks reaches it
+            (`carry_masks`: the carried masks on r's Gaussians from r's camera, each pair weighted over the
+            pixels of r tracked through it), at its own frame elsewhere (``confidence`` applies there).
 
     Returns:
-        `Discovery`.
+        `Discovery` (``masks`` as binarised, on each pair's own grid).
     """
     masks = binarize(residual_flow(flows, camera_flows), threshold_px, valid=valid, min_px=min_px,
                      noise_sigmas=noise_sigmas)
@@ -440,8 +509,21 @@ def discover(
         raise ValueError(f"discover: flows must have shape [T, H, W, 2], got {np.shape(flows)}")
     if window < 0:
         raise ValueError(f"discover: window must be >= 0, got {window}")
-    sc = accumulate_scores(means, quats, scales, opacities, viewmats, K, masks, eps=eps, capacity=capacity,
-                           per_frame=per_frame or window > 0, confidence=confidence)
+    keep = per_frame or window > 0
+    if reference is None:
+        sc = accumulate_scores(means, quats, scales, opacities, viewmats, K, masks, eps=eps, capacity=capacity,
+                               per_frame=keep, confidence=confidence)
+    else:
+        carried, seen, covered = carry_masks(masks, reference.tracks)
+        own = (~covered).astype(np.float32)
+        own = own if confidence is None else own * np.asarray(confidence, np.float32)
+        a = accumulate_scores(means, quats, scales, opacities, viewmats, K, masks, eps=eps, capacity=capacity,
+                              per_frame=keep, confidence=own)
+        b = accumulate_scores(reference.means, reference.quats, scales, opacities, reference.viewmat, reference.K,
+                              carried, eps=eps, capacity=capacity, per_frame=keep, confidence=seen)
+        moving, total = a.moving + b.moving, a.total + b.total
+        sc = Scores(score=moving / (total + eps), moving=moving, total=total,
+                    moving_t=a.moving_t + b.moving_t if keep else None, total_t=a.total_t + b.total_t if keep else None)
     if window > 0:
         sc = sc._replace(score=windowed_score(sc.moving_t, sc.total_t, window, eps=eps))
         if not per_frame:

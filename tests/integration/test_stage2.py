@@ -345,6 +345,28 @@ def test_threshold_sigmas_raises_each_pairs_threshold_to_its_residuals_noise(tin
     assert np.all(masks[3.0] <= masks[0.0]) and masks[3.0].sum() < masks[0.0].sum()
 
 
+def test_backproject_track_scores_every_pair_on_the_first_frames_gaussians(tiny, tmp_path):
+    """``stage2.backproject = "track"`` reaches discovery: the masks are the pairs' own, and each pair's terms are
+    back-projected at the first frame through its tracks (`fgjax.method.discover.carry_masks`, tested for the
+    values): the first pair, whose tracks start at zero, gives the pair-by-pair terms over the pixels whose flow
+    passes the round trip (most of them), the later ones other terms."""
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.scene import Normalization
+
+    run = result.load_stage2(tiny[0], require_stage2=False)
+    scene = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
+    logs: list[str] = []
+    by_pair = discover_run(run, scene, Stage2Config(), tmp_path, per_frame=True, log=lambda m: None)[0]
+    track = discover_run(run, scene, Stage2Config(backproject="track"), tmp_path, per_frame=True, log=logs.append)[0]
+    np.testing.assert_array_equal(track.masks, by_pair.masks)
+    sc, pair = track.scores, by_pair.scores
+    assert np.all(sc.total_t[0] <= pair.total_t[0] + 1e-3) and np.all(sc.moving_t[0] <= pair.moving_t[0] + 1e-3)
+    assert sc.total_t[0].sum() > 0.8 * pair.total_t[0].sum()
+    assert not np.allclose(sc.total_t[1:], pair.total_t[1:], rtol=1e-3, atol=1e-3)
+    assert np.all(sc.moving_t <= sc.total_t + 1e-3) and np.all(np.isfinite(sc.score))
+    assert any("tracks of frame" in m for m in logs)
+
+
 def test_depth_tolerance_reaches_the_camera_flow(tiny, tmp_path):
     """``stage2.depth_tolerance`` reaches discovery: the camera flow returned is the point of the depth interval's
     segment nearest the optical flow, so each pair's masks shrink to a subset of the exact camera flow's (the

@@ -48,6 +48,7 @@ def test_a_bool_is_not_a_number(section, cls, validate):
     ("stage2", "variant", "other"), ("stage2", "eps", 0.0), ("stage2", "eps", -1.0), ("stage2", "min_samples", 0),
     ("stage2", "threshold_px", "sometimes"), ("stage2", "threshold_px", -0.5), ("stage2", "lr", 0.0),
     ("stage2", "distill_steps", -1), ("stage2", "camera_correction", "maybe"), ("stage2", "cluster_method", "kmeans"),
+    ("stage2", "backproject", "first"),
     ("stage2", "control_encoding", "fourier"), ("stage2", "threshold_sigmas", -1.0),
     ("stage2", "threshold_sigmas", float("nan")), ("stage2", "agree_sigma", -0.1), ("stage2", "agree_sigma", float("inf")),
     ("stage2", "agree_sigma", float("nan")), ("stage2", "depth_tolerance", -0.1),

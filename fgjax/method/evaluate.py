@@ -659,7 +659,11 @@ def discovery_trace(run_dir: Path, data_dir: Path, cfg, log=print, flow_threshol
     - ``static_pixels_flagged``: share of the true static pixels (gt id 0) it marks;
     - per part (``part_gaussians``): how many live reconstructed Gaussians lie on it (nearest gt Gaussian within
       0.06 scene units, at the first training time), how many of those entered D, and how many stage 2 put in an
-      object (``RUN/stage2.npz``'s labels, where present).
+      object (``RUN/stage2.npz``'s labels, where present);
+    - in the first training frame, with D drawn as a one-channel image (1 for its members) by the stage-1 model:
+      ``dynamic_pixels_on_parts``, the share of D's drawn weight on the parts' true pixels (a precision of D in the
+      image, whatever the depth of its Gaussians), and per part (``part_pixels_dynamic``) the share of its pixels
+      that D draws with weight >= 0.5.
 
     A part lost with few flagged pixels is lost to the flow or camera flow or the threshold; one with flagged
     pixels but few Gaussians in D to the back-projection (scores); one with Gaussians in D but none in an object
@@ -717,4 +721,13 @@ def discovery_trace(run_dir: Path, data_dir: Path, cfg, log=print, flow_threshol
         res["part_gaussians"][str(j)] = row
     res["dynamic_set"] = int(np.sum(disc.dynamic))
     res["dynamic_set_on_static"] = int(np.sum(disc.dynamic & alive & (lab < 0)))
+    m, q, ls = run.deformed(float(scene.times[first]))  # D's share of each pixel of the first frame
+    colors = np.asarray(disc.dynamic, np.float32)[:, None]
+    img, _, _ = run.render_geometry(m, q, ls, scene.viewmats[first], scene.Ks[first], scene.width, scene.height,
+                                    colors=colors, capacity=result.render_capacity(run))
+    d_px = np.asarray(img, np.float64)[..., 0]
+    on = ids[first] > 0
+    res["dynamic_pixels_on_parts"] = float(d_px[on].sum() / max(d_px.sum(), 1e-9))
+    res["part_pixels_dynamic"] = {str(j): float(np.mean(d_px[ids[first] == j] >= 0.5)) if np.any(ids[first] == j)
+                                  else float("nan") for j in objs}
     return res

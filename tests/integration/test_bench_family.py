@@ -80,7 +80,9 @@ def test_bench_family_end_to_end(tmp_path, capsys):
     for r in doc["seeds"]:
         assert keys <= set(r) and r["parts_true"] >= 1 and 0 <= r["parts_found"] <= r["parts_true"]
         assert np.isfinite(r["stage1_psnr"]) and r["wall_s"] > 0 and r["size"] == [48, 36]
-        assert "moving_pixels_flagged" in r["discovery"] and r["discovery"]["part_gaussians"]
+        tr = r["discovery"]
+        assert "moving_pixels_flagged" in tr and tr["part_gaussians"]
+        assert 0.0 <= tr["dynamic_pixels_on_parts"] <= 1.0 and set(tr["part_pixels_dynamic"]) == set(tr["part_gaussians"])
         assert (out / f"seed_{r['seed']:03d}" / "sheet.png").is_file()
     assert keys - {"seed"} <= set(doc["mean"])
     stamp = (out / "seed_001" / "scene" / "gt" / "meta.json").stat().st_mtime_ns

@@ -705,7 +705,8 @@ def discovery_trace(run_dir: Path, data_dir: Path, cfg, log=print, flow_threshol
     norm = Normalization.from_dict(run.meta["normalization"])
     objs = gt_objects(meta)
     first = int(order[0])
-    means = np.asarray(run.deformed(float(scene.times[first]))[0])
+    m, q, ls = run.deformed(float(scene.times[first]))
+    means = np.asarray(m)
     lab = gt_labels_of_gaussians(means, gt, objs, states[first], norm, {j - 1: j for j in objs}, 0.06)
     alive = np.asarray(run.state.densify.alive, bool)
     s2_labels = None
@@ -721,11 +722,10 @@ def discovery_trace(run_dir: Path, data_dir: Path, cfg, log=print, flow_threshol
         res["part_gaussians"][str(j)] = row
     res["dynamic_set"] = int(np.sum(disc.dynamic))
     res["dynamic_set_on_static"] = int(np.sum(disc.dynamic & alive & (lab < 0)))
-    m, q, ls = run.deformed(float(scene.times[first]))  # D's share of each pixel of the first frame
     colors = np.asarray(disc.dynamic, np.float32)[:, None]
     img, _, _ = run.render_geometry(m, q, ls, scene.viewmats[first], scene.Ks[first], scene.width, scene.height,
                                     colors=colors, capacity=result.render_capacity(run))
-    d_px = np.asarray(img, np.float64)[..., 0]
+    d_px = np.asarray(img, np.float64)[..., 0]  # D's share of each pixel of the first frame
     on = ids[first] > 0
     res["dynamic_pixels_on_parts"] = float(d_px[on].sum() / max(d_px.sum(), 1e-9))
     res["part_pixels_dynamic"] = {str(j): float(np.mean(d_px[ids[first] == j] >= 0.5)) if np.any(ids[first] == j)

@@ -30,7 +30,7 @@ from jaxtyping import Bool, Float, Int
 from fgjax import cluster
 from fgjax.config import Stage2Config, validate_stage2
 from fgjax.data.loaders import load_scene
-from fgjax.data.opticalflow import chained_tracks, estimate_flow, forward_backward_mask
+from fgjax.data.opticalflow import estimate_flow
 from fgjax.data.scene import Normalization, Scene
 from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
@@ -44,6 +44,7 @@ from fgjax.method.discover import (
     discover,
     nearest_on_segment,
 )
+from fgjax.method.flows import training_tracks
 from fgjax.method.result import (
     FORMAT_VERSION,
     STAGE2_NAME,
@@ -106,8 +107,9 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
     `fgjax.method.camera.camera_correction`; with ``cfg.depth_tolerance`` delta > 0, the camera flow of the depth
     in Z / (1 + delta) .. Z (1 + delta) nearest the optical flow, `fgjax.method.discover.nearest_on_segment`); the
     optical flow t-1 -> t comes from `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``). With
-    ``cfg.backproject = "track"`` the moving pixels that the first frame's tracks (`_first_frame_tracks`) reach are
-    back-projected onto the Gaussians at the first time, from the first camera (`fgjax.method.discover.Reference`).
+    ``cfg.backproject = "track"`` the moving pixels that the first frame's tracks reach (`fgjax.method.flows.
+    training_tracks`, on the same cached flows) are back-projected onto the Gaussians at the first time, from the
+    first camera (`fgjax.method.discover.Reference`).
 
     Returns:
         (`Discovery` with D restricted to alive Gaussians, deformed centres [T, N, 3] in time order, times [T],
@@ -174,8 +176,8 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
     # the deformed scales differ from canonical ones only by ds; discovery uses the canonical ones
     reference = None
     if cfg.backproject == "track":
-        reference = Reference(_first_frame_tracks(scene, order, flows, cfg, cache_dir, log), means_t[0], quats_t[0],
-                              scene.viewmats[order[0]], scene.Ks[order[0]])
+        tracks = training_tracks(scene, cfg.flow_method, cache_dir=cache_dir, log=log)[1][order]  # time order
+        reference = Reference(tracks, means_t[0], quats_t[0], scene.viewmats[order[0]], scene.Ks[order[0]])
     disc = discover(np.stack(means_t[:n]), np.stack(quats_t[:n]), np.asarray(sa), np.asarray(oa),
                     scene.viewmats[order][:n], scene.Ks[order][:n], np.stack(flows), np.stack(cams),
                     valid=np.stack(valid), threshold_px=thr, min_px=cfg.min_px, noise_sigmas=cfg.threshold_sigmas,
@@ -183,23 +185,6 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
                     confidence=np.stack(agree[:n]) if agree else None, reference=reference)
     dyn = disc.dynamic & np.asarray(alive)
     return disc._replace(dynamic=dyn), np.stack(centres), times, (order, np.stack(flows), np.stack(cams))
-
-
-def _first_frame_tracks(scene: Scene, order: Int[np.ndarray, " T"], flows: list[np.ndarray], cfg: Stage2Config,
-                        cache_dir: Path, log) -> Float[np.ndarray, "T H W 2"]:
-    """The displacement of each pixel of the first frame in time into each frame, in time order, [T, H, W, 2] (NaN
-    where lost): ``flows`` (the pairs' forward flows, time order) chained, a track stopping where the forward
-    flow fails the round trip through the backward flow (`fgjax.data.opticalflow.forward_backward_mask`)."""
-    t0 = time.perf_counter()
-    ok = []
-    for j, f in enumerate(flows):
-        a, b = order[j], order[j + 1]
-        back = estimate_flow(to_u8(scene.images[b]), to_u8(scene.images[a]), cfg.flow_method, cache_dir=cache_dir)
-        ok.append(forward_backward_mask(f, back))
-    tracks = chained_tracks(np.stack(flows), np.stack(ok))
-    log(f"stage 2: tracks of frame {int(order[0])} through {len(flows)} pairs ({time.perf_counter() - t0:.1f} s); "
-        f"{float(np.mean(np.isfinite(tracks[-1, ..., 0]))):.0%} of its pixels tracked to the last frame")
-    return tracks
 
 
 def select_objects(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stage2Config, *,

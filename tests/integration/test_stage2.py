@@ -364,7 +364,7 @@ def test_backproject_track_scores_every_pair_on_the_first_frames_gaussians(tiny,
     assert sc.total_t[0].sum() > 0.8 * pair.total_t[0].sum()
     assert not np.allclose(sc.total_t[1:], pair.total_t[1:], rtol=1e-3, atol=1e-3)
     assert np.all(sc.moving_t <= sc.total_t + 1e-3) and np.all(np.isfinite(sc.score))
-    assert any("tracks of frame" in m for m in logs)
+    assert any("flow tracks from frame" in m for m in logs)
 
 
 def test_depth_tolerance_reaches_the_camera_flow(tiny, tmp_path):

@@ -60,7 +60,48 @@ def test_synth_family_cli(tmp_path, capsys):
     assert "--height" in capsys.readouterr().err
 
 
-def test_bench_family_end_to_end(tmp_path, capsys):
+def _check_trace_against_oracles(seed_dir: Path, monkeypatch) -> None:
+    """`discovery_trace`'s shares with step 5's output replaced by answers whose shares are known from the ground
+    truth alone: the flags set to exactly the true moving pixels (all of them flagged, no static one), or to none;
+    D set to every live Gaussian (its drawing covers the frame, so the share of it on the parts is the parts' share
+    of the first frame's pixels, and every part pixel is drawn), or to none."""
+    from fgjax.config import load_config
+    from fgjax.method import evaluate
+
+    real = evaluate.discover_run
+    run_dir, scene_dir = seed_dir / "run", seed_dir / "scene"
+    gt = scene_dir / "gt" / "train"
+    ids, obj_flow, fvalid = (np.load(gt / f) for f in ("object_id.npy", "object_flow.npy", "flow_valid.npy"))
+
+    def oracle(everything: bool):
+        def discover_run(run, scene, cfg, cache, log=print):
+            disc, centres, times, (order, flows, cam) = real(run, scene, cfg, cache, log=log)
+            pairs = zip(order[:-1], order[1:], strict=True)
+            truth = np.stack([fvalid[a] & (np.linalg.norm(obj_flow[a], axis=-1) > 0.5) for a, _ in pairs])
+            alive = np.asarray(run.state.densify.alive, bool)
+            disc = disc._replace(masks=truth if everything else np.zeros_like(truth),
+                                 dynamic=alive if everything else np.zeros_like(alive))
+            return disc, centres, times, (order, flows, cam)
+        return discover_run
+
+    cfg = load_config(QUICK, ["stage2.photo_steps=0", "stage2.distill_steps=20"]).stage2
+    monkeypatch.setattr(evaluate, "discover_run", oracle(True))
+    tr = evaluate.discovery_trace(run_dir, scene_dir, cfg)
+    assert tr["moving_pixels_flagged"] == 1.0 and tr["static_pixels_flagged"] == 0.0
+    assert all(v == 1.0 for v in tr["part_pixels_flagged"].values() if np.isfinite(v))
+    first = ids[0]  # fgjax synth writes frames in time order
+    assert tr["dynamic_pixels_on_parts"] == pytest.approx(np.mean(first > 0), abs=0.02)
+    assert all(v >= 0.9 for v in tr["part_pixels_dynamic"].values() if np.isfinite(v)), tr["part_pixels_dynamic"]
+    assert all(r["in_dynamic_set"] == r["on_part"] for r in tr["part_gaussians"].values())
+    assert tr["dynamic_set"] == tr["dynamic_set_on_static"] + sum(r["on_part"] for r in tr["part_gaussians"].values())
+    monkeypatch.setattr(evaluate, "discover_run", oracle(False))
+    tr = evaluate.discovery_trace(run_dir, scene_dir, cfg)
+    assert tr["moving_pixels_flagged"] == 0.0 and tr["static_pixels_flagged"] == 0.0
+    assert tr["dynamic_pixels_on_parts"] == 0.0 and tr["dynamic_set"] == 0
+    assert all(v == 0.0 for v in tr["part_pixels_dynamic"].values() if np.isfinite(v))
+
+
+def test_bench_family_end_to_end(tmp_path, capsys, monkeypatch):
     """Two tiny seeds through flow, stage 1, stage 2 and the evaluation: family.json has every key of the issue's
     format, per seed and as the mean, a sheet per seed, and the discovery trace; a second run reuses the scenes."""
     out = tmp_path / "bench"
@@ -85,6 +126,7 @@ def test_bench_family_end_to_end(tmp_path, capsys):
         assert 0.0 <= tr["dynamic_pixels_on_parts"] <= 1.0 and set(tr["part_pixels_dynamic"]) == set(tr["part_gaussians"])
         assert (out / f"seed_{r['seed']:03d}" / "sheet.png").is_file()
     assert keys - {"seed"} <= set(doc["mean"])
+    _check_trace_against_oracles(out / "seed_001", monkeypatch)
     stamp = (out / "seed_001" / "scene" / "gt" / "meta.json").stat().st_mtime_ns
     assert cli(args[:3] + ["1"] + args[4:]) == 0  # the scene is reused, not regenerated
     assert (out / "seed_001" / "scene" / "gt" / "meta.json").stat().st_mtime_ns == stamp

@@ -113,14 +113,19 @@ def test_epe_and_ari():
     assert metrics.ari([0, 0, 1, 1], [0, 1, 0, 1]) < 0.0
 
 
-def test_ssim_is_differentiable():
+def test_ssim_gradient_matches_finite_differences_and_vanishes_at_its_maximum():
+    """d SSIM / d a against central differences (float64), and zero at a = b, where SSIM = 1 is its maximum."""
     import jax
+    from jax.test_util import check_grads
 
     rng = np.random.default_rng(1)
-    a = jnp.asarray(rng.uniform(size=(16, 16, 3)))
-    b = jnp.asarray(rng.uniform(size=(16, 16, 3)))
+    a = jnp.asarray(rng.uniform(size=(16, 16, 3)), jnp.float64)
+    b = jnp.asarray(rng.uniform(size=(16, 16, 3)), jnp.float64)
     g = jax.grad(lambda x: metrics.ssim(x, b))(a)
-    assert np.all(np.isfinite(np.asarray(g)))
+    assert np.all(np.isfinite(np.asarray(g))) and float(jnp.abs(g).max()) > 1e-4
+    check_grads(lambda x: metrics.ssim(x, b), (a,), order=1, modes=("rev",), atol=1e-6, rtol=1e-5)
+    assert float(metrics.ssim(b, b)) == pytest.approx(1.0)
+    assert float(jnp.abs(jax.grad(lambda x: metrics.ssim(x, b))(b)).max()) < 1e-9
 
 
 def test_rotation_angle_deg_matches_the_norm_of_so3_log():

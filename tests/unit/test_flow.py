@@ -10,7 +10,6 @@ the renderer compiles once per channel count.
 
 from __future__ import annotations
 
-import importlib.util
 import pathlib
 
 import jax
@@ -23,19 +22,6 @@ from jax.test_util import check_grads
 
 from fgjax import flow as fl
 from fgjax import geometry as g
-
-
-def _rasterizer_available() -> bool:
-    if importlib.util.find_spec("fgjax.render.api") is None:
-        return False
-    from fgjax.render import api
-
-    return hasattr(api, "rasterization")
-
-
-needs_rasterizer = pytest.mark.skipif(
-    not _rasterizer_available(), reason="pending: fgjax.render.api.rasterization is not implemented yet"
-)
 
 
 def _K(fx=500.0, fy=480.0, cx=320.0, cy=240.0):
@@ -555,7 +541,6 @@ def _centre_flow(means, view0, view1, moved=None):
     return g.project_points(p1, K_SMALL) - g.project_points(p0, K_SMALL)
 
 
-@needs_rasterizer
 def test_lemma1_static_scene():
     """Static scene rendered from two poses. For a sideways camera translation (v_z = 0, omega = 0; then each
     centre moves by exactly -f t / Z_i, at any motion size) the composited centre flow sum_i w_i dmu_i equals
@@ -598,7 +583,6 @@ def test_lemma1_static_scene():
     assert float(gap) < 0.15 * float(jnp.abs(u_full).max()), (gap, jnp.abs(u_full).max())
 
 
-@needs_rasterizer
 def test_one_moving_gaussian_dynamic_flow():
     """Camera translating sideways and one Gaussian moving. (a) Finite motion with the object moving parallel
     to the image plane (both exact then): the composited centre flow minus the camera flow at the composited
@@ -644,7 +628,6 @@ def test_one_moving_gaussian_dynamic_flow():
     assert float(jnp.abs(still.flow).max()) < 1e-12 and float(jnp.abs(still_a.flow).max()) < 1e-9
 
 
-@needs_rasterizer
 def test_gaussian_flow_loss_composes_camera_and_object_flow():
     """fgjax.flow.gaussian_flow_loss on test_one_moving_gaussian_dynamic_flow's case (a), where the observed
     flow is exactly the composited centre flow: the loss is 0 (1e-7 px) when the model moves the Gaussian
@@ -681,7 +664,6 @@ def test_gaussian_flow_loss_composes_camera_and_object_flow():
     assert bool(jnp.all(jnp.isfinite(grad))) and float(jnp.abs(grad[k]).max()) > 0
 
 
-@needs_rasterizer
 def test_anisotropic_flow_single_gaussian_is_affine():
     """One visible Gaussian (others at opacity 0) that moves and grows: the anisotropic map divided by alpha is
     the affine GaussianFlow term (M - I)(m - mu0) + dmu at every pixel centre it paints (1e-8 px), with M
@@ -715,7 +697,6 @@ def test_anisotropic_flow_single_gaussian_is_affine():
     np.testing.assert_allclose(info["means2d"], mu0, rtol=1e-12)
 
 
-@needs_rasterizer
 def test_flow_loss_gradients_match_finite_differences():
     """d L_uGS / d(means at t, v, omega) through motion_field and the rendered isotropic dynamic flow, against
     central finite differences (check_grads, float64, rev mode, tolerance 1e-5). The frame-t means enter

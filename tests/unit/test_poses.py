@@ -191,3 +191,22 @@ def test_bundle_adjustment_with_backward_flows_drops_an_inconsistent_block():
         bundle_adjust(noisy, ks, flows, prev, backward=back[:, :5], **kw)
     with pytest.raises(ValueError, match="fb_px"):
         bundle_adjust(noisy, ks, flows, prev, backward=back, fb_px=0.0, **kw)
+
+
+def test_sample_bilinear_matches_scipy_and_is_nan_outside():
+    """`sample_bilinear` against scipy's order-1 `map_coordinates` (row = y - 0.5, column = x - 0.5: pixel centres
+    at +0.5), exact at the pixel centres, NaN beyond the outermost centres."""
+    from scipy.ndimage import map_coordinates
+
+    from fgjax.method.poses import sample_bilinear
+
+    rng = np.random.default_rng(4)
+    field = rng.normal(size=(7, 9, 2))
+    xy = np.stack([rng.uniform(0.5, 8.5, 200), rng.uniform(0.5, 6.5, 200)], axis=1)
+    got = sample_bilinear(field, xy)
+    want = np.stack([map_coordinates(field[..., c], [xy[:, 1] - 0.5, xy[:, 0] - 0.5], order=1) for c in range(2)], 1)
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    centres = np.array([[0.5, 0.5], [8.5, 6.5], [3.5, 2.5]])
+    np.testing.assert_array_equal(sample_bilinear(field, centres), field[[0, 6, 2], [0, 8, 3]])
+    out = sample_bilinear(field, np.array([[0.4, 3.0], [8.6, 3.0], [3.0, 0.4], [3.0, 6.6]]))
+    assert np.isnan(out).all()

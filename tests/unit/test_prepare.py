@@ -250,3 +250,52 @@ def test_record3d_missing_field_and_missing_frame_name_the_file(tmp_path):
     (folder / "rgbd" / "2.jpg").unlink()
     with pytest.raises(FileNotFoundError, match=r"2\.jpg"):
         read_record3d(folder)
+
+
+def test_focal_from_fov_and_nearest_rotation_against_independent_forms():
+    """The pinhole focal of a field of view (90 degrees: half the width), and the nearest rotation against the polar
+    factor (scipy) where det > 0 and, for a matrix with det < 0, against a brute-force search over 20,000 random
+    rotations (none nearer in the Frobenius norm)."""
+    from scipy.linalg import polar
+    from scipy.spatial.transform import Rotation
+
+    from fgjax.data.sfm import focal_from_fov, nearest_rotation
+
+    assert focal_from_fov(320, 90.0) == pytest.approx(160.0)
+    assert focal_from_fov(320, 60.0) == pytest.approx(160.0 / math.tan(math.radians(30.0)))
+    with pytest.raises(ValueError, match="--fov"):
+        focal_from_fov(320, 0.5)
+    rng = np.random.default_rng(2)
+    r = Rotation.random(random_state=3).as_matrix()
+    m = r + 0.1 * rng.normal(size=(3, 3))
+    assert np.linalg.det(m) > 0
+    np.testing.assert_allclose(nearest_rotation(m), polar(m)[0], atol=1e-12)
+    np.testing.assert_allclose(nearest_rotation(r), r, atol=1e-12)
+    bad = np.diag([1.0, 0.8, -0.3]) @ r  # det < 0: the polar factor is a reflection, not a rotation
+    got = nearest_rotation(bad)
+    np.testing.assert_allclose(got @ got.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(got) == pytest.approx(1.0)
+    others = Rotation.random(20000, random_state=5).as_matrix()
+    assert np.linalg.norm(got - bad) <= np.linalg.norm(others - bad, axis=(1, 2)).min() + 1e-12
+
+
+def test_relative_rotation_recovers_a_turn_despite_a_moving_group():
+    """Unit rays turned by a known rotation, 30 % of them turned by another (a moving object): MSAC plus the inlier
+    refits return the first rotation to float precision and count its rays as the inliers."""
+    from scipy.spatial.transform import Rotation
+
+    from fgjax.data.sfm import relative_rotation
+
+    rng = np.random.default_rng(7)
+    a = rng.normal(size=(200, 3)) + [0.0, 0.0, 3.0]
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    r = Rotation.from_rotvec([0.02, -0.05, 0.01]).as_matrix()
+    other = Rotation.from_rotvec([0.0, 0.08, 0.0]).as_matrix()
+    b = a @ r.T
+    b[140:] = a[140:] @ other.T
+    got, inliers = relative_rotation(a, b, threshold=math.radians(0.2))
+    np.testing.assert_allclose(got, r, atol=1e-9)
+    assert inliers == 140
+    few, count = relative_rotation(a[:2], b[:2], threshold=0.01)  # under 3 rays: no fit
+    np.testing.assert_array_equal(few, np.eye(3))
+    assert count == 0

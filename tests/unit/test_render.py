@@ -387,3 +387,19 @@ def test_backward_memory_scales_with_intersections_not_pixels_times_gaussians():
     per_isect = stats.temp_size_in_bytes / need
     assert stats.temp_size_in_bytes < 0.05 * dense_bytes, (stats.temp_size_in_bytes, dense_bytes)
     assert per_isect < 4096, per_isect  # bytes per intersection slot (a tile is 64 pixels)
+
+
+def test_covariance3d_against_scipy_rotations():
+    """Sigma = R diag(s)^2 R^T with R from wxyz quaternions of any norm, against scipy's rotation of the same
+    quaternion (xyzw order, normalised there)."""
+    from scipy.spatial.transform import Rotation
+
+    from fgjax.render.project import covariance3d
+
+    rng = np.random.default_rng(11)
+    q = rng.normal(size=(16, 4)) * rng.uniform(0.2, 5.0, size=(16, 1))
+    s = np.exp(rng.normal(size=(16, 3)))
+    got = np.asarray(covariance3d(jnp.asarray(q), jnp.asarray(s)))
+    r = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
+    want = np.einsum("nij,nj,nkj->nik", r, s**2, r)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)

@@ -38,7 +38,7 @@ class OptimSpec:
 
 
 def exp_decay(lr0: float, lr1: float, steps: int, delay: int = 0) -> optax.Schedule:
-    """Log-linear interpolation lr0 -> lr1 over `steps` (after `delay` steps at lr0)."""
+    """lr0 until step `delay`, then log-linear to lr1 at step `steps` (counted from 0, delay included), lr1 after."""
     steps = max(int(steps), 1)
 
     def sched(count):

@@ -253,7 +253,7 @@ def test_moving_clusters_floor_grows_with_the_camera_flow():
     assert moving(g, 0.1)[0] > 0.95
 
 
-@pytest.mark.optimized  # run-time-bound: five short stage-1 runs
+@pytest.mark.optimized  # run-time-bound: four short stage-1 runs
 def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monkeypatch):
     """``deform.init = "flow"``: at the end of the warm-up stage 1 puts the moving Gaussians of a 64x48 synthetic
     scene (three parts) on moving bases and the rest on the static basis, and for ``deform.hold`` steps only the

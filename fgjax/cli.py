@@ -2,14 +2,17 @@
 
 Each sub-command is a module of `fgjax.apps` (or `fgjax.bench`) exposing ``main(argv) -> int``;
 this file only maps names to those modules, so that ``fgjax --help`` stays fast
-(nothing heavy is imported until a command runs).
+(nothing heavy is imported until a command runs). ``FGJAX_COMPILE_SECONDS=1`` prints, after the command, where
+its time in JAX's compile path went (`CompileSeconds`).
 """
 
 from __future__ import annotations
 
+import collections
 import importlib
 import os
 import sys
+import time
 import zipfile
 
 from fgjax.version import __version__
@@ -80,11 +83,75 @@ def _one_line(e: BaseException) -> str:
     return " ".join(str(e).split()) or type(e).__name__
 
 
+# `jax.monitoring`'s duration events (names end in these) that `CompileSeconds` adds up
+COMPILE_EVENTS = {"jaxpr_trace_duration": "tracing", "jaxpr_to_mlir_module_duration": "lowering",
+                  "backend_compile_duration": "XLA compile"}
+
+
+class CompileSeconds:
+    """The seconds a command spends in JAX's tracing, lowering to MLIR and XLA's backend compile (for a program read
+    back from the persistent compilation cache, the read), from `jax.monitoring`'s duration events, in total and by
+    jitted function, and how many programs were built and how many of them read back; ``FGJAX_COMPILE_SECONDS=1``
+    prints them after the command (`report`). A context manager: the listeners are registered on entry and removed
+    on exit."""
+
+    def __init__(self):
+        self.seconds: collections.Counter = collections.Counter()  # stage ("tracing", ...) -> seconds
+        self.by_function: collections.Counter = collections.Counter()  # function name -> seconds, all stages
+        self.programs = 0  # programs built by the backend (compiled, or read back from the cache)
+        self.cache_hits = 0  # of them read back
+        self.wall = 0.0
+
+    def _duration(self, event: str, duration: float, **kwargs) -> None:
+        stage = COMPILE_EVENTS.get(event.rsplit("/", 1)[-1])
+        if stage is None:
+            return
+        self.seconds[stage] += duration
+        self.by_function[str(kwargs.get("fun_name", "?"))] += duration
+        self.programs += stage == "XLA compile"
+
+    def _event(self, event: str, **kwargs) -> None:
+        self.cache_hits += event == "/jax/compilation_cache/cache_hits"
+
+    def __enter__(self):
+        import jax.monitoring
+
+        jax.monitoring.register_event_duration_secs_listener(self._duration)
+        jax.monitoring.register_event_listener(self._event)
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import jax.monitoring
+
+        self.wall = time.perf_counter() - self._t0
+        jax.monitoring.unregister_event_duration_listener(self._duration)
+        jax.monitoring.unregister_event_listener(self._event)
+
+    def report(self, top: int = 8) -> str:
+        """Two lines: the totals against the command's wall time, then the `top` functions by their seconds."""
+        total = sum(self.seconds.values())
+        parts = ", ".join(f"{self.seconds[s]:.1f} s {s}" for s in COMPILE_EVENTS.values())
+        head = (f"fgjax: {total:.1f} s of {self.wall:.1f} s in JAX's compile path ({parts}); {self.programs} "
+                f"program(s), {self.cache_hits} of them read back from the compilation cache")
+        funs = ", ".join(f"{name} {sec:.1f} s" for name, sec in self.by_function.most_common(top))
+        return head + (f"\nfgjax: by function: {funs}" if funs else "")
+
+
 def main(argv: list[str] | None = None) -> int:
     from fgjax.xla_env import use_compilation_cache, use_fast_cpu_compile
 
     use_fast_cpu_compile()  # before any computation starts XLA's backend
     use_compilation_cache()  # before anything imports JAX
+    if os.environ.get("FGJAX_COMPILE_SECONDS", "0") not in ("", "0"):
+        with CompileSeconds() as seconds:
+            code = _main(argv)
+        print(seconds.report(), file=sys.stderr)
+        return code
+    return _main(argv)
+
+
+def _main(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(_usage())

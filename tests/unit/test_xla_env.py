@@ -1,9 +1,11 @@
 """The entry points' XLA settings (`fgjax.xla_env`): the compile flag added once, only for measured jaxlib releases;
-the persistent compilation cache written, read back and pruned."""
+the persistent compilation cache written, read back and pruned; the command line's report of its compile seconds
+(``FGJAX_COMPILE_SECONDS``, `fgjax.cli.CompileSeconds`)."""
 
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -13,7 +15,7 @@ import jax
 import numpy as np
 import pytest
 
-from fgjax import xla_env
+from fgjax import cli, xla_env
 
 
 def test_fast_cpu_compile_flag_is_added_once_and_only_where_measured():
@@ -98,6 +100,43 @@ def test_compiled_programs_are_written_to_the_cache_and_read_back_by_another_pro
     assert len(list((tmp_path / "cache").iterdir())) >= 1, runs
     first, second = (r.split() for r in runs)
     assert first[0] == second[0] and int(first[1]) == 0 and int(second[1]) >= 1, runs
+
+
+def test_compile_seconds_count_the_programs_built_inside_the_context_only():
+    import jax.numpy as jnp
+
+    f = jax.jit(lambda x: jnp.cos(x) * 1.2345678 + x ** 3)  # a program no other test builds
+    x = jnp.full((3,), 0.25, jnp.float32)
+    with cli.CompileSeconds() as seconds:
+        f(x)
+    assert seconds.programs == 1 and seconds.seconds["XLA compile"] > 0 and seconds.seconds["tracing"] > 0
+    assert any("lambda" in name for name in seconds.by_function), seconds.by_function
+    assert 0 < sum(seconds.seconds.values()) <= seconds.wall
+    jax.jit(lambda x: jnp.sin(x) * 7.654321)(x)  # after the context: not counted
+    assert seconds.programs == 1
+    report = seconds.report()
+    assert report.startswith(f"fgjax: {sum(seconds.seconds.values()):.1f} s of {seconds.wall:.1f} s") and "\n" in report
+
+
+def test_the_command_line_reports_its_compile_seconds_when_asked(tmp_path):
+    """``FGJAX_COMPILE_SECONDS=1 fgjax synth``: one report after the command; a second run with the same compilation
+    cache reads every program back; without the variable, no report."""
+    argv = [sys.executable, "-m", "fgjax.cli", "synth", "--out", str(tmp_path / "scene"), "--width", "32", "--height",
+            "24", "--frames", "3", "--quiet", "--overwrite"]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
+    env.update(JAX_COMPILATION_CACHE_DIR=str(tmp_path / "cache"), FGJAX_COMPILE_SECONDS="1")
+    reports = []
+    for _ in range(2):
+        err = subprocess.run(argv, env=env, capture_output=True, text=True, check=True).stderr
+        found = re.search(r"in JAX's compile path \(.*\); (\d+) program\(s\), (\d+) of them read back", err)
+        assert found, err
+        reports.append((int(found[1]), int(found[2])))
+        assert "by function:" in err and "_render_frame" in err, err
+    assert reports[0][0] >= 1 and reports[0][1] == 0, reports
+    assert reports[1][1] == reports[1][0] >= 1, reports
+    env["FGJAX_COMPILE_SECONDS"] = "0"
+    err = subprocess.run(argv, env=env, capture_output=True, text=True, check=True).stderr
+    assert "compile path" not in err, err
 
 
 def test_a_test_compiles_without_most_optimisations_unless_marked():

@@ -102,7 +102,9 @@ class CompileSeconds:
         self.cache_hits = 0  # of them read back
         self.wall = 0.0
 
-    def _duration(self, event: str, duration: float, **kwargs) -> None:
+    def record(self, event: str, duration: float, **kwargs) -> None:
+        """Adds one `jax.monitoring` duration event (others than `COMPILE_EVENTS` are ignored); the listener the
+        context registers, also usable on its own (tests/_compile_report.py routes each test's events to its own)."""
         stage = COMPILE_EVENTS.get(event.rsplit("/", 1)[-1])
         if stage is None:
             return
@@ -116,7 +118,7 @@ class CompileSeconds:
     def __enter__(self):
         import jax.monitoring
 
-        jax.monitoring.register_event_duration_secs_listener(self._duration)
+        jax.monitoring.register_event_duration_secs_listener(self.record)
         jax.monitoring.register_event_listener(self._event)
         self._t0 = time.perf_counter()
         return self
@@ -125,7 +127,7 @@ class CompileSeconds:
         import jax.monitoring
 
         self.wall = time.perf_counter() - self._t0
-        jax.monitoring.unregister_event_duration_listener(self._duration)
+        jax.monitoring.unregister_event_duration_listener(self.record)
         jax.monitoring.unregister_event_listener(self._event)
 
     def report(self, top: int = 8) -> str:

@@ -20,20 +20,14 @@ from pathlib import Path
 
 import pytest
 
-_EVENTS = ("jaxpr_trace_duration", "jaxpr_to_mlir_module_duration", "backend_compile_duration")
+from fgjax.cli import CompileSeconds
+
 _current: list[str] = []  # the node id of the test running in this process
-_tests: dict[str, dict] = collections.defaultdict(
-    lambda: {"wall": 0.0, "seconds": collections.Counter(), "compiles": 0, "by_function": collections.Counter()})
+_tests: dict[str, CompileSeconds] = collections.defaultdict(CompileSeconds)  # node id -> its events, its wall
 
 
 def _listener(event: str, duration: float, **kwargs) -> None:
-    name = event.rsplit("/", 1)[-1]
-    if name not in _EVENTS:
-        return
-    entry = _tests[_current[0] if _current else "<outside tests>"]
-    entry["seconds"][name] += duration
-    entry["by_function"][str(kwargs.get("fun_name", "?"))] += duration
-    entry["compiles"] += name == "backend_compile_duration"
+    _tests[_current[0] if _current else "<outside tests>"].record(event, duration, **kwargs)
 
 
 def pytest_configure(config):
@@ -47,7 +41,7 @@ def pytest_runtest_protocol(item, nextitem):
     _current[:] = [item.nodeid]
     start = time.perf_counter()
     yield
-    _tests[item.nodeid]["wall"] += time.perf_counter() - start
+    _tests[item.nodeid].wall += time.perf_counter() - start
     _current.clear()
 
 
@@ -58,8 +52,8 @@ def pytest_unconfigure(config):
     Path(folder).mkdir(parents=True, exist_ok=True)
     with open(Path(folder) / f"{os.getpid()}.jsonl", "w") as f:
         for node, e in _tests.items():
-            f.write(json.dumps({"test": node, "wall": e["wall"], "seconds": e["seconds"], "compiles": e["compiles"],
-                                "by_function": dict(e["by_function"].most_common(15))}) + "\n")
+            f.write(json.dumps({"test": node, "wall": e.wall, "seconds": e.seconds, "compiles": e.programs,
+                                "by_function": dict(e.by_function.most_common(15))}) + "\n")
 
 
 def summary(folder: str) -> str:
@@ -70,9 +64,8 @@ def summary(folder: str) -> str:
             r = json.loads(line)
             m = modules[r["test"].split("::")[0]]
             m["wall"] += r["wall"]
-            m["compile"] += r["seconds"].get("backend_compile_duration", 0.0)
-            m["trace"] += r["seconds"].get("jaxpr_trace_duration", 0.0) + r["seconds"].get(
-                "jaxpr_to_mlir_module_duration", 0.0)
+            m["compile"] += r["seconds"].get("XLA compile", 0.0)
+            m["trace"] += r["seconds"].get("tracing", 0.0) + r["seconds"].get("lowering", 0.0)
             m["compiles"] += r["compiles"]
     total = sum(modules.values(), collections.Counter())
     rows = [f"{'wall s':>8} {'compile s':>9} {'trace s':>8} {'compiles':>8}  module"]

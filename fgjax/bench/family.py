@@ -57,7 +57,8 @@ __all__ = ["main", "run_seed", "KEYS"]
 
 EXPERIMENTS = Path(__file__).resolve().parents[2] / "experiments"
 DEFAULT_CONFIG = EXPERIMENTS / "family.toml"
-KEYS = ("ari", "ari_controlled", "parts_true", "parts_found", "state_psnr", "state_psnr_moving", "stage1_psnr", "wall_s")
+KEYS = ("ari", "ari_controlled", "parts_true", "parts_found", "state_psnr", "state_psnr_moving", "stage1_psnr",
+        "wall_s")
 
 
 def _scene(seed: int, root: Path, size, frames, say, depth_maps: bool = False) -> Path:
@@ -190,8 +191,8 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def _fmt(r: dict, name) -> str:
-    return (f"{name!s:>6} {r['ari']:6.3f} {r['ari_controlled']:6.3f} {r['parts_found']:>5.4g}/{r['parts_true']:<4.4g} {r['state_psnr']:7.2f} "
-            f"{r['state_psnr_moving']:7.2f} {r['stage1_psnr']:7.2f} {r['wall_s']:7.0f}")
+    return (f"{name!s:>6} {r['ari']:6.3f} {r['ari_controlled']:6.3f} {r['parts_found']:>5.4g}/{r['parts_true']:<4.4g} "
+            f"{r['state_psnr']:7.2f} {r['state_psnr_moving']:7.2f} {r['stage1_psnr']:7.2f} {r['wall_s']:7.0f}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -224,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     say = lambda msg: print(msg, file=sys.stderr, flush=True)
     rows = []
-    print(f"{'seed':>6} {'ARI':>6} {'ctrl':>6} {'parts':>10} {'state':>7} {'moving':>7} {'stage1':>7} {'wall_s':>7}", flush=True)
+    print(f"{'seed':>6} {'ARI':>6} {'ctrl':>6} {'parts':>10} {'state':>7} {'moving':>7} {'stage1':>7} {'wall_s':>7}",
+          flush=True)
     for seed in seeds:
         row = run_seed(seed, out, cfg, size=size, frames=args.frames, trace=args.trace, say=say,
                        stage1_from=None if args.stage1_from is None else Path(args.stage1_from),

@@ -119,7 +119,8 @@ def test_bench_family_end_to_end(tmp_path, capsys, monkeypatch):
         assert f"seed {seed}: stage 1 done" in said.err and f"seed {seed}: stage 2 done" in said.err
         assert f"bench family: seed {seed}: stage 2: " in said.err
     doc = json.loads((out / "family.json").read_text())
-    keys = {"seed", "ari", "ari_controlled", "parts_true", "parts_found", "state_psnr", "state_psnr_moving", "stage1_psnr", "wall_s"}
+    keys = {"seed", "ari", "ari_controlled", "parts_true", "parts_found", "state_psnr", "state_psnr_moving",
+            "stage1_psnr", "wall_s"}
     assert [r["seed"] for r in doc["seeds"]] == [1, 2]
     for r in doc["seeds"]:
         assert keys <= set(r) and r["parts_true"] >= 1 and 0 <= r["parts_found"] <= r["parts_true"]

@@ -204,6 +204,8 @@ def validate_stage1(cfg: Config) -> None:
     need(f.kind in ("hash", "frequency", "bases"), "deform.kind", "'hash', 'frequency' or 'bases'", f.kind)
     need(f.bases >= 2, "deform.bases", ">= 2", f.bases)
     need(f.knots >= 2, "deform.knots", ">= 2", f.knots)
+    need(f.joint == "free" or (f.joint == "screw" and f.kind == "bases"), "deform.joint",
+         "'free', or 'screw' with deform.kind = 'bases'", f.joint)
     for k in ("depth", "width", "hash_levels", "hash_features", "hash_base_res", "hash_max_res"):
         need(getattr(f, k) >= 1, f"deform.{k}", ">= 1", getattr(f, k))
     for k in ("skip", "x_freqs", "t_freqs", "x_freqs_hash"):

@@ -72,6 +72,10 @@ class DeformConfig:
     """"bases" kind: rigid motions, the static one included."""
     knots: int = 16
     """"bases" kind: control times of each motion over the clip."""
+    joint: str = "free"
+    """"bases" kind: each moving basis's motion over the clip: "free" (any rotation and translation at each control
+    time) or "screw" (one axis and pivot for the whole clip, an angle about the axis and a translation along it at
+    each control time: a hinge, a slide, a spinning part; `fgjax.models.deform`)."""
     anchor: str = "none"
     """"first": the field is zero at the first training time (`fgjax.models.deform.DeformSpec.anchor`): the canonical
     Gaussians are the first frame (where ``model.init = "flow"`` puts them) and a constant offset of the whole scene,

@@ -48,7 +48,7 @@ from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
 from fgjax.method.discover import agreement, camera_flow_from_depth, discover
 from fgjax.method.flows import estimate_training_flows, previous_frames
-from fgjax.models.deform import DeformSpec, basis_logits
+from fgjax.models.deform import MOTION_KEYS, DeformSpec, basis_logits
 from fgjax.models.model import render_params
 
 __all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases", "static_points"]
@@ -162,8 +162,8 @@ def fit_basis_logits(spec: DeformSpec, deform_params, x, target, weight, *, step
     softmax(logits(x)) matches ``target`` [N, K] at the canonical centres ``x`` [N, 3]: Adam on the weighted
     cross-entropy sum_i weight_i H(target_i, softmax(logits(x_i))). Returns (the new deform params, the final
     loss)."""
-    net = {k: v for k, v in deform_params.items() if k not in ("motion", "pivot")}
-    fixed = {k: v for k, v in deform_params.items() if k in ("motion", "pivot")}
+    net = {k: v for k, v in deform_params.items() if k not in MOTION_KEYS}
+    fixed = {k: v for k, v in deform_params.items() if k in MOTION_KEYS}
     opt = optax.adam(lr)
 
     def loss_fn(p):

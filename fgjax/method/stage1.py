@@ -48,7 +48,7 @@ from fgjax.method.init_points import (
 )
 from fgjax.method.poses import bundle_adjust
 from fgjax.method.static import detect_static
-from fgjax.models.deform import DeformSpec, deform_apply, deform_init
+from fgjax.models.deform import MOTION_KEYS, DeformSpec, deform_apply, deform_init
 from fgjax.models.model import deformed_gaussians, refined_viewmats, render_params, scene_extent
 from fgjax.provenance import PROVENANCE_NAME, read_provenance, scene_fingerprint, write_provenance
 from fgjax.render.api import count_intersections, round_capacity
@@ -145,7 +145,7 @@ def deform_spec_from_config(cfg: Config, aabb, times=None) -> DeformSpec:
         anchor=anchor, kind=d.kind, depth=d.depth, width=d.width, x_freqs=d.x_freqs, t_freqs=d.t_freqs, skip=d.skip,
         hash_levels=d.hash_levels, hash_log2_table=d.hash_log2_table, hash_features=d.hash_features,
         hash_base_res=d.hash_base_res, hash_max_res=d.hash_max_res, x_freqs_hash=d.x_freqs_hash, bases=d.bases,
-        knots=d.knots, weights=d.weights, aabb=tuple(float(x) for x in aabb),
+        knots=d.knots, joint=d.joint, weights=d.weights, aabb=tuple(float(x) for x in aabb),
     )
 
 
@@ -288,7 +288,7 @@ def make_step(ss: StepSpec, ospec: OptimSpec, num_sh: int, background: tuple[flo
         if ss.freeze_gaussians:  # masked updates (zero gradients alone would still move them by momentum)
             updates = {**updates, "gaussians": jax.tree_util.tree_map(jnp.zeros_like, updates["gaussians"])}
         if ss.freeze_weights:
-            updates = {**updates, "deform": {k: v if k in ("motion", "pivot") else jax.tree_util.tree_map(
+            updates = {**updates, "deform": {k: v if k in MOTION_KEYS else jax.tree_util.tree_map(
                 jnp.zeros_like, v) for k, v in updates["deform"].items()}}
         new_params = optax.apply_updates(params, updates)
         # An overflowing (or non-finite) step is dropped, and reported to the host loop.

@@ -18,6 +18,12 @@ Three kinds (DESIGN.md section 1, step 1):
   the bases' unit quaternions (wxyz, each on the hemisphere w >= 0): dq = r q - q, exact for a point on one basis;
   without q, dq = 0. ds = 0. With an anchor t_a each basis's control values are taken relative to t_a
   (omega_k(t) - omega_k(t_a), tau_k(t) - tau_k(t_a)), so the field is the identity at t_a and stays rigid.
+  With ``joint = "screw"`` each moving basis is one joint for the whole clip instead (the screw motions of
+  articulated objects; the official FreeGaussian code predicts a screw axis per Gaussian): a unit axis a_k and a
+  pivot c_k shared by all times, and per control time an angle theta_k(t) about the line through c_k along a_k and a
+  translation h_k(t) along it, R_k(t) = exp(theta_k(t) a_k), tau_k(t) = h_k(t) a_k. A hinge or a spinning part is
+  h = 0, a slide theta = 0; what one camera sees of a time's motion along its viewing ray then comes from the other
+  times' cameras through the shared axis. The axes start as random unit vectors.
   With ``weights = "slot"`` the logits are stored per Gaussian slot instead (Shape of Motion's per-Gaussian
   weights): ``params["slots"] = {"logits": [N, K], "free": [N]}``, and a slot whose ``free`` is 0 sits on the
   static basis exactly (w = (1, 0, ..., 0); no gradient reaches its logits), so the weights of the Gaussians
@@ -49,7 +55,7 @@ from fgjax.models.encoding import (
     hash_grid_resolutions,
 )
 
-__all__ = ["DeformSpec", "basis_logits", "basis_motions", "basis_weights", "deform_init", "deform_apply",
+__all__ = ["MOTION_KEYS", "DeformSpec", "basis_logits", "basis_motions", "basis_weights", "deform_init", "deform_apply",
            "deform_num_params"]
 
 
@@ -82,6 +88,9 @@ class DeformSpec:
     """"bases" kind: rigid motions including the static one (>= 2)."""
     knots: int = 16
     """"bases" kind: control times of each motion over t in [0, 1] (>= 2)."""
+    joint: str = "free"
+    """"bases" kind: each moving basis's motion: "free" (a rotation vector and a translation per control time) or
+    "screw" (one axis and pivot for the clip, an angle about it and a translation along it per control time)."""
     weights: str = "field"
     """"bases" kind: where the weights' logits come from: "field" (the hash-grid MLP of X) or "slot" (stored per
     Gaussian slot, with a held static set; module docstring)."""
@@ -95,6 +104,8 @@ class DeformSpec:
             raise ValueError(f"DeformSpec.kind must be 'frequency', 'hash' or 'bases'; got {self.kind!r}")
         if self.weights not in ("field", "slot") or (self.weights == "slot" and self.kind != "bases"):
             raise ValueError(f"DeformSpec.weights must be 'field' or, with kind 'bases', 'slot'; got {self.weights!r}")
+        if self.joint not in ("free", "screw") or (self.joint == "screw" and self.kind != "bases"):
+            raise ValueError(f"DeformSpec.joint must be 'free' or, with kind 'bases', 'screw'; got {self.joint!r}")
         if self.bases < 2 or self.knots < 2:
             raise ValueError(f"DeformSpec.bases and knots must be >= 2; got {self.bases}, {self.knots}")
         if self.depth < 1 or self.width < 1:
@@ -128,11 +139,11 @@ def deform_init(key: jax.Array, spec: DeformSpec, dtype=jnp.float32, slots: int 
     """Parameters of the field; the output heads are zero, so the field starts at the identity. With
     ``spec.weights = "slot"``, ``slots`` is the number N of Gaussian slots: their logits start at zero and every
     slot is held on the static basis (``free`` 0) until something places them (`fgjax.method.bases_init`)."""
+    axis_key = jax.random.fold_in(key, 1)  # the screw axes' own stream: the other parameters' draws stay as they are
     if spec.weights == "slot":
         if slots < 1:
             raise ValueError("deform_init: DeformSpec.weights = 'slot' needs the number of Gaussian slots (slots >= 1)")
-        return {"motion": jnp.zeros((spec.bases - 1, spec.knots, 6), dtype),
-                "pivot": jnp.zeros((spec.bases - 1, 3), dtype),
+        return {**_motion_init(axis_key, spec, dtype),
                 "slots": {"logits": jnp.zeros((slots, spec.bases), dtype), "free": jnp.zeros((slots,), dtype)}}
     keys = jax.random.split(key, spec.depth + 2)
     layers = []
@@ -144,14 +155,28 @@ def deform_init(key: jax.Array, spec: DeformSpec, dtype=jnp.float32, slots: int 
         fan_in = spec.width
     if spec.kind == "bases":  # random logits break the symmetry between the (identical) moving bases
         head = _dense_init(keys[-2], spec.width, spec.bases, dtype)
-        params: dict[str, Any] = {"layers": layers, "head": head,
-                                  "motion": jnp.zeros((spec.bases - 1, spec.knots, 6), dtype),
-                                  "pivot": jnp.zeros((spec.bases - 1, 3), dtype)}
+        params: dict[str, Any] = {"layers": layers, "head": head, **_motion_init(axis_key, spec, dtype)}
     else:
         params = {"layers": layers, "head": _dense_init(keys[-2], spec.width, 10, dtype, zero=True)}
     if spec.kind in ("hash", "bases"):
         params["grid"] = hash_grid_init(keys[-1], spec.hash_levels, spec.hash_log2_table, spec.hash_features, dtype)
     return params
+
+
+MOTION_KEYS = ("motion", "pivot", "axis")
+"""The "bases" kind's parameters of the bases' motions (the rest are their weights' network or slots)."""
+
+
+def _motion_init(key, spec: DeformSpec, dtype) -> dict[str, Array]:
+    """The bases' motions at the identity: control values [K-1, knots, 6] ("free": rotation vector, translation) or
+    [K-1, knots, 2] ("screw": angle, translation along the axis, with random unit axes [K-1, 3]); pivots [K-1, 3]."""
+    k = spec.bases - 1
+    out = {"motion": jnp.zeros((k, spec.knots, 6 if spec.joint == "free" else 2), dtype),
+           "pivot": jnp.zeros((k, 3), dtype)}
+    if spec.joint == "screw":
+        a = jax.random.normal(key, (k, 3), dtype)
+        out["axis"] = a / jnp.linalg.norm(a, axis=-1, keepdims=True)
+    return out
 
 
 def deform_num_params(params) -> int:
@@ -254,18 +279,25 @@ def basis_motions(
     """The moving bases at a time t (scalar): rotations R_k(t) [K-1, 3, 3], offsets
     b_k(t) = c_k + tau_k(t) - R_k(t) c_k [K-1, 3] (basis k maps X to R_k(t) X + b_k(t)) and unit quaternions r_k(t)
     [K-1, 4] (wxyz, w >= 0) of R_k(t).
-    Control values are linear between the knots (t clipped to [0, 1]) and relative to ``spec.anchor`` if set."""
-    m = _knot_values(spec, params["motion"], t)  # [K-1, 6]
+    Control values (``joint = "free"``: omega_k, tau_k; ``"screw"``: theta_k, h_k, with omega_k = theta_k a_k and
+    tau_k = h_k a_k for the unit axis a_k) are linear between the knots (t clipped to [0, 1]) and relative to
+    ``spec.anchor`` if set."""
+    m = _knot_values(spec, params["motion"], t)  # [K-1, 6] or [K-1, 2]
     if spec.anchor is not None:
         m = m - _knot_values(spec, params["motion"], spec.anchor)
-    omega = m[:, :3]
+    if spec.joint == "screw":  # one axis for all times: theta a, h a
+        a = params["axis"]
+        a = a / jnp.maximum(safe_norm(a), 1e-12)[:, None]
+        omega, tau = m[:, :1] * a, m[:, 1:] * a
+    else:
+        omega, tau = m[:, :3], m[:, 3:]
     rot = so3_exp(omega)
     c = params["pivot"]
     theta = safe_norm(omega)[:, None]  # zero derivative at omega = 0, where the quaternion's is zero too
     # (cos(theta / 2), sin(theta / 2) omega / theta); jnp.sinc(x) = sin(pi x) / (pi x), smooth at 0
     rq = jnp.concatenate([jnp.cos(0.5 * theta), 0.5 * jnp.sinc(theta / (2.0 * jnp.pi)) * omega], axis=-1)
     rq = rq * jnp.where(rq[:, :1] < 0, -1.0, 1.0)  # the w >= 0 hemisphere (|theta| > pi)
-    return rot, c + m[:, 3:] - jnp.einsum("kij,kj->ki", rot, c), rq
+    return rot, c + tau - jnp.einsum("kij,kj->ki", rot, c), rq
 
 
 def _knot_values(spec: DeformSpec, motion, t):

@@ -332,7 +332,8 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
 def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkeypatch):
     """``deform.weights = "slot"``: the placement writes each Gaussian's logits (log of its target) and frees the
     moving ones; after the hold the free slots' logits train while the held ones' stay bit-identical; densification
-    copies a parent's row (logits and free flag) into each new slot; the gauge takes no static points."""
+    copies a parent's row (logits and free flag) into each new slot; the gauge takes no static points. With
+    ``deform.joint = "screw"`` the bases' axes train (from the hold on) and the run loads back with them."""
     import pathlib
 
     from conftest import synth
@@ -346,20 +347,28 @@ def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkey
     scene = load_scene(tmp_path / "scene", "train")
     quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
     over = ["train.steps=40", "train.warmup_steps=30", "densify.start=30", "train.video_frames=0", "deform.kind=bases",
-            "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10", "deform.spans=1,2"]
+            "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10", "deform.spans=1,2",
+            "deform.joint=screw"]
     placed = []
     place = stage1.place_bases
 
     def place_and_keep(cfg, params, alive, *args, **kwargs):
         new, labels = place(cfg, params, alive, *args, **kwargs)
-        placed.append((jax.tree_util.tree_map(np.array, new["deform"]["slots"]), labels, np.array(alive)))
+        placed.append((jax.tree_util.tree_map(np.array, new["deform"]["slots"]), labels, np.array(alive),
+                       np.array(new["deform"]["axis"])))
         return new, labels
 
     monkeypatch.setattr(stage1, "place_bases", place_and_keep)
-    res = stage1.train_stage1(C.load_config(quick, over), scene, None, progress=False, log=lambda *_: None)
-    (slots0, labels, alive0), = placed
+    res = stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", progress=False,
+                              log=lambda *_: None)
+    (slots0, labels, alive0, axis0), = placed
     st, spec = res["state"], res["spec"]
     assert spec.weights == "slot" and st.static_points is None and "grid" not in st.params["deform"]
+    axis = np.asarray(st.params["deform"]["axis"])
+    assert spec.joint == "screw" and np.all(np.isfinite(axis)) and np.all(np.any(axis != axis0, axis=1))
+    _, loaded, loaded_spec, _ = stage1.load_run(tmp_path / "run")
+    assert loaded_spec == spec
+    np.testing.assert_array_equal(np.asarray(loaded.params["deform"]["axis"]), axis)
     free0 = slots0["free"] > 0.5
     np.testing.assert_array_equal(free0, (labels >= 0) | ((labels == -1) & alive0))
     assert 0 < free0.sum() < alive0.sum() and (labels >= 0).any()

@@ -118,6 +118,7 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
                                           ("deform.place_noise_sigmas=-1", "deform.place_noise_sigmas"),
                                           ("deform.place_noise_sigmas=inf", "deform.place_noise_sigmas"),
                                           ("deform.bases=1", "deform.bases"), ("deform.knots=1", "deform.knots"),
+                                          ("deform.joint=screw", "deform.joint"), ("deform.joint=ball", "deform.joint"),
                                           ("flow.gaussian_flow=affine", "flow.gaussian_flow"),
                                           ("flow.camera_depth=median", "flow.camera_depth"),
                                           ("flow.norm=l2", "flow.norm"), ("flow.charbonnier_px=0", "flow.charbonnier_px")])
@@ -131,5 +132,6 @@ def test_stage1_flow_options_are_validated(override, key):
     assert load_config(None, overrides=["deform.kind=bases", "deform.bases=4"]).deform.bases == 4
     slot = ["deform.kind=bases", "deform.init=flow", "deform.weights=slot"]
     assert load_config(None, overrides=slot).deform.weights == "slot"
+    assert load_config(None, overrides=["deform.kind=bases", "deform.joint=screw"]).deform.joint == "screw"
     assert load_config(None, overrides=["deform.spans=1,2,4"]).deform.spans == (1, 2, 4)
     assert load_config(None, overrides=["flow.norm=charbonnier", "flow.loss=track"]).flow.norm == "charbonnier"

@@ -157,6 +157,74 @@ def test_bases_field_is_a_blend_of_rigid_motions(key):
         deform.DeformSpec(kind="bases", bases=1)
 
 
+def test_screw_bases_turn_about_and_slide_along_one_axis_for_the_whole_clip(key):
+    """joint = "screw": identity at init with unit axes; dX = sum_k w_k [R_k(t) (X - c_k) + c_k + h_k(t) a_k - X] with
+    R_k(t) = exp(theta_k(t) a_k) against scipy (the axes given unnormalised); the same field as the "free" joint
+    whose control values are (theta a, h a), orientations included; a point on a basis's axis line moves only along
+    the axis and every point keeps its distance to that line, at every time; gradients against central differences
+    (float64) and finite at the identity and at a zero axis; the anchor; a screw without bases fails."""
+    from jax.test_util import check_grads
+    from scipy.spatial.transform import Rotation
+
+    kw = dict(kind="bases", depth=2, width=16, hash_levels=4, hash_log2_table=10, bases=3, knots=4)
+    spec = deform.DeformSpec(**kw, joint="screw")
+    p = deform.deform_init(key, spec, dtype=jnp.float64)
+    assert p["motion"].shape == (2, 4, 2) and p["axis"].shape == (2, 3)
+    np.testing.assert_allclose(np.linalg.norm(p["axis"], axis=-1), 1.0, atol=1e-12)
+    x = jax.random.uniform(jax.random.key(3), (40, 3), jnp.float64, minval=-1, maxval=1)
+    assert float(jnp.max(jnp.abs(deform.deform_apply(spec, p, x, 0.3)[0]))) == 0.0
+    g = jax.grad(lambda q: jnp.sum(deform.deform_apply(spec, q, x, 0.3)[0][:, 0]))(p)
+    assert float(jnp.abs(g["motion"]).sum()) > 0 and bool(jnp.all(jnp.isfinite(g["axis"])))
+
+    rng = np.random.default_rng(2)
+    motion, axis, pivot = rng.normal(0, 0.6, (2, 4, 2)), rng.normal(0, 2.0, (2, 3)), rng.normal(0, 0.5, (2, 3))
+    w = np.array([0.2, 0.3, 0.5])
+    p = {**p, "motion": jnp.asarray(motion), "axis": jnp.asarray(axis), "pivot": jnp.asarray(pivot),
+         "head": {"w": jnp.zeros_like(p["head"]["w"]), "b": jnp.asarray(np.log(w))}}
+    unit = axis / np.linalg.norm(axis, axis=-1, keepdims=True)
+    xs = np.asarray(x)
+    quats = jax.random.normal(jax.random.key(4), (40, 4), jnp.float64)
+    free = deform.DeformSpec(**kw)
+    as_free = {k: v for k, v in p.items() if k != "axis"}
+    as_free["motion"] = jnp.asarray(np.concatenate([motion[..., :1] * unit[:, None], motion[..., 1:] * unit[:, None]],
+                                                   axis=-1))
+    for t in (0.0, 0.3, 0.95, 1.4):
+        want = np.zeros_like(xs)
+        for k in range(2):
+            theta, h = (np.interp(min(t, 1.0), np.linspace(0.0, 1.0, 4), motion[k, :, j]) for j in range(2))
+            rot = Rotation.from_rotvec(theta * unit[k]).as_matrix()
+            want += w[k + 1] * ((xs - pivot[k]) @ rot.T + pivot[k] + h * unit[k] - xs)
+        got = deform.deform_apply(spec, p, x, t, quats=quats)
+        np.testing.assert_allclose(np.asarray(got[0]), want, atol=1e-12)
+        ref = deform.deform_apply(free, as_free, x, t, quats=quats)
+        np.testing.assert_allclose(np.asarray(got[1]), np.asarray(ref[1]), atol=1e-12)
+    # one basis (weight ~1): the axis line slides along itself, every point keeps its distance to it
+    one = {**p, "head": {"w": p["head"]["w"], "b": jnp.asarray([0.0, 80.0, 0.0])}}
+    on_line = pivot[0] + np.linspace(-1.0, 1.0, 5)[:, None] * unit[0]
+    def line_dist(pts):
+        d = pts - pivot[0]
+        return np.linalg.norm(d - (d @ unit[0])[:, None] * unit[0], axis=-1)
+    for t in (0.1, 0.5, 0.9):
+        d_line = np.asarray(deform.deform_apply(spec, one, jnp.asarray(on_line), t)[0])
+        np.testing.assert_allclose(np.cross(d_line, unit[0]), 0.0, atol=1e-12)
+        moved = xs + np.asarray(deform.deform_apply(spec, one, x, t)[0])
+        np.testing.assert_allclose(line_dist(moved), line_dist(xs), atol=1e-12)
+    check_grads(lambda m, a, c: deform.deform_apply(spec, {**p, "motion": m, "axis": a, "pivot": c}, x, 0.45)[0],
+                (p["motion"], p["axis"], p["pivot"]), order=1, modes=["rev"], atol=1e-6, rtol=1e-6)
+    for q in ({**p, "motion": jnp.zeros_like(p["motion"])}, {**p, "axis": jnp.zeros_like(p["axis"])}):
+        out = lambda q: deform.deform_apply(spec, q, x, 0.3, quats=quats)
+        val, grad = jax.value_and_grad(lambda q: jnp.sum(out(q)[0] ** 2) + jnp.sum(out(q)[1] ** 2))(q)
+        assert bool(jnp.isfinite(val)) and all(bool(jnp.all(jnp.isfinite(v))) for v in jax.tree_util.tree_leaves(grad))
+    anch = deform.DeformSpec(**kw, joint="screw", anchor=0.2)
+    dx_a, dq_a, _ = deform.deform_apply(anch, p, x, 0.2, quats=quats)
+    assert float(jnp.max(jnp.abs(dx_a))) == 0.0 and float(jnp.max(jnp.abs(dq_a))) < 1e-15
+    with pytest.raises(ValueError, match="joint must be 'free' or, with kind 'bases', 'screw'"):
+        deform.DeformSpec(kind="hash", joint="screw")
+    slot = deform.deform_init(key, deform.DeformSpec(kind="bases", bases=3, knots=4, weights="slot", joint="screw"),
+                              slots=5)
+    assert set(slot) == {"motion", "pivot", "axis", "slots"}
+
+
 def test_slot_weights_hold_the_static_slots_and_give_each_free_slot_its_own(key):
     """weights = "slot": a held slot sits on the static basis exactly (dX = 0, dq = 0, no gradient into its logits);
     a free slot's weights are the softmax of its own logits, so its dX equals the "field" kind's with the same

@@ -108,7 +108,7 @@ class DeformConfig:
     place_noise_sigmas * 1.4826 MAD of |u - u_cam| over the pair's valid pixels (`fgjax.method.discover.binarize`,
     as ``stage2.threshold_sigmas``). 0: off."""
     hold: int = 150
-    """With init = "flow": steps after the placement in which only the bases' motions and pivots train, the weights
+    """With init = "flow": steps after the placement in which only the bases' motions train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""
     gauge: float = 1.0
     """With init = "flow": weight of the static scene's rigid drift (`fgjax.train.losses.rigid_drift_loss`) at up to

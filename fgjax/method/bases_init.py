@@ -24,7 +24,7 @@ instead; this is the same idea with the evidence stage 1 already has, at the end
    every selected Gaussian is freed and every other is held on the static basis (`fgjax.models.deform`).
 
 The bases' motions stay at the identity; the flow loss then fits each basis's motion to the pixels of the part
-that sits on it. For ``deform.hold`` steps after the placement only the motions and pivots train
+that sits on it. For ``deform.hold`` steps after the placement only the motions (and pivots, axes) train
 (`fgjax.method.stage1`): a basis at the identity passes no gradient to the weights, and from its first non-zero one
 Adam moves the logits network by about a full step per iteration (the hash grid's rate is ten times the field's)
 in the direction that a motion not yet fitted to its cluster sets; unheld, the placed weights are back on the
@@ -158,7 +158,7 @@ def basis_targets(labels: np.ndarray, num_bases: int, smoothing: float = 0.1) ->
 
 @functools.partial(jax.jit, static_argnames=("spec", "steps"))
 def fit_basis_logits(spec: DeformSpec, deform_params, x, target, weight, *, steps: int = 300, lr: float = 1e-2):
-    """Fit the logits network (hash grid and MLP; the bases' motions and pivots untouched) so that
+    """Fit the logits network (hash grid and MLP; the bases' motions, MOTION_KEYS, untouched) so that
     softmax(logits(x)) matches ``target`` [N, K] at the canonical centres ``x`` [N, 3]: Adam on the weighted
     cross-entropy sum_i weight_i H(target_i, softmax(logits(x_i))). Returns (the new deform params, the final
     loss)."""

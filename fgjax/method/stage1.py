@@ -180,7 +180,7 @@ class StepSpec:
     depth_weight: float = 0.0  # weight of the measured-depth term (0: none; the step then takes no depth batch)
     flow_norm: str = "l1"  # the flow loss's per-pixel penalty, "l1" or "charbonnier" (fgjax.flow.flow_loss, .track)
     flow_scale: float = 10.0  # c of "charbonnier" (pixels)
-    freeze_weights: bool = False  # "bases" field: only the bases' motions and pivots update, the weights' network stays
+    freeze_weights: bool = False  # "bases" field: only MOTION_KEYS update, the weights' network stays
     gauge: float = 0.0  # weight of the static points' rigid drift (the step then takes them)
 
 

@@ -248,6 +248,8 @@ def validate_stage1(cfg: Config) -> None:
          "a finite number >= 0 (0: off)", f.place_agree_sigma)
     need(finite(f.place_noise_sigmas) and f.place_noise_sigmas >= 0, "deform.place_noise_sigmas",
          "a finite number >= 0 (0: off)", f.place_noise_sigmas)
+    need(finite(f.place_free_eps) and f.place_free_eps >= 0, "deform.place_free_eps", "a finite number >= 0 (0: off)",
+         f.place_free_eps)
     need(fl.loss in ("pair", "track"), "flow.loss", "'pair' or 'track'", fl.loss)
     need(fl.gaussian_flow in ("isotropic", "anisotropic"), "flow.gaussian_flow", "'isotropic' or 'anisotropic'",
          fl.gaussian_flow)

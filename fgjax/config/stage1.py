@@ -107,6 +107,11 @@ class DeformConfig:
     """With init = "flow": > 0: each pair's 1 px floor is raised, where lower, to the noise of its residual, median +
     place_noise_sigmas * 1.4826 MAD of |u - u_cam| over the pair's valid pixels (`fgjax.method.discover.binarize`,
     as ``stage2.threshold_sigmas``). 0: off."""
+    place_free_eps: float = 0.0
+    """With init = "flow" and weights = "slot": > 0: the Gaussians the placement calls static that lie within
+    place_free_eps times DBSCAN's automatic radius of a moving cluster's Gaussian start on the static basis but are
+    free to leave it, as DBSCAN's noise is (`fgjax.method.bases_init.free_near_clusters`): the share of a part's
+    Gaussians that the flow's cut misses otherwise stays on the static basis for good. 0: off."""
     hold: int = 150
     """With init = "flow": steps after the placement in which only the bases' motions train, the weights
     held, so that each motion fits its cluster before a weight can leave it (docs/benchmarks.md)."""

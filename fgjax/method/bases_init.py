@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from scipy.spatial import cKDTree
 
 from fgjax import cluster
 from fgjax.config import Config
@@ -51,7 +52,7 @@ from fgjax.method.flows import estimate_training_flows, previous_frames
 from fgjax.models.deform import MOTION_KEYS, DeformSpec, basis_logits
 from fgjax.models.model import render_params
 
-__all__ = ["moving_clusters", "basis_targets", "fit_basis_logits", "place_bases", "static_points"]
+__all__ = ["moving_clusters", "free_near_clusters", "basis_targets", "fit_basis_logits", "place_bases", "static_points"]
 
 
 def moving_clusters(
@@ -141,6 +142,25 @@ def _moving_gaussians(params, alive, viewmats, Ks, flows, prev, width, height, c
     return np.asarray(found.dynamic, bool)
 
 
+def free_near_clusters(means, labels: np.ndarray, factor: float, min_samples: int = 5) -> np.ndarray:
+    """`moving_clusters`' labels with every static Gaussian (-2) whose canonical centre lies within ``factor`` times
+    the moving Gaussians' automatic DBSCAN radius (`fgjax.cluster.auto_eps` of the clustered centres, k =
+    min_samples - 1, as `fgjax.cluster.cluster_dynamic` chooses it) of a clustered Gaussian (label >= 0) relabelled
+    -1: started on the static basis, free to leave it. The flow's cut selects about 0.6 of a part's Gaussians
+    (docs/benchmarks.md, "The placement's frame spans"); the rest sit among them, and held static they keep that
+    share of the part still. Returns a new array; ``factor`` <= 0 or no cluster returns a copy."""
+    out = np.array(labels, copy=True)
+    moving = out >= 0
+    if factor <= 0 or moving.sum() < max(min_samples, 2) or not (out == -2).any():
+        return out
+    pts = np.asarray(means, np.float64)
+    radius = factor * cluster.auto_eps(pts[moving], max(min_samples - 1, 1))
+    static = np.flatnonzero(out == -2)
+    dist, _ = cKDTree(pts[moving]).query(pts[static], k=1)
+    out[static[dist <= radius]] = -1
+    return out
+
+
 def basis_targets(labels: np.ndarray, num_bases: int, smoothing: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     """Soft targets [N, K] and class-balanced sample weights [N] for `fit_basis_logits` from `moving_clusters`'
     labels: -2 -> basis 0, cluster j < K - 1 -> basis j + 1 (probability 1 - smoothing, the rest spread evenly),
@@ -195,6 +215,8 @@ def place_bases(cfg: Config, params, alive, spec: DeformSpec, scene, flows=None,
                              camera_share=cfg.deform.camera_share, window=cfg.deform.place_window,
                              times=scene.times, images=scene.images, agree_sigma=cfg.deform.place_agree_sigma,
                              sh_degree=cfg.model.sh_degree, noise_sigmas=cfg.deform.place_noise_sigmas)
+    if spec.weights == "slot" and cfg.deform.place_free_eps > 0:
+        labels = free_near_clusters(params["gaussians"].means, labels, cfg.deform.place_free_eps)
     sizes = np.bincount(labels[labels >= 0]) if (labels >= 0).any() else np.zeros(0, int)
     target, weight = basis_targets(labels, spec.bases)
     free = (labels >= 0) | ((labels == -1) & np.asarray(alive, bool))

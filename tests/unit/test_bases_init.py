@@ -10,8 +10,15 @@ import numpy as np
 import pytest
 from conftest import look_at
 
+from fgjax.cluster import auto_eps
 from fgjax.gaussians import Gaussians
-from fgjax.method.bases_init import basis_targets, fit_basis_logits, moving_clusters, static_points
+from fgjax.method.bases_init import (
+    basis_targets,
+    fit_basis_logits,
+    free_near_clusters,
+    moving_clusters,
+    static_points,
+)
 from fgjax.method.flows import previous_frames
 from fgjax.models.deform import DeformSpec, basis_logits, deform_apply, deform_init
 from fgjax.render.api import rasterization
@@ -25,6 +32,25 @@ def test_basis_targets_map_clusters_to_moving_bases_and_balance_them():
     np.testing.assert_allclose(target.sum(1), 1.0, rtol=1e-6)
     np.testing.assert_allclose(target[3], [0.05, 0.9, 0.05], rtol=1e-6)
     np.testing.assert_allclose(weight, [1 / 3, 1 / 3, 1 / 3, 0.5, 0.5, 1.0, 0.0, 0.0], rtol=1e-6)
+
+
+def test_free_near_clusters_frees_the_static_gaussians_within_the_clusters_radius_only():
+    """A grid of clustered Gaussians 0.1 apart (the automatic radius: the grid's k-distance) among static ones:
+    the static ones within factor x radius of a clustered centre become -1 (free), farther ones and dead slots keep
+    their labels; factor 0, or too few clustered Gaussians for a radius, changes nothing."""
+    g = np.stack(np.meshgrid(*[np.arange(4) * 0.1] * 3, indexing="ij"), -1).reshape(-1, 3)  # 64 points, cluster 0
+    near, far = np.array([[0.35, 0.15, 0.15], [-0.08, 0.0, 0.0]]), np.array([[1.0, 1.0, 1.0], [0.15, 0.15, 0.9]])
+    means = np.concatenate([g, near, far, [[0.31, 0.0, 0.0]]])
+    labels = np.concatenate([np.zeros(64, int), [-2, -2, -2, -2, -1]])
+    radius = auto_eps(g, 4)
+    assert 0.09 < radius < 0.2  # the grid's spacing to its diagonal: both near points inside 1.0 x radius
+    out = free_near_clusters(means, labels, 1.0)
+    np.testing.assert_array_equal(out, np.concatenate([np.zeros(64, int), [-1, -1, -2, -2, -1]]))
+    np.testing.assert_array_equal(labels[64:], [-2, -2, -2, -2, -1])  # the input is not changed
+    np.testing.assert_array_equal(free_near_clusters(means, labels, 0.0), labels)
+    np.testing.assert_array_equal(free_near_clusters(means, labels, 20.0)[64:], [-1] * 5)
+    few = np.concatenate([[0, 0, 0], np.full(66, -2)])
+    np.testing.assert_array_equal(free_near_clusters(means, few, 1.0), few)
 
 
 def test_fit_basis_logits_puts_each_group_on_its_basis_and_leaves_the_motions():
@@ -332,7 +358,8 @@ def test_stage1_places_the_bases_after_the_warm_up_and_only_then(tmp_path, monke
 def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkeypatch):
     """``deform.weights = "slot"``: the placement writes each Gaussian's logits (log of its target) and frees the
     moving ones; after the hold the free slots' logits train while the held ones' stay bit-identical; densification
-    copies a parent's row (logits and free flag) into each new slot; the gauge takes no static points. With
+    copies a parent's row (logits and free flag) into each new slot; the gauge takes no static points; with
+    ``deform.place_free_eps`` no Gaussian near a moving cluster is held. With
     ``deform.joint = "screw"`` the bases' axes train (from the hold on) and the run loads back with them."""
     import pathlib
 
@@ -348,20 +375,23 @@ def test_stage1_with_slot_weights_places_holds_and_carries_them(tmp_path, monkey
     quick = pathlib.Path(__file__).resolve().parents[2] / "experiments" / "demo_quick.toml"
     over = ["train.steps=40", "train.warmup_steps=30", "densify.start=30", "train.video_frames=0", "deform.kind=bases",
             "deform.init=flow", "deform.weights=slot", "deform.hold=3", "densify.every=10", "deform.spans=1,2",
-            "deform.joint=screw"]
+            "deform.joint=screw", "deform.place_free_eps=1.5"]
     placed = []
     place = stage1.place_bases
 
     def place_and_keep(cfg, params, alive, *args, **kwargs):
         new, labels = place(cfg, params, alive, *args, **kwargs)
         placed.append((jax.tree_util.tree_map(np.array, new["deform"]["slots"]), labels, np.array(alive),
-                       np.array(new["deform"]["axis"])))
+                       np.array(new["deform"]["axis"]), np.array(params["gaussians"].means)))
         return new, labels
 
     monkeypatch.setattr(stage1, "place_bases", place_and_keep)
     res = stage1.train_stage1(C.load_config(quick, over), scene, tmp_path / "run", progress=False,
                               log=lambda *_: None)
-    (slots0, labels, alive0, axis0), = placed
+    (slots0, labels, alive0, axis0, means0), = placed
+    moving = means0[labels >= 0]  # deform.place_free_eps: no Gaussian held static within 1.5 radii of a cluster
+    gap = np.min(np.linalg.norm(means0[labels == -2][:, None] - moving[None], axis=-1), axis=1)
+    assert np.all(gap > 1.5 * auto_eps(moving, 4))
     st, spec = res["state"], res["spec"]
     assert spec.weights == "slot" and st.static_points is None and "grid" not in st.params["deform"]
     axis = np.asarray(st.params["deform"]["axis"])

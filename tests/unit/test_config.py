@@ -131,6 +131,8 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
                                           ("deform.place_agree_sigma=nan", "deform.place_agree_sigma"),
                                           ("deform.place_noise_sigmas=-1", "deform.place_noise_sigmas"),
                                           ("deform.place_noise_sigmas=inf", "deform.place_noise_sigmas"),
+                                          ("deform.place_free_eps=-1", "deform.place_free_eps"),
+                                          ("deform.place_free_eps=nan", "deform.place_free_eps"),
                                           ("deform.bases=1", "deform.bases"), ("deform.knots=1", "deform.knots"),
                                           ("deform.joint=screw", "deform.joint"), ("deform.joint=ball", "deform.joint"),
                                           ("flow.gaussian_flow=affine", "flow.gaussian_flow"),

@@ -21,7 +21,8 @@ instead; this is the same idea with the evidence stage 1 already has, at the end
    (largest first, j < K - 1) on basis j + 1 and every unselected Gaussian on basis 0; selected Gaussians that
    DBSCAN calls noise, and clusters beyond K - 1, are left to the training. With per-slot weights
    (``deform.weights = "slot"``) the same targets are written into the slots' logits instead (log of the target),
-   every selected Gaussian is freed and every other is held on the static basis (`fgjax.models.deform`).
+   every selected Gaussian is freed and every other is held on the static basis (`fgjax.models.deform`), but for
+   those near a cluster with ``deform.place_free_eps`` > 0 (`free_near_clusters`), which start static, free.
 
 The bases' motions stay at the identity; the flow loss then fits each basis's motion to the pixels of the part
 that sits on it. For ``deform.hold`` steps after the placement only the motions (and pivots, axes) train
@@ -147,7 +148,7 @@ def free_near_clusters(means, labels: np.ndarray, factor: float, min_samples: in
     the moving Gaussians' automatic DBSCAN radius (`fgjax.cluster.auto_eps` of the clustered centres, k =
     min_samples - 1, as `fgjax.cluster.cluster_dynamic` chooses it) of a clustered Gaussian (label >= 0) relabelled
     -1: started on the static basis, free to leave it. The flow's cut selects about 0.6 of a part's Gaussians
-    (docs/benchmarks.md, "The placement's frame spans"); the rest sit among them, and held static they keep that
+    (docs/benchmarks.md, "Which parts share a cluster"); the rest sit among them, and held static they keep that
     share of the part still. Returns a new array; ``factor`` <= 0 or no cluster returns a copy."""
     out = np.array(labels, copy=True)
     moving = out >= 0

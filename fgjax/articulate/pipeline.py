@@ -46,7 +46,7 @@ from fgjax.articulate.phototrack import (
     track_photometric,
 )
 from fgjax.articulate.refit import refit_gaussians
-from fgjax.articulate.track import track_objects
+from fgjax.articulate.track import field_poses, track_objects
 from fgjax.articulate.trial import hinge_trial, trial_held
 from fgjax.config import ArticulateConfig, Stage2Config, validate_articulate, validate_stage2
 from fgjax.data.scene import Scene
@@ -128,10 +128,14 @@ def select_parts(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stag
 def tracked_poses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], num_objects: int, flows,
                    cfg: ArticulateConfig, moving=None, log=print, seed: int = 0) -> tuple[Float[np.ndarray, "K T 4 4"], dict]:
     """(poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow (or the
-    images, ``cfg.track_photo``) against the reference scene `ref` (stage 1 at t0, raw parameters), the joint
-    fits' kinds and costs (`photometric_poses`; {} for the flow tracking)).
+    images, ``cfg.track_photo``; or read off stage 1's field, ``cfg.track_from``) against the reference scene `ref`
+    (stage 1 at t0, raw parameters), the joint fits' kinds and costs (`photometric_poses`; {} for the others)).
     ``moving`` [K, T-1]: the pairs in which each object moves (`fgjax.cluster.moving_frames`; None: all)."""
 
+    if cfg.track_from == "field":
+        means = np.stack([np.asarray(run.deformed(float(scene.times[i]))[0]) for i in order])
+        log(f"stage 2: poses of {num_objects} object(s) read off stage 1's field over {len(order)} frames")
+        return field_poses(np.asarray(ref.means), means, labels, num_objects), {}
     if cfg.track_photo > 0:
         return photometric_poses(run, scene, order, ref, labels, num_objects, cfg, moving, log, seed=seed)
     alive = run.state.densify.alive

@@ -45,7 +45,7 @@ from fgjax.method.camera import fit_pixels, pixel_points, project_rows
 from fgjax.models.posed import label_onehot, transform_gaussians
 from fgjax.render.api import rasterization
 
-__all__ = ["track_objects", "fit_joint", "JOINT_KINDS"]
+__all__ = ["track_objects", "field_poses", "fit_joint", "JOINT_KINDS"]
 
 JOINT_KINDS = ("revolute", "prismatic")
 
@@ -287,3 +287,17 @@ def track_objects(means: Float[ArrayLike, "*T N 3"], quats: Float[ArrayLike, "*T
     return poses
 
 
+def field_poses(ref_means: Float[ArrayLike, "N 3"], means: Float[ArrayLike, "T N 3"], labels: Int[ArrayLike, " N"],
+                num_objects: int) -> np.ndarray:
+    """Poses [K, T, 4, 4] of each object at each frame read off a deformation field instead of tracked: object k's
+    pose at frame t is the rigid motion that best carries its Gaussians from the reference centres ``ref_means``
+    [N, 3] to their centres ``means[t]`` [N, 3] under the field at that frame's time (least squares, Kabsch:
+    `fgjax.geometry.fit_group_poses`). These are the paper's trajectories (the deformation field's motion of each
+    cluster), made rigid; a field that moves nothing gives the identity. ``labels`` [N] in -1..K-1."""
+    means = np.asarray(means)
+    poses = np.tile(np.eye(4), (num_objects, len(means), 1, 1))
+    if num_objects == 0:
+        return poses
+    for t, m in enumerate(means):
+        poses[:, t] = np.asarray(geometry.fit_group_poses(ref_means, m, labels, num_objects), np.float64)
+    return poses

@@ -125,6 +125,11 @@ class ArticulateConfig:
     track_active: float = 0.2
     """Track an object only in its moving frames (`fgjax.cluster.moving_frames` with this ``active`` fraction,
     widened by one frame); 0: in every frame."""
+    track_from: str = "images"
+    """Where each object's poses come from: "images", tracked in the training images (photometric tracking with
+    ``track_photo`` > 0, else the optical flow); "field", read off stage 1's deformation field, each object's
+    Gaussians at every training time fitted with one rigid motion from the reference (the paper's trajectories,
+    `fgjax.articulate.track.field_poses`; needs ``track_photo`` = 0)."""
     track_photo: int = 50
     """Adam steps per frame of photometric tracking (`fgjax.articulate.phototrack`); 0: flow-based tracking
     (`fgjax.articulate.track`)."""
@@ -285,6 +290,11 @@ def validate_articulate(cfg: ArticulateConfig) -> None:
 
     if cfg.track_joints not in ("auto", "off"):
         raise bad("track_joints", "'auto' or 'off'")
+    if cfg.track_from not in ("images", "field"):
+        raise bad("track_from", "'images' or 'field'")
+    if cfg.track_from == "field" and cfg.track_photo > 0:
+        raise ConfigError(f"articulate.track_from = 'field' reads the poses off stage 1's field, so it needs "
+                          f"articulate.track_photo = 0 (no photometric tracking); got {cfg.track_photo!r}")
     for name in ("local_floor", "local_min_fraction"):
         if not 0.0 <= getattr(cfg, name) < 1.0:
             raise bad(name, "in [0, 1)")

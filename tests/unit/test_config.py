@@ -60,12 +60,21 @@ def test_a_bool_is_not_a_number(section, cls, validate):
     ("articulate", "isolated_factor", 0.5), ("articulate", "hinge_trial_edges", 5), ("articulate", "local_floor", 1.0),
     ("articulate", "track_joints", "sometimes"), ("articulate", "refit_lr_scale", 0.0),
     ("articulate", "merge_eps", float("nan")), ("articulate", "track_subset_margin", -2),
+    ("articulate", "track_from", "flow"),
 ])
 def test_out_of_range_values_are_refused_naming_the_field(section, field, value):
     cls, validate = {"stage2": (Stage2Config, validate_stage2), "articulate": (ArticulateConfig, validate_articulate)}[
         section]
     with pytest.raises(ConfigError, match=rf"^{section}\.{field} "):
         validate(dataclasses.replace(cls(), **{field: value}))
+
+
+def test_poses_read_off_the_field_refuse_photometric_tracking():
+    """``articulate.track_from = "field"`` takes the poses from stage 1's field, so a photometric tracker asked for
+    beside it (``track_photo`` > 0, the library's default) is refused, naming both fields, not silently skipped."""
+    validate_articulate(dataclasses.replace(ArticulateConfig(), track_from="field", track_photo=0))
+    with pytest.raises(ConfigError, match=r"articulate\.track_from = 'field'.*articulate\.track_photo = 0"):
+        validate_articulate(dataclasses.replace(ArticulateConfig(), track_from="field"))
 
 
 def test_overrides_parse_numbers_and_otsu_and_are_validated():

@@ -126,16 +126,20 @@ def select_parts(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stag
 
 
 def tracked_poses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], num_objects: int, flows,
-                   cfg: ArticulateConfig, moving=None, log=print, seed: int = 0) -> tuple[Float[np.ndarray, "K T 4 4"], dict]:
+                   cfg: ArticulateConfig, moving=None, log=print, seed: int = 0,
+                   centres: Float[np.ndarray, "T N 3"] | None = None) -> tuple[Float[np.ndarray, "K T 4 4"], dict]:
     """(poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow (or the
     images, ``cfg.track_photo``; or read off stage 1's field, ``cfg.track_from``) against the reference scene `ref`
     (stage 1 at t0, raw parameters), the joint fits' kinds and costs (`photometric_poses`; {} for the others)).
-    ``moving`` [K, T-1]: the pairs in which each object moves (`fgjax.cluster.moving_frames`; None: all)."""
+    ``moving`` [K, T-1]: the pairs in which each object moves (`fgjax.cluster.moving_frames`; None: all).
+    ``centres``: stage 1's centres at each training time (time order) where the caller has them
+    (`fgjax.method.stage2.discover_run`'s), which the field's poses read; None: deformed here."""
 
     if cfg.track_from == "field":
-        means = np.stack([np.asarray(run.deformed(float(scene.times[i]))[0]) for i in order])
+        if centres is None:
+            centres = np.stack([np.asarray(run.deformed(float(scene.times[i]))[0]) for i in order])
         log(f"stage 2: poses of {num_objects} object(s) read off stage 1's field over {len(order)} frames")
-        return field_poses(np.asarray(ref.means), means, labels, num_objects), {}
+        return field_poses(np.asarray(ref.means), centres, labels, num_objects), {}
     if cfg.track_photo > 0:
         return photometric_poses(run, scene, order, ref, labels, num_objects, cfg, moving, log, seed=seed)
     alive = run.state.densify.alive
@@ -278,7 +282,7 @@ def run_articulated(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config
     reference = reference_scene(run, float(times[0]))  # the scene the poses move
     base = (reference.means, reference.quats, reference.log_scales)
     poses, joints = tracked_poses(run, scene, order, reference, labels, report.n_clusters, flows, acfg, moving, log,
-                                  seed=cfg.seed)
+                                  seed=cfg.seed, centres=centres)
     if acfg.refit_steps > 0:
         rounds = int(acfg.track_rounds) if acfg.track_photo > 0 else 1
         refit = reference  # the first re-fit starts from the reference the poses move

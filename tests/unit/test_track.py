@@ -329,3 +329,13 @@ def test_tracked_poses_read_off_the_field_when_asked():
     assert joints == {}
     np.testing.assert_allclose(poses[0], np.stack([_pose([0.0, 0.0, 0.4 * t], [0.2 * t, 0.0, 0.0])
                                                    for t in times[order]]), atol=2e-5)
+
+    # the caller's centres (`discover_run`'s), read as given: the field is not deformed again
+    centres = np.stack([np.asarray(deformed(t)[0]) for t in times[order]])
+
+    def no_deform(t):
+        raise AssertionError("deformed again")
+
+    given, _ = tracked_poses(types.SimpleNamespace(deformed=no_deform), scene, order, types.SimpleNamespace(means=ref),
+                             labels, 1, None, cfg, log=lambda *a: None, centres=centres)
+    np.testing.assert_allclose(given, poses, atol=1e-6)

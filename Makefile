@@ -28,6 +28,7 @@ demo: $(STAMP_RUN)
 	$(BIN)/fgjax demo --quick --overwrite
 
 test: $(STAMP_TEST)
+	$(BIN)/python -m ruff check -q fgjax tests
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 
 bench: $(STAMP_RUN)

@@ -59,9 +59,11 @@ class Gaussians(eqx.Module):
         shapes = {"log_scales": (n, 3), "quats": (n, 4), "opacity_logits": (n,)}
         for name, shape in shapes.items():
             if getattr(self, name).shape != shape:
-                raise ValueError(f"Gaussians.{name} must have shape {list(shape)} (N={n}); got {list(getattr(self, name).shape)}")
+                raise ValueError(f"Gaussians.{name} must have shape {list(shape)} (N={n}); "
+                                 f"got {list(getattr(self, name).shape)}")
         if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 or self.sh.shape[1] not in (1, 4, 9, 16):
-            raise ValueError(f"Gaussians.sh must be [N, K, 3] with K in (1, 4, 9, 16), N={n}; got {list(self.sh.shape)}")
+            raise ValueError(f"Gaussians.sh must be [N, K, 3] with K in (1, 4, 9, 16), N={n}; "
+                             f"got {list(self.sh.shape)}")
 
     @property
     def capacity(self) -> int:

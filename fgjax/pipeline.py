@@ -39,8 +39,8 @@ from fgjax.method.result import LoadedRun, cluster_vectors_at, load_stage2, rend
 from fgjax.method.stage2 import run_stage2
 from fgjax.viz import caption, grid, ids_to_color, overlay_ids, pad16, to_u8, upscale
 
-__all__ = ["run_pipeline", "train_and_discover", "discover_objects", "write_run_pictures", "write_control_pictures", "test_view_sheet",
-           "objects_sheet", "sweep_times", "changed_share"]
+__all__ = ["run_pipeline", "train_and_discover", "discover_objects", "write_run_pictures", "write_control_pictures",
+           "test_view_sheet", "objects_sheet", "sweep_times", "changed_share"]
 
 
 def sweep_times(s2, k: int, n: int = 9) -> np.ndarray:

@@ -6,8 +6,9 @@ environment.
 
 ``--xla_cpu_use_fusion_emitters=false`` shortens XLA:CPU compile times, which dominate fgjax's small runs
 (the quick demo, the tests; about a third shorter on a 2-core CPU with jaxlib 0.10); the results change only by
-rounding, and the steps of large scenes (20k Gaussians) may run about 10 % slower. XLA aborts on a flag it does not know, so the flag is only added for the
-jaxlib releases listed in `MEASURED_JAXLIB`; it only affects the CPU backend.
+rounding, and the steps of large scenes (20k Gaussians) may run about 10 % slower. XLA aborts on a flag it does not
+know, so the flag is only added for the jaxlib releases listed in `MEASURED_JAXLIB`; it only affects the CPU
+backend.
 
 `use_compilation_cache` turns on JAX's persistent compilation cache (a folder of compiled executables keyed by the
 program, the compile options and the jax/jaxlib versions): a program compiled again, in the same run (a function

@@ -85,7 +85,8 @@ def contact_sheet(scene_dir: Path, n_rows: int = 4) -> np.ndarray:
         tiles = [
             caption(upscale(rgb, s), f"frame {i} RGB"),
             caption(upscale(depth_to_color(depth[i], valid[i], near=near, far=far), s), "depth"),
-            caption(upscale(synth.flow_to_color(f, max_flow, valid=fv), s), f"flow {i}->{i + 1} (max {max_flow:.1f}px)"),
+            caption(upscale(synth.flow_to_color(f, max_flow, valid=fv), s),
+                    f"flow {i}->{i + 1} (max {max_flow:.1f}px)"),
             caption(upscale(ids_to_color(ids[i]), s), "object id"),
         ]
         rows.append(np.concatenate([np.pad(x, ((2, 2), (2, 2), (0, 0)), constant_values=255) for x in tiles], 1))

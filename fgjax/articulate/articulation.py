@@ -144,7 +144,8 @@ def slide_from_poses(points: Float[ArrayLike, "M 3"], poses: Float[ArrayLike, "T
     stack; a slide starts at rest), signed so that the largest amount is positive, and the amounts are d_t along
     it. Exact for the poses of a slide; for a turn about a far line (a slide fitted as a turn) it keeps the chord
     and drops the turn. ``snap``: the axis is instead the principal axis of the points nearest that direction (a
-    drawer slides along one of its box's axes; with fewer than 3 points, the chord). `articulated_pose` (``revolute`` false) gives the slide's poses."""
+    drawer slides along one of its box's axes; with fewer than 3 points, the chord). `articulated_pose` (``revolute``
+    false) gives the slide's poses."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     P = np.asarray(poses, np.float64)
     if len(p) == 0 or P.ndim != 3 or P.shape[1:] != (4, 4):
@@ -248,8 +249,8 @@ def displaced_frames(points, poses, tol: float) -> np.ndarray:
     return _largest_displacement(points, poses) > tol
 
 
-def search_articulations(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels: Int[ArrayLike, " N"], num_objects: int,
-                         images: Float[ArrayLike, "T H W 3"], viewmats: Float[ArrayLike, "T 4 4"],
+def search_articulations(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels: Int[ArrayLike, " N"],
+                         num_objects: int, images: Float[ArrayLike, "T H W 3"], viewmats: Float[ArrayLike, "T 4 4"],
                          Ks: Float[ArrayLike, "T 3 3"], poses: Float[ArrayLike, "K T 4 4"], *, kinds,
                          sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                          objects=None, sigma: float = 2.0, grid: int = 21, refine: int = 3,
@@ -429,7 +430,8 @@ def search_articulations(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], lab
             pk = poses[k].copy()
             for i, a in zip(frames, am):
                 pk[i] = np.asarray(articulated_pose(hyps[h][0] == REVOLUTE, hyps[h][1], hyps[h][2], a), np.float32)
-            candidates[int(h)] = (hyps[h][0], np.asarray(hyps[h][1], np.float64), np.asarray(hyps[h][2], np.float64), pk)
+            candidates[int(h)] = (hyps[h][0], np.asarray(hyps[h][1], np.float64),
+                                  np.asarray(hyps[h][2], np.float64), pk)
         replaced = bool(replace and score < given)
         if replaced:
             poses[k] = candidates[int(h_best)][3]

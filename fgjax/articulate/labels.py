@@ -75,7 +75,8 @@ def fill_hulls(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, min_opacity:
     return new
 
 
-def drop_isolated(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, factor: float, log=print) -> tuple[Int[np.ndarray, " N"], list[int]]:
+def drop_isolated(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, factor: float,
+                  log=print) -> tuple[Int[np.ndarray, " N"], list[int]]:
     """`ArticulateConfig.isolated_factor`: `fgjax.cluster.drop_isolated` on the reference scene ``gs`` (centres of the
     alive Gaussians). Returns (labels [N], how many left each cluster [K]) and logs the counts."""
     new = cluster.drop_isolated(np.asarray(gs.means, np.float64), labels, factor, np.asarray(alive, bool))
@@ -105,8 +106,8 @@ def refine_by_colour(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, cfg: A
     return new, report
 
 
-def settle(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], moving,
-            log=print) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
+def settle(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"],
+            poses: Float[np.ndarray, "K T 4 4"], moving, log=print) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """`ArticulateConfig.settle_rest`: `fgjax.articulate.phototrack.settle_at_rest` on the scene ``ref`` (stage 1's)
     with ``labels`` [N], the training frames in time order (`order`)."""
 
@@ -116,8 +117,8 @@ def settle(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaus
                           tile_size=run.cfg.train.tile_size, log=log)
 
 
-def fill_hinges(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, poses: Float[np.ndarray, "K T 4 4"], cfg: ArticulateConfig,
-                 log=print) -> tuple[Int[np.ndarray, " N"], list]:
+def fill_hinges(labels: Int[np.ndarray, " N"], gs: Gaussians, alive, poses: Float[np.ndarray, "K T 4 4"],
+                 cfg: ArticulateConfig, log=print) -> tuple[Int[np.ndarray, " N"], list]:
     """`ArticulateConfig.hinge_fill`: `fgjax.cluster.fill_hinges` on the reference scene ``gs`` (centres; the core:
     alive members with opacity >= ``cfg.hull_opacity``) with the hinges of ``poses`` [K, T, 4, 4]
     (`fgjax.cluster.hinge_axes`). Returns (labels [N], hinges: per cluster {"axis", "pivot", "angle_deg"} or
@@ -163,8 +164,8 @@ class TileOverflow(ValueError):
     """A render overflowed its tile capacity, so the per-Gaussian weights it gave would be incomplete."""
 
 
-def seen_through(gs: Gaussians, alive, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], viewmats, Ks, width: int, height: int,
-                 *, capacity: int | None = None, tile_size: int = 16) -> np.ndarray:
+def seen_through(gs: Gaussians, alive, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], viewmats, Ks,
+                 width: int, height: int, *, capacity: int | None = None, tile_size: int = 16) -> np.ndarray:
     """Per Gaussian, the fraction of the weight it paints over the frames (sum over pixels p of T_p alpha_p, as in
     `fgjax.render.api.gaussian_weights`) that falls where the parts' members cover the pixel: [N] in [0, 1] (0 for
     a Gaussian that paints nothing, or is dead).
@@ -219,8 +220,9 @@ def seen_through(gs: Gaussians, alive, labels: Int[np.ndarray, " N"], poses: Flo
     return np.clip(np.where(np.asarray(alive, bool), ratio, 0.0), 0.0, 1.0)
 
 
-def prune_seen_through(gs: Gaussians, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"],
-                        max_ratio: float, log=print) -> tuple[Gaussians, int]:
+def prune_seen_through(gs: Gaussians, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"],
+                        run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], max_ratio: float,
+                        log=print) -> tuple[Gaussians, int]:
     """`ArticulateConfig.through_prune`: the alive static Gaussians of ``gs`` whose `seen_through` share over the
     training frames (time order ``order``, the parts at ``poses``) exceeds ``max_ratio`` get opacity ~0
     (`PRUNED_OPACITY`, which no re-fit brings back: the sigmoid's gradient vanishes there). Returns (scene, how
@@ -228,7 +230,8 @@ def prune_seen_through(gs: Gaussians, labels: Int[np.ndarray, " N"], poses: Floa
     t0 = time.perf_counter()
     try:
         ratio = seen_through(gs, run.state.densify.alive, labels, poses, scene.viewmats[order], scene.Ks[order],
-                             scene.width, scene.height, capacity=render_capacity(run), tile_size=run.cfg.train.tile_size)
+                             scene.width, scene.height, capacity=render_capacity(run),
+                             tile_size=run.cfg.train.tile_size)
     except TileOverflow as e:  # prune nothing rather than on partial weights
         log(f"stage 2: no static Gaussians pruned as seen through the parts: {e}")
         return gs, 0
@@ -239,11 +242,12 @@ def prune_seen_through(gs: Gaussians, labels: Int[np.ndarray, " N"], poses: Floa
     return gs, int(pruned.sum())
 
 
-def fade_ghosts(gs: Gaussians, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], alive, cfg: ArticulateConfig,
-                 log=print) -> Gaussians:
+def fade_ghosts(gs: Gaussians, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], alive,
+                 cfg: ArticulateConfig, log=print) -> Gaussians:
     """`ArticulateConfig.ghost_radius`: the opacity of alive static Gaussians of ``gs`` near the volume the parts
     sweep under ``poses`` [K, T, 4, 4] (`fgjax.cluster.near_swept`) capped at ``cfg.ghost_opacity``."""
-    near = cluster.near_swept(np.asarray(gs.means, np.float64), labels, poses, cfg.ghost_radius) & np.asarray(alive, bool)
+    near = cluster.near_swept(np.asarray(gs.means, np.float64), labels, poses,
+                              cfg.ghost_radius) & np.asarray(alive, bool)
     gs, faded = cap_opacity(gs, near, cfg.ghost_opacity)
     log(f"stage 2: {int(faded.sum())} static Gaussians near the parts' swept volume faded to opacity "
         f"{cfg.ghost_opacity:g} before the re-fit ({int(near.sum())} within {cfg.ghost_radius:g})")

@@ -184,7 +184,8 @@ def subset_bucket(n_subset: int, n_all: int, fractions=(0.5, 0.75)) -> int:
     return int(n_all)
 
 
-def rest_spans(moving, poses, fixed=None, *, tol_deg: float = 0.1, tol_shift: float = 1e-4) -> list[tuple[int, int, int]]:
+def rest_spans(moving, poses, fixed=None, *, tol_deg: float = 0.1,
+               tol_shift: float = 1e-4) -> list[tuple[int, int, int]]:
     """The still spans of `track_photometric`'s ``rest_check``: (k, a, b) for each object k and maximal run of
     frames a..b-1 (a >= 2) in which k is not fitted (``moving`` [K, T-1] false for pairs a-1..b-2) right after a
     frame in which it was, and in which its pose (``poses`` [K, T, 4, 4], the same in the whole run) is off the
@@ -246,8 +247,9 @@ def _spans_to_rest(poses: np.ndarray, spans, loss, *, extend: bool = False) -> t
 
 
 def settle_at_rest(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels: Int[ArrayLike, " N"], num_objects: int,
-                   images: Float[ArrayLike, "T H W 3"], viewmats: Float[ArrayLike, "T 4 4"], Ks: Float[ArrayLike, "T 3 3"],
-                   poses: Float[ArrayLike, "K T 4 4"], moving: Bool[ArrayLike, "K T-1"], *,
+                   images: Float[ArrayLike, "T H W 3"], viewmats: Float[ArrayLike, "T 4 4"],
+                   Ks: Float[ArrayLike, "T 3 3"], poses: Float[ArrayLike, "K T 4 4"],
+                   moving: Bool[ArrayLike, "K T-1"], *,
                    sh_degree: int, background, capacity: int | None = None, tile_size: int = 8, sigma: float = 0.7,
                    log=print) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """Each object's still spans put back at rest where the images say so, judged with hard labels on a given scene.
@@ -312,12 +314,13 @@ def settle_at_rest(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels: I
             log(f"stage 2: object {k + 1} settled at rest in frames {a + 1}-{b} (loss {kept / (b - a):.5f} -> "
                 f"{rest / (b - a):.5f} a frame)")
     if spans:
-        log(f"stage 2: {len(settled)} of {len(spans)} still span(s) settled at rest ({time.perf_counter() - t_start:.1f} s)")
+        log(f"stage 2: {len(settled)} of {len(spans)} still span(s) settled at rest "
+            f"({time.perf_counter() - t_start:.1f} s)")
     return poses, settled
 
 
-def track_photometric(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels: Int[ArrayLike, " N"], num_objects: int,
-                      images: Float[ArrayLike, "T H W 3"], viewmats: Float[ArrayLike, "T 4 4"],
+def track_photometric(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels: Int[ArrayLike, " N"],
+                      num_objects: int, images: Float[ArrayLike, "T H W 3"], viewmats: Float[ArrayLike, "T 4 4"],
                       Ks: Float[ArrayLike, "T 3 3"], *, moving: Bool[ArrayLike, "K T-1"] | None = None,
                       sh_degree: int, background, capacity: int | None = None, tile_size: int = 8,
                       steps=(20, 20, 10), sigmas=(4.0, 2.0, 0.7), lr: float = 0.02, member_lr: float = 0.1,
@@ -366,7 +369,8 @@ def track_photometric(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels
         other members and 0 for the other Gaussians), and with ``return_stats`` a dict: "frames_fitted",
         "steps_per_frame", "skipped_steps", "drawn_per_step" (Gaussians drawn per step, mean over the fitted
         frames), "gaussians" (of the two-copy scene), "fitted_again" (frames fitted again with every Gaussian),
-        "spans_at_rest" (``rest_check``'s spans put at rest), "frame_seconds" (list, each fitted frame's wall time; the first compiles) and "seconds".
+        "spans_at_rest" (``rest_check``'s spans put at rest), "frame_seconds" (list, each fitted frame's wall time; the
+        first compiles) and "seconds".
     """
     labels = np.asarray(labels, np.int64)
     t_all = len(viewmats)
@@ -512,7 +516,9 @@ def track_photometric(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels
         poses[:, n] = prev
         if not mk.any():
             continue
-        vel = np.einsum("kij,kjl->kil", prev, np.linalg.inv(poses[:, n - 2])) if n >= 2 else np.tile(eye, (num_objects, 1, 1))
+        vel = np.tile(eye, (num_objects, 1, 1))
+        if n >= 2:
+            vel = np.einsum("kij,kjl->kil", prev, np.linalg.inv(poses[:, n - 2]))
         vel[~mk] = eye
         starts = [np.einsum("kij,kjl->kil", vel, prev).astype(np.float32), prev]
         if init_poses is not None:  # the earlier fit's pose for the moving objects
@@ -571,7 +577,8 @@ def track_photometric(gaussians: Gaussians, alive: Bool[ArrayLike, " N"], labels
         for k, a, b, kept, rest in tried:
             if rest < kept:
                 n_rest += 1
-                log(f"photometric tracking: object {k + 1} back at rest in frames {a + 1}-{b} (loss {kept / (b - a):.5f} "
+                log(f"photometric tracking: object {k + 1} back at rest in frames {a + 1}-{b} "
+                    f"(loss {kept / (b - a):.5f} "
                     f"-> {rest / (b - a):.5f} a frame)")
             else:
                 log(f"photometric tracking: object {k + 1} keeps its last fitted pose in frames {a + 1}-{b} (loss "
@@ -675,7 +682,8 @@ def joint_poses(points: list, poses: Float[ArrayLike, "K T 4 4"], viewmats: Floa
         w = np.asarray(ok, np.float64)
         rv = np.asarray(geometry.so3_log(jnp.asarray(poses[k, :, :3, :3])))  # [T, 3]
         shift = moved.mean(1) - pts.mean(0)  # [T, 3]
-        seed = {"revolute": rv[np.argmax(np.linalg.norm(rv, axis=1))], "prismatic": shift[np.argmax(np.linalg.norm(shift, axis=1))]}
+        seed = {"revolute": rv[np.argmax(np.linalg.norm(rv, axis=1))],
+                "prismatic": shift[np.argmax(np.linalg.norm(shift, axis=1))]}
         fits = {}
         for kind in JOINT_KINDS:
             axes = np.eye(3) if np.linalg.norm(seed[kind]) < 1e-9 else np.vstack([seed[kind], np.eye(3)])
@@ -696,7 +704,8 @@ def joint_poses(points: list, poses: Float[ArrayLike, "K T 4 4"], viewmats: Floa
             offsets[k] = ratio
             if is_far_hinge(ratio, turn, radii=warn_offset, turn=warn_turn_deg):
                 far = (f"photometric tracking: warning: object {k + 1}'s hinge lies {ratio:.1f} times its radius from "
-                       f"its centre (more than {warn_offset:g}) while it turns {turn:.1f} degrees: a turn about an axis "
+                       f"its centre (more than {warn_offset:g}) while it turns {turn:.1f} degrees: "
+                       "a turn about an axis "
                        f"off the part is mostly a shift, so its tracking has likely mistaken a turn about its edge for "
                        f"a lift or a slide, and controlled states far from the tracked ones will be wrong")
         log(f"photometric tracking: object {k + 1}: revolute cost {cost['revolute']:.3f} (inlier RMS "

@@ -125,7 +125,8 @@ def select_parts(canonical: Float[np.ndarray, "N 3"], disc: Discovery, cfg: Stag
 
 
 
-def tracked_poses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], num_objects: int, flows,
+def tracked_poses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians,
+                   labels: Int[np.ndarray, " N"], num_objects: int, flows,
                    cfg: ArticulateConfig, moving=None, log=print, seed: int = 0,
                    centres: Float[np.ndarray, "T N 3"] | None = None) -> tuple[Float[np.ndarray, "K T 4 4"], dict]:
     """(poses [K, T, 4, 4] of each object at each training time (time order), tracked from the flow (or the
@@ -163,7 +164,8 @@ def photo_level_steps(n: int) -> tuple[int, int, int]:
     return max(1, round(0.4 * n)), max(1, round(0.4 * n)), max(1, n - 2 * round(0.4 * n))
 
 
-def photometric_poses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], num_objects: int,
+def photometric_poses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians,
+                       labels: Int[np.ndarray, " N"], num_objects: int,
                        cfg: ArticulateConfig, moving, log=print, init_poses=None, fixed=None,
                        prev_joints: dict | None = None, seed: int = 0) -> tuple[Float[np.ndarray, "K T 4 4"], dict]:
     """`tracked_poses` by `fgjax.articulate.phototrack` (``cfg.track_photo`` steps per frame; with
@@ -219,8 +221,8 @@ def photometric_poses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"]
                     f"{np.round(up, 3).tolist()}, made vertical (hinge_up_deg={cfg.hinge_up_deg:g})")
     trials = {}
     if cfg.hinge_trial > 0:
-        poses, trials = hinge_trial(run, scene, order, ref, labels, num_objects, poses, kinds, offsets, cfg, ~fixed, seed,
-                                     log)
+        poses, trials = hinge_trial(run, scene, order, ref, labels, num_objects, poses, kinds, offsets, cfg, ~fixed,
+                                     seed, log)
         for k, t in trials.items():
             if t["replaced"]:
                 kinds[k], axes[k] = t["kind"], np.asarray(t["axis"])
@@ -332,8 +334,9 @@ def run_articulated(run_dir: str | Path, data_dir: str | Path, cfg: Stage2Config
                   t_start, refit=refit, log=log)
 
 
-def label_passes(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], reference: Gaussians, refit: Gaussians, labels: Int[np.ndarray, " N"],
-                 poses: Float[np.ndarray, "K T 4 4"], moving, acfg: ArticulateConfig, seed: int, rounds: int, log=print):
+def label_passes(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], reference: Gaussians, refit: Gaussians,
+                 labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], moving, acfg: ArticulateConfig,
+                 seed: int, rounds: int, log=print):
     """After the last round: hull and hinge fills, isolated members, colour outlines, still spans settled at rest,
     static Gaussians seen through the parts pruned (each where its `ArticulateConfig` key turns it on; the fills, the
     isolated members, the colour outlines and the pruning are off by default, docs/benchmarks.md "Label passes"),

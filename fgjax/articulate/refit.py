@@ -50,7 +50,8 @@ def _posed_loss(g: Gaussians, alive, labels, pose, viewmat, K, image, background
     return jnp.where(jnp.isfinite(loss) & ~over, loss, jnp.inf)
 
 
-def posed_losses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], gs: Gaussians, labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], frames):
+def posed_losses(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], gs: Gaussians,
+                 labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], frames):
     """[F] stage 1's photometric loss of each training frame in ``frames`` (time order) rendered from `gs` (raw
     parameters) with each object moved by its pose (``poses`` [K, T, 4, 4]); inf where the render overflows."""
     g = jax.tree_util.tree_map(jnp.asarray, gs)
@@ -90,7 +91,8 @@ def _posed_refit_step(p, st, i, labels, poses, viewmats, Ks, images, background,
     return guarded_update(loss_fn, opt, p, st, i)
 
 
-def refit_gaussians(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], labels: Int[np.ndarray, " N"], poses: Float[np.ndarray, "K T 4 4"], steps: int, *, seed: int = 0,
+def refit_gaussians(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], labels: Int[np.ndarray, " N"],
+                    poses: Float[np.ndarray, "K T 4 4"], steps: int, *, seed: int = 0,
                     relabel_steps: int = 0, relabel_radius: float = 0.1, relabel_lr: float = 0.05,
                     init: Gaussians | None = None, lr_scale: float = 1.0, frames=None,
                     log=print) -> tuple[Gaussians, np.ndarray]:
@@ -99,9 +101,9 @@ def refit_gaussians(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], 
 
     Stage 1's deformation field moves the parts only a little (`fgjax bench motion`), so their Gaussians are a blur
     of their states that the field's time dependence hides frame by frame; moved rigidly by the tracked poses they
-    would carry that blur into every state. Here every Gaussian's parameters (centres, scales, rotations, opacities, SH) are optimised with the
-    photometric loss of stage 1 on frame i rendered with each object moved by its pose T_k(t_i)
-    (`fgjax.models.posed.transform_gaussians`; static Gaussians stay), with stage 1's optimiser groups and
+    would carry that blur into every state. Here every Gaussian's parameters (centres, scales, rotations, opacities,
+    SH) are optimised with the photometric loss of stage 1 on frame i rendered with each object moved by its pose
+    T_k(t_i) (`fgjax.models.posed.transform_gaussians`; static Gaussians stay), with stage 1's optimiser groups and
     learning rates (decaying over `steps`), all times ``lr_scale``. No densification. A step whose render
     overflows the tile capacity or whose loss is not finite is skipped.
 

@@ -191,7 +191,8 @@ def track_objects(means: Float[ArrayLike, "*T N 3"], quats: Float[ArrayLike, "*T
                   scales: Float[ArrayLike, "*T N 3"], opacities: Float[ArrayLike, " N"], labels: Int[ArrayLike, " N"],
                   num_objects: int, viewmats: Float[ArrayLike, "T 4 4"], Ks: Float[ArrayLike, "T 3 3"],
                   flows: Float[ArrayLike, "T-1 H W 2"], width: int, height: int, *,
-                  moving: Bool[ArrayLike, "K T-1"] | None = None, joints: str = "auto", joint_pixels: int = 256, joint_tolerance: float = 3.0,
+                  moving: Bool[ArrayLike, "K T-1"] | None = None, joints: str = "auto", joint_pixels: int = 256,
+                  joint_tolerance: float = 3.0,
                   min_pixels: int = 30, dominance: float = 0.6, erode: int = 1, tile_size: int = 8,
                   log=print) -> np.ndarray:
     """Poses [K, T, 4, 4] of each object at each frame (T = len(viewmats), frames in time order; pose 0 = I).

@@ -93,7 +93,8 @@ def trial_slides(points, poses, min_deg: float = 2.0) -> list[tuple]:
     return out
 
 
-def hinge_trial(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians, labels: Int[np.ndarray, " N"], num_objects: int,
+def hinge_trial(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref: Gaussians,
+                 labels: Int[np.ndarray, " N"], num_objects: int,
                  poses: Float[np.ndarray, "K T 4 4"], kinds, offsets, cfg: ArticulateConfig, objects, seed: int = 0,
                  log=print) -> tuple[Float[np.ndarray, "K T 4 4"], dict]:
     """Each far hinge (``ArticulateConfig.hinge_trial``) tried against hinges along its part's own edges and against
@@ -109,7 +110,8 @@ def hinge_trial(run: LoadedRun, scene: Scene, order: Int[np.ndarray, " T"], ref:
     parameters, on the frames where the given poses displace the part). A candidate whose poses are another's (to
     1e-6) takes that one's loss. The trial's labels are ``labels`` with the outlines relabelled
     by colour on `ref` (`refine_by_colour`, with ``colour_radius`` > 0), so that Gaussians of the
-    surroundings that joined the part (a lid's box rims) do not hold its hinge back. They serve the trial only; the labels returned by the round are unchanged.
+    surroundings that joined the part (a lid's box rims) do not hold its hinge back. They serve the trial only; the
+    labels returned by the round are unchanged.
     The scene is re-fitted from `ref` under each candidate (`refit_gaussians` on the frames in which some candidate
     displaces the part, the same seed), and scored by the mean photometric loss of those frames rendered from its
     re-fit; `trial_choice` picks by those scores (an edge must beat the given poses by ``hinge_trial_margin``; the

@@ -187,7 +187,8 @@ def summarise(rows: list[dict]) -> dict:
     """Means over the seeds of `KEYS` (nan-aware), and the share of the true parts found."""
     mean = {k: float(np.nanmean([r[k] for r in rows])) if rows else float("nan") for k in KEYS}
     true = sum(r["parts_true"] for r in rows)
-    return {"mean": mean, "parts_found_share": float(sum(r["parts_found"] for r in rows) / true) if true else float("nan")}
+    return {"mean": mean,
+            "parts_found_share": float(sum(r["parts_found"] for r in rows) / true) if true else float("nan")}
 
 
 def _fmt(r: dict, name) -> str:
@@ -235,7 +236,8 @@ def main(argv: list[str] | None = None) -> int:
         print(_fmt(row, seed), flush=True)
         summary = summarise(rows)
         doc = {"seeds": rows, **summary, "config": str(args.config), "overrides": args.overrides,
-               "size": args.size, "command": "fgjax bench family " + " ".join(argv if argv is not None else sys.argv[2:])}
+               "size": args.size,
+               "command": "fgjax bench family " + " ".join(argv if argv is not None else sys.argv[2:])}
         atomic_write(out / "family.json", lambda f, d=doc: f.write(json.dumps(d, indent=1).encode()))
     summary = summarise(rows)
     print(_fmt(summary["mean"] | {"parts_found": sum(r["parts_found"] for r in rows),

@@ -68,7 +68,8 @@ def fit_local_motion(cfg: Config, *, loss: str = "l1", hash_factor: float | None
     t = cfg.train
     hf = t.lr_hash_factor if hash_factor is None else float(hash_factor)
     params = deform_init(jax.random.key(seed), spec)
-    labels = {k: jax.tree_util.tree_map(lambda _, k=k: "hash" if k == "grid" else "field", v) for k, v in params.items()}
+    labels = {k: jax.tree_util.tree_map(lambda _, k=k: "hash" if k == "grid" else "field", v)
+              for k, v in params.items()}
     tx = optax.multi_transform({
         "field": optax.adam(exp_decay(t.lr_deform, t.lr_deform_final, steps), eps=1e-15),
         "hash": optax.adam(exp_decay(t.lr_deform * hf, t.lr_deform_final * hf, steps), eps=1e-15),
@@ -111,7 +112,8 @@ def fit_local_motion(cfg: Config, *, loss: str = "l1", hash_factor: float | None
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="fgjax bench field", description=__doc__.splitlines()[0])
-    p.add_argument("--config", default=str(EXPERIMENTS / "family.toml"), help="named configuration (default: %(default)s)")
+    p.add_argument("--config", default=str(EXPERIMENTS / "family.toml"),
+                   help="named configuration (default: %(default)s)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="override a setting (repeatable)")
     p.add_argument("--losses", default="l1,l2", help="residual losses to compare (default: %(default)s)")
@@ -138,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{loss:>5} {r['hash_factor']:7.0f} {r['part_points']:8d} {r['learned']:8.3f} {r['ratio']:6.2f} "
                   f"{r['static_max']:10.3f} {r['time_s']:7.1f}", flush=True)
     if args.json:
-        atomic_write(Path(args.json), lambda f: f.write(json.dumps({"rows": rows, "command": "fgjax bench field " + " ".join(
-            argv if argv is not None else sys.argv[2:])}, indent=1).encode()))
+        atomic_write(Path(args.json), lambda f: f.write(json.dumps(
+            {"rows": rows, "command": "fgjax bench field " + " ".join(argv if argv is not None else sys.argv[2:])},
+            indent=1).encode()))
     return 0

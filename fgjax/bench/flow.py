@@ -157,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
           "motion_field, composited 1/Z | Gaussian flow, isotropic | Gaussian flow, anisotropic |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r[0]:g} | {r[1]:.3f} | {r[2]:.4f} | {r[3]:.2f} | {r[4]:.4f} | {r[5]:.4f} | {r[6]:.4f} | {r[7]:.4f} |")
+        print(f"| {r[0]:g} | {r[1]:.3f} | {r[2]:.4f} | {r[3]:.2f} | {r[4]:.4f} | "
+              f"{r[5]:.4f} | {r[6]:.4f} | {r[7]:.4f} |")
 
     print(f"\n## Run time (median of {args.repeats} after compile, ms)\n")
     print("| path | resolution | ms |")
@@ -181,7 +182,8 @@ def main(argv: list[str] | None = None) -> int:
     zeros = jnp.zeros_like(p_cam)
     analytic = jax.jit(lambda p, z, K, v, om: fl.gaussian_image_velocity(p, z, K, v, om))
     jvp = jax.jit(
-        lambda x, K, c2w0, xi: fl.gaussian_image_velocity_jvp(lambda t: x, lambda t: c2w0 @ g.se3_exp(t * xi), K, 0.0)[1]
+        lambda x, K, c2w0, xi: fl.gaussian_image_velocity_jvp(lambda t: x, lambda t: c2w0 @ g.se3_exp(t * xi),
+                                                              K, 0.0)[1]
     )
     n = means.shape[0]
     t_an = _median_ms(lambda: analytic(p_cam, zeros, K, v, om), args.repeats)

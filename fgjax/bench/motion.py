@@ -483,7 +483,8 @@ def _print(r: dict) -> None:
               f"{o['at_tmax_ratio']:>6.2f} {o['at_tmax_angle_deg']:>6.1f} {o['at_tmax_image_ratio']:>6.2f} "
               f"{o['at_tmax_image_angle_deg']:>6.1f}  "
               f"{'yes' if o['at_tmax_ok'] else 'no ':<3} {o['along_ray_deg']:>8.1f} {o['ray_spread_deg']:>5.1f}")
-    print("(angle: learned against true displacement at t*; in image: ratio and angle of the two projected on the plane normal to the "
+    print("(angle: learned against true displacement at t*; in image: ratio and angle of the two projected "
+          "on the plane normal to the "
           "ray at t*; D to ray: the true displacement's angle to that ray; rays: the widest angle between the rays to "
           "the part over the frames it spends in its t* state, the parallax that pins its motion along the rays)")
     print(f"parts learned (ratio within {RATIO_TOL:.0%} of 1, angle under {ANGLE_TOL_DEG:.0f} deg): "

@@ -89,7 +89,8 @@ def _load_pairs(data: Path) -> list[_Pair]:
                     m = scene / "gt" / sub / f"{flo.stem}.png"
                     if m.is_file():
                         valid &= cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) == 0
-                pairs.append(_Pair("sintel", f"{scene.name}/{flo.stem}", fio.read_image(f0), fio.read_image(f1), gt, valid))
+                pairs.append(_Pair("sintel", f"{scene.name}/{flo.stem}", fio.read_image(f0), fio.read_image(f1),
+                                   gt, valid))
     return pairs
 
 
@@ -183,10 +184,12 @@ def _record(path: Path, block: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="fgjax bench opticalflow", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, default=None, help="shared data folder (default: ../shared/data or $FGJAX_SHARED_DATA)")
+    ap.add_argument("--data", type=Path, default=None,
+                    help="shared data folder (default: ../shared/data or $FGJAX_SHARED_DATA)")
     ap.add_argument("--method", action="append", dest="specs", metavar="METHOD[:k=v...]",
                     help=f"method with optional overrides, repeatable (default: {', '.join(DEFAULT_SPECS)})")
-    ap.add_argument("--repeats", type=int, default=3, help="timed runs per method and pair; the median counts (default 3)")
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="timed runs per method and pair; the median counts (default 3)")
     ap.add_argument("--datasets", default="middlebury,sintel", help="comma-separated subset (default: both)")
     ap.add_argument("--record", type=Path, metavar="PATH", help="write the results section into this markdown file")
     ap.add_argument("--machine", default=None, help="machine description for --record (default: detected)")
@@ -201,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
             _parse_spec(s)
         data = args.data or _default_data_dir()
         if not data.is_dir():
-            raise FileNotFoundError(f"--data {data}: no such folder (expected ../shared/data with middlebury/ and sintel/)")
+            raise FileNotFoundError(f"--data {data}: no such folder "
+                                    "(expected ../shared/data with middlebury/ and sintel/)")
         wanted = {d.strip() for d in args.datasets.split(",") if d.strip()}
         pairs = [p for p in _load_pairs(data) if p.dataset in wanted]
         if not pairs:
@@ -224,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
             f"- Machine: {args.machine or _machine()}",
             f"- Command: `{cmd.strip()}`",
             f"- Time: median of {args.repeats} interleaved runs per pair, mean over pairs; includes the RGB -> grey "
-            "conversion. EPE: mean end-point error (px) over pixels with known flow (Sintel: also non-occluded, valid).",
+            "conversion. EPE: mean end-point error (px) over pixels with known flow "
+            "(Sintel: also non-occluded, valid).",
             "",
             *lines,
             "",

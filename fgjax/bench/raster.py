@@ -139,7 +139,8 @@ def bench_scene(name, args, w, h, tile_sizes, repeats, crop, check_error=True):
         rows.append(row)
         print(
             f"{name:<8} tile {ts:>2}  N {row['n']:>6}  isect {need:>8}  compile {row['compile_s']:6.1f}s "
-            f"(fwd {compile_fwd:5.1f}s)  fwd {t_fwd:6.3f}s [cpu {c_fwd:6.3f}s]  fwd+bwd {t_bwd:6.3f}s [cpu {c_bwd:6.3f}s]  peakRSS {row['peak_rss_mb']:7.0f}MB  "
+            f"(fwd {compile_fwd:5.1f}s)  fwd {t_fwd:6.3f}s [cpu {c_fwd:6.3f}s]  "
+            f"fwd+bwd {t_bwd:6.3f}s [cpu {c_bwd:6.3f}s]  peakRSS {row['peak_rss_mb']:7.0f}MB  "
             f"err max {emax:.1e} mean {emean:.1e} (crop {crop[2]}x{crop[3]}, {nsel} Gaussians)",
             flush=True,
         )

@@ -169,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     s = bench_step(cfg, state, spec, scene, cap, frames, args.repeats)
     print(f"stage-1 step, {s['gaussians']} Gaussians, batch {s['batch']}, capacity {s['capacity']}: looped "
           f"{s['looped_ms']:.1f} ms, vmapped {s['vmapped_ms']:.1f} ms (x{s['ratio']:.2f}); |loss diff| "
-          f"{s['loss_diff']:.2e}, max param diff {s['param_diff']:.2e}" + (" (a step was skipped)" if s["skipped"] else ""),
+          f"{s['loss_diff']:.2e}, "
+          f"max param diff {s['param_diff']:.2e}" + (" (a step was skipped)" if s["skipped"] else ""),
           flush=True)
     a = bench_active(cfg, state, spec, scene, cap, frames[0], args.window, args.repeats)
     print(f"render value+grad, {a['active']} active Gaussians in {a['window']:.0%} of the image: all tiles "

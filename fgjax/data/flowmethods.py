@@ -517,7 +517,8 @@ def _rlof_once(image0, image1, p: RLOFParams):
 
 def _run_farneback(image0, image1, p: FarnebackParams):
     f = cv2.FarnebackOpticalFlow_create(p.num_levels, p.pyr_scale, p.fast_pyramids, p.win_size, p.num_iters,
-                                        p.poly_n, p.poly_sigma, cv2.OPTFLOW_FARNEBACK_GAUSSIAN if p.gaussian_window else 0)
+                                        p.poly_n, p.poly_sigma,
+                                        cv2.OPTFLOW_FARNEBACK_GAUSSIAN if p.gaussian_window else 0)
     return f.calc(_gray(image0), _gray(image1), None)
 
 
@@ -592,7 +593,8 @@ def resolve_params(method: str, params: Any = None):
     if dataclasses.is_dataclass(params):
         raise ValueError(f"method {method!r} takes {cls.__name__}, not {type(params).__name__}")
     if not isinstance(params, Mapping):
-        raise ValueError(f"params for {method!r} must be None, a {cls.__name__} or a mapping, not {type(params).__name__}")
+        raise ValueError(f"params for {method!r} must be None, a {cls.__name__} or a mapping, "
+                         f"not {type(params).__name__}")
     hints = typing.get_type_hints(cls)
     names = [f.name for f in dataclasses.fields(cls)]
     values = {}

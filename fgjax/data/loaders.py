@@ -36,8 +36,8 @@ Normalisation (``normalize=True``): the one the training json records in a top-l
 ``normalization`` object ({"centre": [x, y, z], "scale": s}: x_normalised = (x - centre) * s; `fgjax prepare`
 writes it for real captures, where the content, not the camera path, sets the scale), else
 `compute_normalization` on the camera centres of the *training* split (poses only; falls back to the requested
-split when there is no training split), so train/val/test loaded separately share one frame. Pass ``normalize=False`` for world
-units, or a `Normalization` (e.g. ``train_scene.normalization``) to reuse one.
+split when there is no training split), so train/val/test loaded separately share one frame.
+Pass ``normalize=False`` for world units, or a `Normalization` (e.g. ``train_scene.normalization``) to reuse one.
 
 Errors name the file, the frame and the field: missing images -> `FileNotFoundError`
 (or a warning and the frame skipped with ``skip_missing=True``); unreadable images, NaN or
@@ -757,7 +757,8 @@ def load_scene(
     if isinstance(normalize, Normalization):
         norm = normalize
     elif normalize is True:
-        norm = recorded_normalization(kind, start, split) or compute_normalization(_training_centres(kind, start, split))
+        norm = recorded_normalization(kind, start, split) or compute_normalization(
+            _training_centres(kind, start, split))
     elif normalize is False:
         norm = Normalization.identity()
     else:

@@ -9,11 +9,11 @@ The steps, each a function:
    the image hardly moves over the clip (the median optical flow of a frame, `fgjax.data.sfm.image_motion`, times
    the number of frames, under ``min_motion_deg`` at the ``fov_deg`` focal length): no parallax to triangulate. It is
    accepted when it registers at least ``min_registered`` of the frames (and 3) with enough points, a plausible
-   field of view and distortion (`sfm_problem`); the frames it leaves out are dropped. SIMPLE_RADIAL's k1 is removed by undistorting the images
-   (same K and size, border pixels replicated). Otherwise the clip falls back, with one line saying why, to a camera
-   that turns about a fixed centre (`fgjax.data.sfm.rotation_poses`, fitted between consecutive frames) when
-   it turns by more than ``still_deg`` somewhere, else to a still camera (identity poses); both with the focal length
-   of a ``fov_deg`` horizontal field of view and no distortion.
+   field of view and distortion (`sfm_problem`); the frames it leaves out are dropped. SIMPLE_RADIAL's k1 is removed by
+   undistorting the images (same K and size, border pixels replicated). Otherwise the clip falls back, with one line
+   saying why, to a camera that turns about a fixed centre (`fgjax.data.sfm.rotation_poses`, fitted between
+   consecutive frames) when it turns by more than ``still_deg`` somewhere, else to a still camera (identity poses);
+   both with the focal length of a ``fov_deg`` horizontal field of view and no distortion.
 3. Normalisation (`content_normalization`): centre = the median of the scene's points (SfM points, or LiDAR depth
    back-projected), or the point the cameras look at when there are none (`fgjax.geometry.look_at_point`: one unit
    in front of a still or turning camera); scale = 1 / the median distance of the cameras from that centre. So the
@@ -206,7 +206,8 @@ def video_cameras(images: np.ndarray, *, poses: str = "auto", fov_deg: float = 6
     what = ("a still camera (identity poses)" if rot is None else "a camera turning about a fixed centre (rotations "
             f"fitted to the optical flow, up to {info['rotation']['max_turn_deg']:.1f} deg)")
     how_k = f"focal {f0:.1f} px from a {fov_deg:g} deg horizontal field of view (--fov)"
-    log(f"prepare: {reason}; falling back to {what}, {how_k}" if poses == "auto" else f"prepare: {reason}: {what}, {how_k}")
+    log(f"prepare: {reason}; falling back to {what}, {how_k}" if poses == "auto"
+        else f"prepare: {reason}: {what}, {how_k}")
     info.update(poses=mode, fallback=reason, distortion="ignored (pinhole assumed)", fov_deg=fov_deg,
                 normalization_how=how)
     return np.arange(t), images, k_default, c2w, norm, info

@@ -235,8 +235,8 @@ def image_motion(images: np.ndarray, focal: float, *, pairs: int = 16) -> float:
     if t < 2:
         return 0.0
     starts = np.unique(np.linspace(0, t - 2, min(pairs, t - 1)).round().astype(int))
-    meds = [float(np.median(np.linalg.norm(b - a, axis=1))) for a, b in _flow_pairs(images, [(i, i + 1) for i in starts])
-            if len(a)]
+    meds = [float(np.median(np.linalg.norm(b - a, axis=1)))
+            for a, b in _flow_pairs(images, [(i, i + 1) for i in starts]) if len(a)]
     return math.degrees(math.atan(float(np.median(meds)) / focal)) if meds else 0.0
 
 

@@ -70,7 +70,8 @@ def write_transforms(
     Files: ``images/<name>.png`` (float images quantised to 8 bit, uint8/uint16 kept; paths
     are copied byte for byte, keeping their extension), ``depth/<name>.npy`` (float32 z-depth,
     world units; or, with `depth_png_scale` s, ``depth/<name>.png``: 16-bit integers round(depth / s), 0 unknown,
-    and the json's top-level ``depth_scale`` = s), ``mask/<name>.png`` (8-bit, or 16-bit when labels exceed 255; bool -> 0/1),
+    and the json's top-level ``depth_scale`` = s), ``mask/<name>.png`` (8-bit, or 16-bit when labels exceed 255;
+    bool -> 0/1),
     and the json: per frame ``file_path``, ``transform_matrix`` (OpenGL camera-to-world,
     from ``opencv_to_opengl_c2w(inverse(viewmat))``), ``time``, ``fl_x, fl_y, cx, cy, w, h``,
     ``depth_file_path``, ``mask_path``; top level ``camera_model`` "OPENCV" (zero distortion),
@@ -162,7 +163,8 @@ def write_transforms(
         if np.any(np.isnan(dp)) or np.any(dp < 0):
             raise ValueError("write_transforms: depths contain NaN or negative values")
         if depth_png_scale is not None:
-            if not (isinstance(depth_png_scale, int | float) and math.isfinite(depth_png_scale) and depth_png_scale > 0):
+            if not (isinstance(depth_png_scale, int | float) and math.isfinite(depth_png_scale)
+                    and depth_png_scale > 0):
                 raise ValueError(f"write_transforms: depth_png_scale must be > 0, got {depth_png_scale!r}")
             q = np.round(np.where(np.isfinite(dp), dp, 0.0) / depth_png_scale)
             dp = np.where(q <= 65535, q, 0).astype(np.uint16)

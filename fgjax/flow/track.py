@@ -18,11 +18,11 @@ fixes) and any later frame t:
   cost nothing (``norm = "l1"``); or, with ``norm = "charbonnier"``, the mean of
   c^2 (sqrt(1 + e^2 / c^2) - 1) with e = max(|C(p, t) - D(p, t)|_2 - tau, 0) and c = ``scale`` pixels (Charbonnier
   1994: e^2 / 2 for e << c, so a small residual pulls in proportion to its size, and linear beyond, as in
-  `fgjax.flow.gaussian.gaussian_flow_loss`). C composites the displacements of the Gaussians' centres, not of the surface point each pixel sees
-  (the isotropic form of L_uGS, DESIGN.md section 1, step 4), so a static pixel's residual grows with the camera's
-  motion between r and t (measured on a synthetic door: median 0.04 px one frame apart, 0.2 px six frames, 0.47 px
-  fifteen), and so does the chained flow's own error; without tau, L1's gradient sign(r) would push every static
-  Gaussian as hard as a moving one.
+  `fgjax.flow.gaussian.gaussian_flow_loss`). C composites the displacements of the Gaussians' centres, not of the
+  surface point each pixel sees (the isotropic form of L_uGS, DESIGN.md section 1, step 4), so a static pixel's
+  residual grows with the camera's motion between r and t (measured on a synthetic door: median 0.04 px one frame
+  apart, 0.2 px six frames, 0.47 px fifteen), and so does the chained flow's own error; without tau, L1's gradient
+  sign(r) would push every static Gaussian as hard as a moving one.
 
 Frame r's weights and centres are held fixed (stop-gradient): the loss moves the Gaussians at time t, never which
 Gaussians paint frame r. The camera motion is inside both C and D, so no camera flow (and no depth) enters the

@@ -41,7 +41,8 @@ def _control_hparams(cfg: Stage2Config, x_scale: float, v_scale: float) -> dict[
 
 
 def train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.ndarray, cfg: Stage2Config,
-                   centres_q_s, flows=None, log=print, refit: Gaussians | None = None) -> tuple[ControlNet, dict[str, Any]]:
+                   centres_q_s, flows=None, log=print,
+                   refit: Gaussians | None = None) -> tuple[ControlNet, dict[str, Any]]:
     """Fit Θ (module docstring): distillation, then ``cfg.photo_steps`` of the photometric loss plus beta L_uGS.
 
     Args:
@@ -163,7 +164,8 @@ def train_control(run: LoadedRun, scene, order, labels: np.ndarray, traj: np.nda
         losses.append(loss)
         n_bad += int(bad)
     losses = [float(x) for x in losses]
-    stats["photometric"] = {"steps": cfg.photo_steps, "loss_first": losses[0], "loss_last_10": float(np.mean(losses[-10:])),
+    stats["photometric"] = {"steps": cfg.photo_steps, "loss_first": losses[0],
+                            "loss_last_10": float(np.mean(losses[-10:])),
                             "skipped_steps": n_bad, "time_s": time.perf_counter() - t1, "flow_weight": beta}
     log(f"stage 2: photometric {cfg.photo_steps} steps, loss {losses[0]:.4f} -> {np.mean(losses[-10:]):.4f} "
         f"({n_bad} skipped, {time.perf_counter() - t1:.1f} s)")

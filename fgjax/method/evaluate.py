@@ -46,8 +46,9 @@ With ground truth (DATA/gt/meta.json, `fgjax.synth`):
   frame; `masked_psnr`), mean over the state frames.
 - ``part_iou``, ``parts_found``, ``parts_true`` (`part_ious`): for each gt part, the best IoU of its pixels with
   one discovered object's pixels over the "view" frames (the ids of ``ari``); found when >= 0.5.
-- ``state_psnr_centre``: the same with the displacement of the gt object's centre instead. For a rotating part this differs from the centroid's displacement whenever the
-  cluster covers the part unevenly, so it mixes an error of the protocol into the control error.
+- ``state_psnr_centre``: the same with the displacement of the gt object's centre instead. For a rotating part this
+  differs from the centroid's displacement whenever the cluster covers the part unevenly, so it mixes an error of
+  the protocol into the control error.
 - ``state_mse_by_object`` and ``state_pixels_by_object``: where ``state_psnr`` loses, per gt object id (0 =
   static): {id: [per state frame]}: the id's pixels' squared error as a share of the frame's MSE (the shares
   sum to it: `error_by_object`), and the fraction of the pixels they are.
@@ -329,9 +330,10 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
                 res.update(part_ious(np.concatenate([a for a, _ in pairs]), np.concatenate([b for _, b in pairs]),
                                      len(meta.get("objects", []))))
     # stage 1 on the "view" test frames, with the aligned cameras (and the exact ones when they differ)
-    for key, cams in (("view_psnr_stage1", test), ("view_psnr_stage1_unaligned", test_exact))[:1 + (test_exact is not test)]:
-        ps_v = [float(metrics.psnr(render_frame(run.state, run.spec, run.cfg, cams.viewmats[i], cams.Ks[i], cams.times[i],
-                                                cams.width, cams.height), cams.images[i]))
+    for key, cams in (("view_psnr_stage1", test),
+                      ("view_psnr_stage1_unaligned", test_exact))[:1 + (test_exact is not test)]:
+        ps_v = [float(metrics.psnr(render_frame(run.state, run.spec, run.cfg, cams.viewmats[i], cams.Ks[i],
+                                                cams.times[i], cams.width, cams.height), cams.images[i]))
                 for i, kd in enumerate(kinds) if kd == "view"]
         if ps_v:
             res[key] = float(np.mean(ps_v))
@@ -406,7 +408,8 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
                     ps_mov.append(masked_psnr(img, test.images[i], mov))
                 if src is not None and 0 <= int(src) < len(ids_train):
                     sw = swept_mask(ids_test[i], ids_train[int(src)]) & (ids_test[i] == 0)
-                    swept.append(error_by_object(img, test.images[i], np.where(sw, 1, np.where(ids_test[i] == 0, 0, -1))))
+                    swept.append(error_by_object(img, test.images[i],
+                                                 np.where(sw, 1, np.where(ids_test[i] == 0, 0, -1))))
                 if maps_dir is not None:
                     emap = error_map_image(img, test.images[i])
                     atomic_write(maps_dir / f"state_{i:03d}.png", lambda f: iio.imwrite(f, emap, extension=".png"))
@@ -437,7 +440,8 @@ def evaluate_control(run, data_dir: Path, log=print, maps_dir: Path | None = Non
             res["state_psnr_run_cameras_per_frame"] = ps_run
         labels_seen = sorted({g for row in by_obj for g in row})
         ids = {g: g for g in labels_seen}
-        res["state_mse_by_object"], res["state_pixels_by_object"] = (_per_frame(by_obj, f, ids) for f in ("mse", "pixels"))
+        res["state_mse_by_object"], res["state_pixels_by_object"] = (_per_frame(by_obj, f, ids)
+                                                                     for f in ("mse", "pixels"))
         if swept and len(swept) == len(ps):  # the static pixels' share split: swept by a part (1) or not (0)
             ids = {"swept": "1", "rest": "0"}
             res["state_mse_static_swept"], res["state_pixels_static_swept"] = (_per_frame(swept, f, ids)

@@ -149,8 +149,8 @@ def reference_scene(run: LoadedRun, t: float) -> Gaussians:
     return Gaussians(m, ls, q, g.opacity_logits, g.sh)
 
 
-def controlled_gaussians(control: ControlNet, base: tuple, canonical: Float[ArrayLike, "N 3"], labels: Int[ArrayLike, " N"],
-                         vectors: Float[ArrayLike, "K 3"], rigid: bool = False
+def controlled_gaussians(control: ControlNet, base: tuple, canonical: Float[ArrayLike, "N 3"],
+                         labels: Int[ArrayLike, " N"], vectors: Float[ArrayLike, "K 3"], rigid: bool = False
                          ) -> tuple[Float[Array, "N 3"], Float[Array, "N 4"], Float[Array, "N 3"]]:
     """Geometry of the controlled scene (module docstring).
 

@@ -96,7 +96,8 @@ def scene_gaussians(run: LoadedRun, *, time: float | None = None,
         `Gaussians` of the M active slots, in slot order.
     """
     if (time is None) == (vectors is None):
-        raise ValueError("scene_gaussians: give time (the stage-1 scene) or vectors (the controlled scene), one of them")
+        raise ValueError("scene_gaussians: give time (the stage-1 scene) or vectors (the controlled scene), "
+                         "one of them")
     means, quats, log_scales, g = _geometry(run, time, vectors)
     idx = active_slots(run)
     leaves = (means, log_scales, quats, g.opacity_logits, g.sh)

@@ -39,13 +39,7 @@ from fgjax.io import atomic_write
 from fgjax.io import write_video as write_frames
 from fgjax.method.bases_init import place_bases, static_points
 from fgjax.method.flows import estimate_training_flows, previous_frames, training_tracks
-from fgjax.method.init_points import (
-    depth_point_cloud,
-    first_view_colors,
-    flow_point_cloud,
-    random_points,
-    scene_box,
-)
+from fgjax.method.init_points import depth_point_cloud, first_view_colors, flow_point_cloud, random_points, scene_box
 from fgjax.method.poses import bundle_adjust
 from fgjax.method.static import detect_static
 from fgjax.models.deform import MOTION_KEYS, DeformSpec, deform_apply, deform_init
@@ -69,7 +63,8 @@ from fgjax.version import __version__
 
 __all__ = ["train_stage1", "run", "TrainState", "deform_spec_from_config", "FlowBatch", "flow_term", "training_tracks",
            "estimate_training_flows", "previous_frames", "load_run", "render_frame", "evaluate", "template_state",
-           "refined_viewmats", "load_test_views", "prepare_run_folder", "make_step", "compute_capacity", "active_sh_mask", "StepSpec"]
+           "refined_viewmats", "load_test_views", "prepare_run_folder", "make_step", "compute_capacity",
+           "active_sh_mask", "StepSpec"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -120,7 +115,8 @@ def init_gaussians(cfg: Config, scene, key, log=print, cache_dir=None) -> tuple[
         inside = np.all(np.abs(pc["points"] - c) <= 2.0 * r, axis=-1)  # drop far-off mismatches
         n_flow = min(int(inside.sum()), int(round(want * (1.0 - cfg.model.init_random_fraction))))
         if n_flow == 0:
-            why = ("no measured depth inside the scene box" if init == "depth" else "no point could be triangulated (the "
+            why = ("no measured depth inside the scene box" if init == "depth"
+                   else "no point could be triangulated (the "
                    "cameras barely move against the distance to what they see, or no pixel matched)")
             log(f"model.init = {init}: {why}; starting from random points in the scene box")
         sel = rng.choice(np.flatnonzero(inside), size=n_flow, replace=False) if n_flow else np.zeros(0, int)
@@ -485,7 +481,8 @@ def train_stage1(
     prev = previous_frames(times)
     if use_flow and fc.loss == "track":
         if flows is not None:
-            raise ValueError("train_stage1(flows=...) is the pair loss's input; flow.loss = 'track' makes its own tracks")
+            raise ValueError("train_stage1(flows=...) is the pair loss's input; "
+                             "flow.loss = 'track' makes its own tracks")
         prev, flows = training_tracks(scene, fc.method, None if out is None else out / "flow_cache", log=log)
     elif use_flow and flows is None:
         flows = estimate_training_flows(scene, fc.method, None if out is None else out / "flow_cache", log=log)
@@ -790,7 +787,8 @@ def run(cfg: Config, data_dir: Path, out: Path, resume: bool = False, log=print,
         metrics.update(m)
         log(f"test views: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}"
             + (f", dynamic-region PSNR {m['masked_psnr_dynamic']:.2f} dB" if "masked_psnr_dynamic" in m else "")
-            + (f", depth error {100 * m['depth_error']['median_relative']:.1f}% (median)" if "depth_error" in m else ""))
+            + (f", depth error {100 * m['depth_error']['median_relative']:.1f}% (median)"
+               if "depth_error" in m else ""))
     atomic_write(out / "metrics.json", lambda f: f.write(json.dumps(metrics, indent=1).encode()))
     if cfg.train.video_frames > 0:
         v = write_video(res["state"], res["spec"], cfg, scene, out / "sweep.mp4", cfg.train.video_frames)

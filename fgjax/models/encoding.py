@@ -12,7 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-__all__ = ["frequency_encoding", "frequency_dim", "hash_grid_init", "hash_grid_encode", "hash_grid_dim", "hash_grid_resolutions"]
+__all__ = ["frequency_encoding", "frequency_dim", "hash_grid_init", "hash_grid_encode", "hash_grid_dim",
+           "hash_grid_resolutions"]
 
 # Instant-NGP primes (the first is 1 so that dimension 0 stays coherent in memory).
 _PRIMES = (1, 2654435761, 805459861, 3674653429)
@@ -55,7 +56,8 @@ def hash_grid_dim(num_levels: int, features: int) -> int:
     return num_levels * features
 
 
-def hash_grid_init(key: jax.Array, num_levels: int, log2_table: int, features: int, dtype=jnp.float32) -> Float[Array, "L T F"]:
+def hash_grid_init(key: jax.Array, num_levels: int, log2_table: int, features: int,
+                   dtype=jnp.float32) -> Float[Array, "L T F"]:
     """Hash tables [L, 2^log2_table, F], uniform in [-1e-4, 1e-4] (Instant-NGP init)."""
     return jax.random.uniform(key, (num_levels, 2**log2_table, features), dtype, -1e-4, 1e-4)
 

@@ -306,7 +306,8 @@ def gaussian_weights(
     dtype = jnp.result_type(means.dtype, jnp.float32)
     m = jnp.asarray(pixel_weights, dtype)
     if m.shape != (int(height), int(width)):
-        raise ValueError(f"gaussian_weights: pixel_weights must have shape [H, W]=[{height}, {width}], got {list(m.shape)}")
+        raise ValueError(f"gaussian_weights: pixel_weights must have shape [H, W]=[{height}, {width}], "
+                         f"got {list(m.shape)}")
 
     def masked(c):
         img, _, _ = rasterization(means, quats, scales, opacities, c, viewmat, K, width, height,

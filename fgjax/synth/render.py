@@ -224,7 +224,9 @@ def flow_to_color(flow: Float[np.ndarray, "H W 2"], max_flow: float | None = Non
         [H, W, 3] uint8 RGB.
     """
     flow = np.asarray(flow, dtype=np.float64)
-    ok = np.all(np.isfinite(flow), axis=-1) if valid is None else (np.asarray(valid, bool) & np.all(np.isfinite(flow), -1))
+    ok = np.all(np.isfinite(flow), axis=-1)
+    if valid is not None:
+        ok = np.asarray(valid, bool) & ok
     u = np.where(ok, flow[..., 0], 0.0)
     v = np.where(ok, flow[..., 1], 0.0)
     mag = np.hypot(u, v)

@@ -513,7 +513,8 @@ def moving_labels(objects, states: Float[np.ndarray, "T K"]) -> Float[np.ndarray
     return moving
 
 
-def deform(scene: SynthScene, states: Float[np.ndarray, " K"]) -> tuple[Float[np.ndarray, "N 3"], Float[np.ndarray, "N 4"]]:
+def deform(scene: SynthScene,
+           states: Float[np.ndarray, " K"]) -> tuple[Float[np.ndarray, "N 3"], Float[np.ndarray, "N 4"]]:
     """Means and quaternions of the Gaussians with the objects at `states` [K]."""
     states = np.asarray(states, dtype=np.float64).reshape(-1)
     if states.shape != (scene.num_objects,):

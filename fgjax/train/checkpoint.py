@@ -67,7 +67,8 @@ def read_meta(path: str | Path) -> dict[str, Any]:
     except FileNotFoundError:
         raise CheckpointError(f"checkpoint {path} does not exist") from None
     except (zipfile.BadZipFile, ValueError, KeyError, OSError, EOFError, json.JSONDecodeError) as e:
-        raise CheckpointError(f"checkpoint {path} is corrupt or not an fgjax checkpoint ({type(e).__name__}: {e})") from None
+        raise CheckpointError(f"checkpoint {path} is corrupt or not an fgjax checkpoint "
+                              f"({type(e).__name__}: {e})") from None
 
 
 def load_checkpoint(path: str | Path, template):

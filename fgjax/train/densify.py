@@ -74,7 +74,8 @@ def reset_rows(opt_state: Any, rows_mask: Bool[Array, " N"], n: int, only: tuple
 
     def fix(path, leaf):
         keys = [getattr(k, "key", getattr(k, "name", None)) for k in path]
-        if not ("gaussians" in keys or "slots" in keys) or not hasattr(leaf, "shape") or leaf.ndim == 0 or leaf.shape[0] != n:
+        per_row = hasattr(leaf, "shape") and leaf.ndim > 0 and leaf.shape[0] == n
+        if not ("gaussians" in keys or "slots" in keys) or not per_row:
             return leaf
         if only is not None and not any(k in only for k in keys):
             return leaf

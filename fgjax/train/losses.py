@@ -70,9 +70,9 @@ def isometry_loss(
 
     With ``cap`` > 0 each pair costs the robust (Geman-McClure) cap e^2 / (e^2 + cap^2) of its stretch e:
     quadratic near 0, so a part can start to move before it moves as one piece (the plain |e| has a
-    gradient of 1 / |X_i - X_j| as soon as a pair stretches at all, which holds every Gaussian in place), and bounded by cap, so a pair
-    that spans a part's boundary (a door Gaussian and its static frame) breaks once the part moves,
-    instead of pulling it back with a cost that grows without bound."""
+    gradient of 1 / |X_i - X_j| as soon as a pair stretches at all, which holds every Gaussian in place), and
+    bounded by cap, so a pair that spans a part's boundary (a door Gaussian and its static frame) breaks once the
+    part moves, instead of pulling it back with a cost that grows without bound."""
     xt = jnp.asarray(means_t)
     xc = jax.lax.stop_gradient(jnp.asarray(means_c))
     w = jnp.asarray(nbr_w).astype(xt.dtype)

@@ -2,8 +2,8 @@
 
 Trainable parameters are one pytree ``{"gaussians": Gaussians, "deform": {...}, "pose": [T, 6]?}``.
 Groups (3DGS / Deformable-3DGS defaults): means 1.6e-4 -> 1.6e-6 times the scene extent, deformation
-1.6e-4 -> 1.6e-5 (hash tables and per-slot weights x `hash_factor`: the weights' rate), opacity 0.05, scales 5e-3, rotations 1e-3, SH DC 2.5e-3
-and higher orders 2.5e-3 / 20, pose deltas 1e-4 -> 1e-6. Adam eps = 1e-15 as in 3DGS.
+1.6e-4 -> 1.6e-5 (hash tables and per-slot weights x `hash_factor`: the weights' rate), opacity 0.05, scales 5e-3,
+rotations 1e-3, SH DC 2.5e-3 and higher orders 2.5e-3 / 20, pose deltas 1e-4 -> 1e-6. Adam eps = 1e-15 as in 3DGS.
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
-__all__ = ["OptimSpec", "make_optimizer", "param_labels", "exp_decay", "active_sh_degree", "guarded_update", "guarded_step"]
+__all__ = ["OptimSpec", "make_optimizer", "param_labels", "exp_decay", "active_sh_degree", "guarded_update",
+           "guarded_step"]
 
 
 @dataclasses.dataclass(frozen=True)

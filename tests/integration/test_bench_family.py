@@ -127,7 +127,8 @@ def test_bench_family_end_to_end(tmp_path, capsys, monkeypatch):
         assert np.isfinite(r["stage1_psnr"]) and r["wall_s"] > 0 and r["size"] == [48, 36]
         tr = r["discovery"]
         assert "moving_pixels_flagged" in tr and tr["part_gaussians"]
-        assert 0.0 <= tr["dynamic_pixels_on_parts"] <= 1.0 and set(tr["part_pixels_dynamic"]) == set(tr["part_gaussians"])
+        assert 0.0 <= tr["dynamic_pixels_on_parts"] <= 1.0
+        assert set(tr["part_pixels_dynamic"]) == set(tr["part_gaussians"])
         assert (out / f"seed_{r['seed']:03d}" / "sheet.png").is_file()
     assert keys - {"seed"} <= set(doc["mean"])
     _check_trace_against_oracles(out / "seed_001", monkeypatch)
@@ -136,8 +137,9 @@ def test_bench_family_end_to_end(tmp_path, capsys, monkeypatch):
     assert (out / "seed_001" / "scene" / "gt" / "meta.json").stat().st_mtime_ns == stamp
     # another stage-2 configuration on the same stage 1
     paper = tmp_path / "paper"
-    assert cli(["bench", "family", "--seeds", "1", "--stage1-from", str(out), "--out", str(paper), "--config", str(QUICK),
-                "--set", "stage2.variant=paper", "--set", "stage2.photo_steps=0", "--set", "stage2.distill_steps=20"]) == 0
+    assert cli(["bench", "family", "--seeds", "1", "--stage1-from", str(out), "--out", str(paper),
+                "--config", str(QUICK), "--set", "stage2.variant=paper", "--set", "stage2.photo_steps=0",
+                "--set", "stage2.distill_steps=20"]) == 0
     row = json.loads((paper / "family.json").read_text())["seeds"][0]
     assert row["seed"] == 1 and (paper / "seed_001" / "run" / "stage2.npz").is_file()
     assert not (paper / "seed_001" / "scene").exists()  # the earlier benchmark's scene was used in place

@@ -62,5 +62,6 @@ def test_cli_prints_a_row_per_loss_and_writes_json(tmp_path, capsys):
     assert "static max" in text and len(text.strip().splitlines()) == 3
     doc = json.loads(out.read_text())
     assert [r["loss"] for r in doc["rows"]] == ["l1", "l2"] and doc["command"].startswith("fgjax bench field")
-    assert field.main(["--steps", "5", "--losses", "l2", "--target", "velocity", "--ramp", "0.2", "--json", str(out)]) == 0
+    assert field.main(["--steps", "5", "--losses", "l2", "--target", "velocity", "--ramp", "0.2",
+                       "--json", str(out)]) == 0
     assert json.loads(out.read_text())["rows"][0]["target"] == "velocity"

@@ -125,7 +125,8 @@ def test_basis_weights_read_the_bases_weights_that_the_field_applies():
     d["motion"] = d["motion"].at[:, :, 3].set(1.0)
     x = jax.random.uniform(jax.random.PRNGKey(4), (50, 3), minval=-0.9, maxval=0.9)
     n = x.shape[0]
-    g = Gaussians(x, jnp.zeros((n, 3)), jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (n, 1)), jnp.zeros(n), jnp.zeros((n, 1, 3)))
+    g = Gaussians(x, jnp.zeros((n, 3)), jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (n, 1)), jnp.zeros(n),
+                  jnp.zeros((n, 1, 3)))
     alive = np.arange(n) < 40  # the last ten are dead slots
     parts = [np.arange(0, 10), np.arange(25, 40), np.zeros(0, int)]
     r = motion.basis_weights({"gaussians": g, "deform": d}, alive, spec, parts)
@@ -162,7 +163,8 @@ def test_bench_motion_trains_traces_and_diagnoses_the_flow(tiny, tmp_path, capsy
         for t in r["trace"]:
             assert 0.0 < t["static_weight"] < 1.0 and len(t["part_static_weights"]) == len(r["objects"])
         for o in r["objects"]:
-            assert len(o["basis_weights"]) == 6 and (o["gaussians"] == 0 or sum(o["basis_weights"]) == pytest.approx(1.0))
+            assert len(o["basis_weights"]) == 6 and (o["gaussians"] == 0
+                                                     or sum(o["basis_weights"]) == pytest.approx(1.0))
     else:
         assert r["static_weight"] is None and all(t["static_weight"] is None for t in r["trace"])
     for o in r["objects"]:
@@ -213,6 +215,7 @@ def test_oracle_fits_a_fresh_field_on_the_true_canonical(tiny, tmp_path, capsys)
     assert motion.main(["--run", str(run_dir), "--data", str(data), "--oracle", "2", "--oracle-loss", "track",
                         "--oracle-flow", "true"]) == 0
     capsys.readouterr()
-    for bad in (["--oracle", "-3"], ["--oracle", "2", "--oracle-flow", "none"], ["--oracle", "2", "--oracle-photo", "-1"]):
+    for bad in (["--oracle", "-3"], ["--oracle", "2", "--oracle-flow", "none"],
+                ["--oracle", "2", "--oracle-photo", "-1"]):
         assert motion.main(["--run", str(run_dir), "--data", str(data)] + bad) == 2
         assert "fgjax bench motion: --oracle" in capsys.readouterr().err

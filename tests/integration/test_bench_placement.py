@@ -23,7 +23,8 @@ def test_bench_placement_reads_the_evidence_and_places_by_span(tmp_path, capsys)
     assert placement.main(["--data", str(tmp_path / "scene"), "--config", str(quick), *sets]) == 2  # not "bases"
     assert "deform.kind = 'bases'" in capsys.readouterr().err
     out = tmp_path / "placement.json"
-    assert placement.main(["--data", str(tmp_path / "scene"), "--config", str(quick), "--spans", "1;1,2", "--shares", "0;0.2", "--vary", "deform.place_window=3", *sets,
+    assert placement.main(["--data", str(tmp_path / "scene"), "--config", str(quick), "--spans", "1;1,2",
+                           "--shares", "0;0.2", "--vary", "deform.place_window=3", *sets,
                            "--set", "deform.kind=bases", "--set", "deform.init=flow", "--json", str(out)]) == 0
     (row,), text = json.loads(out.read_text()), capsys.readouterr().out
     parts = len(json.loads((tmp_path / "scene" / "gt" / "meta.json").read_text())["objects"])

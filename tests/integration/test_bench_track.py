@@ -34,5 +34,6 @@ def test_bench_track_times_both_modes_and_their_poses_agree(tiny, capsys):
     # bad input: a clear message naming the option, exit status 2
     assert track.main(["--run", str(run_dir), "--data", str(data), "--start", "7", "--frames", "3"]) == 2
     assert "--start 7 --frames 3" in capsys.readouterr().err
-    assert track.main(["--run", str(run_dir), "--data", str(data), "--start", "1", "--frames", "3", "--objects", "9"]) == 2
+    assert track.main(["--run", str(run_dir), "--data", str(data), "--start", "1", "--frames", "3",
+                       "--objects", "9"]) == 2
     assert "--objects [9]" in capsys.readouterr().err

@@ -238,7 +238,8 @@ def test_gt_point_motion_matches_hinge_and_slide_geometry():
     drawer = SynthObject(label=1, kind="drawer", name="drawer_1", pivot=z, axis=z, direction=np.array([0.0, -1.0, 0.0]),
                          lateral=z, max_angle=0.0, distance=0.3, wiggle=0.0, radius=0.0,
                          key_times=np.array([0.0, 1.0]), key_states=np.array([0.0, 1.0]))
-    np.testing.assert_allclose(gt_point_motion({1: drawer}, 1, [0.0], [0.5], p, norm) - p, [0.0, -0.8 * 0.15, 0.0], atol=1e-12)
+    np.testing.assert_allclose(gt_point_motion({1: drawer}, 1, [0.0], [0.5], p, norm) - p, [0.0, -0.8 * 0.15, 0.0],
+                               atol=1e-12)
 
 
 def test_gt_motion_scene_matches_point_motion():
@@ -417,7 +418,8 @@ def test_camera_errors_against_a_known_perturbation():
 
 
 def _cameras_around(n: int, rng) -> np.ndarray:
-    """n world-to-camera matrices [n, 4, 4] on a noisy arc around the origin, each looking at it (`conftest.look_at`)."""
+    """n world-to-camera matrices [n, 4, 4] on a noisy arc around the origin, each looking at it
+    (`conftest.look_at`)."""
     from conftest import look_at
 
     return np.stack([look_at([2.0 * np.sin(a), -2.0 * np.cos(a), 0.5 + 0.1 * rng.normal()])

@@ -124,8 +124,8 @@ def test_rigid_control_moves_each_cluster_by_the_rigid_motion_nearest_the_networ
 
 
 def test_fit_group_poses_recovers_each_groups_motion_and_degrades_safely():
-    """`fgjax.geometry.fit_group_poses`: exact poses of moved groups; a group of one or two points gets its shift only; an
-    empty group the identity; coincident points a finite pose; gradients 0, never NaN."""
+    """`fgjax.geometry.fit_group_poses`: exact poses of moved groups; a group of one or two points gets its shift only;
+    an empty group the identity; coincident points a finite pose; gradients 0, never NaN."""
     import jax
     import jax.numpy as jnp
 
@@ -614,7 +614,8 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     monkeypatch.setattr(trial, "search_articulations", fake_search)
     monkeypatch.setattr(trial, "refit_gaussians", fake_refit)
     monkeypatch.setattr(trial, "posed_losses", fake_losses)
-    cfg = ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0, hinge_trial_search_slides=False, hinge_trial_edges=4)
+    cfg = ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0, hinge_trial_search_slides=False,
+                           hinge_trial_edges=4)
     far = np.array([hinge_offset(pts, [1.0, 0.0, 0.0], pts.mean(0) + [0.0, 0.0, 1.0])[1]])
     far[0] = 4.0
     logs = []
@@ -659,8 +660,8 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     # without ``hinge_trial_slide``: no slide is tried
     refits.clear()
     out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0, hinge_trial_slide=False,
-                                                       hinge_trial_edges=4),
+                                   ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0,
+                                                       hinge_trial_slide=False, hinge_trial_edges=4),
                                    np.ones(1, bool), log=logs.append)
     assert len(refits) == 5 and [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, 0, 1, 2, 3]
     np.testing.assert_array_equal(out[0], cands[1][3])
@@ -675,8 +676,8 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     loss_of.update({-4: 0.45, -5: 0.6, 1: 0.5})
     refits.clear()
     out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0, hinge_trial_edges=2,
-                                                       hinge_trial_search_slides=True),
+                                   ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0,
+                                                       hinge_trial_edges=2, hinge_trial_search_slides=True),
                                    np.ones(1, bool), log=logs.append)
     assert [c["hypothesis"] for c in rec[0]["candidates"]] == [-1, -2, -3, -4, -5, 1, 3] and len(refits) == 7
     np.testing.assert_array_equal(seen["poses"][0][:, :3, :3], np.broadcast_to(np.eye(3), (t, 3, 3)))  # the chord's
@@ -693,8 +694,8 @@ def test_hinge_trial_replaces_a_far_hinge_by_the_candidate_whose_refit_renders_c
     searched[-4] = chord
     refits.clear()
     out, rec = trial.hinge_trial(run, scene, order, ref, labels, 1, given, ["revolute"], far,
-                                   ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0, hinge_trial_edges=2,
-                                                       hinge_trial_search_slides=True),
+                                   ArticulateConfig(hinge_trial=7, hinge_trial_race=1.0, colour_radius=0.0,
+                                                       hinge_trial_edges=2, hinge_trial_search_slides=True),
                                    np.ones(1, bool), log=logs.append)
     assert len(refits) == 6 and rec[0]["candidates"][3]["loss"] == rec[0]["candidates"][1]["loss"]
     assert any("the poses of the slide, axis" in m for m in logs)
@@ -963,7 +964,8 @@ def test_refit_is_saved_and_the_controlled_scene_starts_from_it(tiny, tmp_path):
     k = max(back.s2.num_objects, 1)
     img = result.render_controlled(back, np.zeros((k, 3)), sc.viewmats[0], sc.Ks[0], sc.width, sc.height)
     ref = np.asarray(back.render_geometry(*(np.asarray(x) for x in (refit.means, refit.quats, refit.log_scales)),
-                                          sc.viewmats[0], sc.Ks[0], sc.width, sc.height, params=back.control_params())[0])
+                                          sc.viewmats[0], sc.Ks[0], sc.width, sc.height,
+                                          params=back.control_params())[0])
     np.testing.assert_allclose(img, np.clip(ref, 0, 1), atol=1e-5)
     stage1 = result.render_controlled(run, np.zeros((k, 3)), sc.viewmats[0], sc.Ks[0], sc.width, sc.height)
     assert np.abs(img - stage1).max() > 1e-3  # it is not the stage-1 scene
@@ -984,8 +986,8 @@ def test_refit_relabelling_returns_mislabelled_gaussians_to_their_part(tiny):
     kept, same = refit.refit_gaussians(run, moved, order, wrong, poses, 2, log=lambda m: None)
     np.testing.assert_array_equal(same, wrong)
     logs = []
-    _, new = refit.refit_gaussians(run, moved, order, wrong, poses, 80, relabel_steps=80, relabel_radius=radius, relabel_lr=0.3,
-                                    log=logs.append)
+    _, new = refit.refit_gaussians(run, moved, order, wrong, poses, 80, relabel_steps=80, relabel_radius=radius,
+                                    relabel_lr=0.3, log=logs.append)
     assert any("relabelled by motion" in m for m in logs), logs
     before = np.mean(wrong[flip] == labels[flip])  # 0
     after = np.mean(new[flip] == labels[flip])
@@ -1047,7 +1049,8 @@ def test_stage2_with_photometric_tracking_writes_joint_poses(tiny, tmp_path, mon
         for k, r in zip(meta["joint_kinds"], meta["joint_hinge_offsets"])), meta
     assert all(k in ("revolute", "prismatic") and c >= 0 for k, c in zip(meta["joint_kinds"], meta["joint_costs"]))
     assert len(meta["hull_joined"]) == len(meta["hinge_joined"]) == len(meta["hinges"]) == res.num_objects, meta
-    assert all(h is None or (h["angle_deg"] >= 20 and abs(np.linalg.norm(h["axis"]) - 1) < 1e-6) for h in meta["hinges"])
+    assert all(h is None or (h["angle_deg"] >= 20 and abs(np.linalg.norm(h["axis"]) - 1) < 1e-6)
+               for h in meta["hinges"])
     for bad, field in (({"track_photo": -1}, "track_photo"), ({"track_photo_next": -1}, "track_photo_next"),
                        ({"track_rounds": 0}, "track_rounds"), ({"track_converged_deg": -1.0}, "track_converged_deg"),
                        ({"track_converged_deg": float("nan")}, "track_converged_deg"),
@@ -1494,7 +1497,8 @@ def test_seen_through_matches_the_dense_reference_weights():
     vm = np.eye(4)
     gx, gy = np.meshgrid(np.linspace(-0.5, 0.1, 4), np.linspace(-0.3, 0.3, 4))
     plane = np.stack([gx.ravel(), gy.ravel(), np.full(16, 3.0)], -1)  # members
-    static = np.array([[0.0, 0.0, 4.0], [1.4, 0.0, 3.5], [-0.3, 0.1, 2.0], [0.0, 0.0, 3.0]])  # behind, beside, front, dead
+    static = np.array([[0.0, 0.0, 4.0], [1.4, 0.0, 3.5], [-0.3, 0.1, 2.0],
+                       [0.0, 0.0, 3.0]])  # behind, beside, front, dead
     means = np.concatenate([plane, static])
     n = len(means)
     labels = np.r_[np.zeros(16, int), -np.ones(4, int)]
@@ -1511,7 +1515,8 @@ def test_seen_through_matches_the_dense_reference_weights():
     for i in range(2):
         m = means + (labels >= 0)[:, None] * poses[0, i, :3, 3]
         img, _, _ = rasterize_dense(jnp.asarray(m), jnp.asarray(g.quats), jnp.exp(jnp.asarray(log_scales)),
-                                    jnp.asarray(op), jnp.eye(n, dtype=jnp.float64), jnp.asarray(vm), jnp.asarray(K), w, h)
+                                    jnp.asarray(op), jnp.eye(n, dtype=jnp.float64), jnp.asarray(vm),
+                                    jnp.asarray(K), w, h)
         wts = np.asarray(img)  # [H, W, N]: T alpha of each Gaussian at each pixel
         cov = wts[..., labels >= 0].sum(-1)
         inside += np.einsum("hwn,hw->n", wts, cov)
@@ -1563,8 +1568,8 @@ def test_prune_seen_through_prunes_nothing_on_an_overflow_and_lets_other_errors_
     monkeypatch.setattr(L, "seen_through", lambda *a, **k: np.array([0.9, 0.9, 0.3, 0.9]))
     out, k = L.prune_seen_through(g, labels, None, run, scene, np.arange(2), 0.5, log=msgs.append)
     assert k == 1  # the member, the one below the cut and the dead one are kept
-    np.testing.assert_allclose(expit(np.asarray(out.opacity_logits, np.float64)), [expit(2.0), 1e-6, expit(2.0), expit(2.0)],
-                               rtol=1e-4)
+    np.testing.assert_allclose(expit(np.asarray(out.opacity_logits, np.float64)),
+                               [expit(2.0), 1e-6, expit(2.0), expit(2.0)], rtol=1e-4)
 
 
 def test_label_passes_apply_the_enabled_passes_in_order_and_refit_only_after_a_change(tiny):
@@ -1616,7 +1621,8 @@ def test_paper_chain_writes_a_stage2_result_that_loads_back(tiny, tmp_path, enco
 
     dst = tmp_path / "run"
     shutil.copytree(tiny[0], dst, ignore=shutil.ignore_patterns(result.STAGE2_NAME, "stage2.json"))
-    res = run_stage2(dst, tiny[1], Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2, control_encoding=encoding),
+    res = run_stage2(dst, tiny[1], Stage2Config(auto_eps=True, distill_steps=5, photo_steps=2,
+                                                control_encoding=encoding),
                      log=lambda m: None)
     back = result.load_stage2(dst)
     assert back.s2.control.encoding == encoding

@@ -13,7 +13,8 @@ ROOT = Path(__file__).resolve().parents[2] / "fgjax"
 
 # module prefix -> layer (docs/architecture.md, "Layers"); the longest matching prefix wins
 LAYERS = {
-    "fgjax.geometry": 0, "fgjax.version": 0, "fgjax.io": 0, "fgjax.metrics": 0, "fgjax.xla_env": 0, "fgjax.config": 0, "fgjax.viz": 0,
+    "fgjax.geometry": 0, "fgjax.version": 0, "fgjax.io": 0, "fgjax.metrics": 0, "fgjax.xla_env": 0, "fgjax.config": 0,
+    "fgjax.viz": 0,
     "fgjax.gaussians": 1, "fgjax.ply": 1, "fgjax.cluster": 1, "fgjax.data": 1, "fgjax.provenance": 1,
     "fgjax.render": 2,
     "fgjax.flow": 3, "fgjax.models": 3, "fgjax.train": 3,

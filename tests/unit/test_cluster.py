@@ -447,7 +447,8 @@ def test_cluster_by_motion_edge_cases():
     cut = C.cluster_by_motion(pts, moving, total, eps=0.015, min_corr=0.8, min_fraction=0.5)
     assert set(cut) <= {-1, 0} and np.sum(cut == 0) >= 115
     for kw, msg in (({"eps": 0.0}, "eps"), ({"eps": 0.1, "min_corr": 1.5}, "min_corr"),
-                    ({"eps": 0.1, "min_samples": 0}, "min_samples"), ({"eps": 0.1, "min_fraction": 1.0}, "min_fraction")):
+                    ({"eps": 0.1, "min_samples": 0}, "min_samples"),
+                    ({"eps": 0.1, "min_fraction": 1.0}, "min_fraction")):
         with pytest.raises(ValueError, match=msg):
             C.cluster_by_motion(pts, moving, total, **kw)
     with pytest.raises(ValueError, match=r"\[T, 230\]"):

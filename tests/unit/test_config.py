@@ -51,7 +51,8 @@ def test_a_bool_is_not_a_number(section, cls, validate):
     ("stage2", "distill_steps", -1), ("stage2", "camera_correction", "maybe"), ("stage2", "cluster_method", "kmeans"),
     ("stage2", "backproject", "first"),
     ("stage2", "control_encoding", "fourier"), ("stage2", "threshold_sigmas", -1.0),
-    ("stage2", "threshold_sigmas", float("nan")), ("stage2", "agree_sigma", -0.1), ("stage2", "agree_sigma", float("inf")),
+    ("stage2", "threshold_sigmas", float("nan")), ("stage2", "agree_sigma", -0.1),
+    ("stage2", "agree_sigma", float("inf")),
     ("stage2", "agree_sigma", float("nan")), ("stage2", "depth_tolerance", -0.1),
     ("stage2", "depth_tolerance", float("inf")),
     ("articulate", "track_rounds", 0), ("articulate", "hinge_up_deg", 90.0), ("articulate", "ghost_opacity", 1.0),
@@ -124,7 +125,8 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
     assert label_passes_on(ArticulateConfig(hinge_fill=True, through_prune=0.5)) == ("hinge_fill", "through_prune")
 
 
-@pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"), ("flow.photo_motion=1.5", "flow.photo_motion"),
+@pytest.mark.parametrize("override,key", [("flow.loss=other", "flow.loss"),
+                                          ("flow.photo_motion=1.5", "flow.photo_motion"),
                                           ("flow.photo_motion_start=-1", "flow.photo_motion_start"),
                                           ("deform.anchor=last", "deform.anchor"), ("deform.kind=mlp", "deform.kind"),
                                           ("deform.init=tracks", "deform.init"), ("deform.hold=-1", "deform.hold"),
@@ -146,7 +148,8 @@ def test_label_passes_are_off_by_default_and_on_only_in_the_hand_made_scenes_con
                                           ("deform.joint=screw", "deform.joint"), ("deform.joint=ball", "deform.joint"),
                                           ("flow.gaussian_flow=affine", "flow.gaussian_flow"),
                                           ("flow.camera_depth=median", "flow.camera_depth"),
-                                          ("flow.norm=l2", "flow.norm"), ("flow.charbonnier_px=0", "flow.charbonnier_px")])
+                                          ("flow.norm=l2", "flow.norm"),
+                                          ("flow.charbonnier_px=0", "flow.charbonnier_px")])
 def test_stage1_flow_options_are_validated(override, key):
     with pytest.raises(ConfigError, match=rf"^config key '{key}' must be "):
         load_config(None, overrides=[override])  # "config key 'KEY' must be ..."

@@ -58,7 +58,8 @@ def _velocity_cases(c2w0, w, u, dt):
     c2w1_twist = c2w0 @ g.se3_exp(dt * jnp.concatenate([w, u]))
     # (b) centre/rotation construction: c1 = c0 + dt R0 u, R1 = R0 exp(dt w) -> v = u, omega = w
     c2w1_direct = g.make_pose(c2w0[:3, :3] @ g.so3_exp(dt * w), c2w0[:3, 3] + dt * c2w0[:3, :3] @ u)
-    return fl.camera_velocity(c2w0, c2w1_twist, dt), fl.camera_velocity(c2w0, c2w1_direct, dt), g.so3_left_jacobian(dt * w)
+    return (fl.camera_velocity(c2w0, c2w1_twist, dt), fl.camera_velocity(c2w0, c2w1_direct, dt),
+            g.so3_left_jacobian(dt * w))
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -90,7 +91,8 @@ def test_camera_velocity_finite_at_zero_and_pi():
     def run(angles):
         c2w1 = jax.vmap(lambda a: c2w0 @ g.se3_exp(jnp.concatenate([a * axis, jnp.ones(3)])))(angles)
         vels = jax.vmap(lambda c: fl.camera_velocity(c2w0, c)[1])(c2w1)
-        return vels, jax.vmap(jax.grad(omega_norm))(c2w1), jax.vmap(jax.jacfwd(lambda c: fl.camera_velocity(c2w0, c)))(c2w1)
+        jac = jax.vmap(jax.jacfwd(lambda c: fl.camera_velocity(c2w0, c)))(c2w1)
+        return vels, jax.vmap(jax.grad(omega_norm))(c2w1), jac
 
     om, grads, jacs = run(angles)
     assert jnp.all(jnp.isfinite(om)) and jnp.all(jnp.isfinite(grads))
@@ -171,7 +173,8 @@ def test_gaussian_image_velocity_analytic_matches_jvp(seed):
     scale = jnp.linalg.norm(vel_jvp, axis=-1, keepdims=True)
     _assert_le(jnp.abs(vel - vel_jvp), 1e-10 * scale + 1e-9)
     # sign convention: an object moving along +x_cam moves right in the image
-    right = fl.gaussian_image_velocity(jnp.array([0.0, 0.0, 2.0]), jnp.array([1.0, 0.0, 0.0]), _K(), jnp.zeros(3), jnp.zeros(3))
+    right = fl.gaussian_image_velocity(jnp.array([0.0, 0.0, 2.0]), jnp.array([1.0, 0.0, 0.0]), _K(), jnp.zeros(3),
+                                       jnp.zeros(3))
     np.testing.assert_allclose(right, [250.0, 0.0])
 
 
@@ -187,7 +190,8 @@ def test_motion_field_vmap_over_cameras_and_invalid_depth():
     assert jnp.all(jnp.isfinite(batched))
     rot_only = fl.motion_field(xy[:4], jnp.full(4, jnp.inf), _K(), vs[0], oms[0])
     np.testing.assert_allclose(batched[0, :4], rot_only, rtol=1e-14)
-    grad = jax.jit(jax.grad(lambda d, v: jnp.sum(fl.motion_field(xy, d, _K(), v, oms[0]) ** 2), argnums=(0, 1)))(depth, vs[0])
+    grad = jax.jit(jax.grad(lambda d, v: jnp.sum(fl.motion_field(xy, d, _K(), v, oms[0]) ** 2),
+                            argnums=(0, 1)))(depth, vs[0])
     assert all(jnp.all(jnp.isfinite(x)) for x in grad)
 
 
@@ -350,13 +354,13 @@ def test_tartanair_flow_direction_and_layout():
 
 
 def test_tartanair_flow_is_a_camera_motion_field():
-    """The TartanAir ground-truth flow of a static scene is explained by our motion-field model u = rho A v +
-    B omega with one (v, omega) for the image and a per-pixel inverse depth rho of one sign: fitted by
-    variable projection (rho eliminated in closed form) on a 20 x 15 pixel subsample, the median residual is
-    < 1% of the median flow (measured: 0.08 px of 19 px, 0.39 px for the swapped control; the rest is the first-order error of a ~2.5 degree
-    rotation) and > 95% of rho share a sign. Flipping the sign of any single entry of A or B tried (B02, B10,
-    B01, A02) leaves 0.37-0.64 px (> 2x the bound), so the bound pins the matrices. Negative control: the same fit on the flow
-    with its x/y channels swapped leaves a residual at least 3x larger. TartanAir K: fx = fy = 320,
+    """The TartanAir ground-truth flow of a static scene is explained by our motion-field model u = rho A v + B
+    omega with one (v, omega) for the image and a per-pixel inverse depth rho of one sign: fitted by variable
+    projection (rho eliminated in closed form) on a 20 x 15 pixel subsample, the median residual is < 1% of the
+    median flow (measured: 0.08 px of 19 px, 0.39 px for the swapped control; the rest is the first-order error of a
+    ~2.5 degree rotation) and > 95% of rho share a sign. Flipping the sign of any single entry of A or B tried (B02,
+    B10, B01, A02) leaves 0.37-0.64 px (> 2x the bound), so the bound pins the matrices. Negative control: the same
+    fit on the flow with its x/y channels swapped leaves a residual at least 3x larger. TartanAir K: fx = fy = 320,
     cx = 320, cy = 240."""
     from scipy.optimize import least_squares
 
@@ -376,7 +380,8 @@ def test_tartanair_flow_is_a_camera_motion_field():
 
         best = None
         for v0 in np.eye(3):  # a few starts for the translation direction
-            sol = least_squares(lambda p: residual(p)[0], np.concatenate([np.zeros(3), v0 + 0.1]), loss="soft_l1", f_scale=0.5)
+            sol = least_squares(lambda p: residual(p)[0], np.concatenate([np.zeros(3), v0 + 0.1]), loss="soft_l1",
+                                f_scale=0.5)
             if best is None or sol.cost < best.cost:
                 best = sol
         r, rho = residual(best.x)
@@ -568,7 +573,8 @@ def test_lemma1_static_scene():
     np.testing.assert_allclose(flow_centres, fl.motion_field(m, z_exp, K_SMALL, v, om) + delta, atol=1e-9)
     assert float(jnp.abs(jnp.where((alpha > 0.99)[..., None], delta, 0)).max()) > 0.05
     np.testing.assert_allclose(fl.lemma1_residual(m, K_SMALL, v, rho_gs, 1.0 / rho_gs), 0.0, atol=1e-9)
-    rho_helper, alpha_helper, overflow = fl.composited_inverse_depth(means, quats, scales, opac, view0, K_SMALL, W, H, capacity=CAP)
+    rho_helper, alpha_helper, overflow = fl.composited_inverse_depth(means, quats, scales, opac, view0, K_SMALL, W, H,
+                                                                     capacity=CAP)
     assert not bool(overflow)
     np.testing.assert_allclose(rho_helper, rho_gs, atol=1e-12)
     np.testing.assert_allclose(alpha_helper, alpha, atol=1e-12)
@@ -617,14 +623,16 @@ def test_one_moving_gaussian_dynamic_flow():
     img, alpha, _ = _render(means, quats, scales, opac, jnp.concatenate([u_i, 1.0 / p_cam[:, 2:]], -1), view0)
     dyn = img[..., :2] - fl.motion_field_inv_depth(m, img[..., 2], K_SMALL, v, om)
     h = 1e-5
-    maps = fl.dynamic_gaussian_flow(means, quats, scales, opac, means + h * vel_world, view0, K_SMALL, W, H, capacity=CAP)
+    maps = fl.dynamic_gaussian_flow(means, quats, scales, opac, means + h * vel_world, view0, K_SMALL, W, H,
+                                    capacity=CAP)
     scale = float(jnp.abs(dyn).max())
     assert scale > 1.0
     np.testing.assert_allclose(maps.flow / h, dyn, atol=1e-3 * scale)
     assert jnp.all(jnp.where(w_k == 0, jnp.abs(dyn).max(-1) < 1e-9, True))
     # nothing moves -> zero flow, both forms
     still = fl.dynamic_gaussian_flow(means, quats, scales, opac, means, view0, K_SMALL, W, H, capacity=CAP)
-    still_a = fl.dynamic_gaussian_flow(means, quats, scales, opac, means, view0, K_SMALL, W, H, anisotropic=True, capacity=CAP)
+    still_a = fl.dynamic_gaussian_flow(means, quats, scales, opac, means, view0, K_SMALL, W, H, anisotropic=True,
+                                       capacity=CAP)
     assert float(jnp.abs(still.flow).max()) < 1e-12 and float(jnp.abs(still_a.flow).max()) < 1e-9
 
 
@@ -686,9 +694,11 @@ def test_anisotropic_flow_single_gaussian_is_affine():
     paint = aniso.alpha > 1e-3
     assert int(paint.sum()) > 20
     a = jnp.where(paint, aniso.alpha, 1.0)[..., None]
-    np.testing.assert_allclose(jnp.where(paint[..., None], aniso.flow / a, 0), jnp.where(paint[..., None], expected, 0), atol=1e-8)
+    np.testing.assert_allclose(jnp.where(paint[..., None], aniso.flow / a, 0),
+                               jnp.where(paint[..., None], expected, 0), atol=1e-8)
     dmu = jnp.broadcast_to(mu1[k] - mu0[k], (H, W, 2))
-    np.testing.assert_allclose(jnp.where(paint[..., None], iso.flow / a, 0), jnp.where(paint[..., None], dmu, 0), atol=1e-10)
+    np.testing.assert_allclose(jnp.where(paint[..., None], iso.flow / a, 0),
+                               jnp.where(paint[..., None], dmu, 0), atol=1e-10)
     assert float(jnp.abs(mmi).max()) > 0.05  # the covariance change is visible, so the test can fail
     # the rasterizer's own 2D covariance agrees with ours (same EWA rule): its conics are our inverses
     _, _, info = _render(means, quats, scales, opac, jnp.ones((N, 3)), view0)

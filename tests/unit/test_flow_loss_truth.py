@@ -42,7 +42,8 @@ def door_pair():
     m1, q1 = deform(scene, st[1])
     flow = np.where(gt["flow_valid"][0, ..., None], gt["flow"][0], np.nan).astype(np.float32)
     f32 = lambda a: jnp.asarray(a, jnp.float32)
-    return {"m0": f32(m0), "q0": f32(q0), "s": f32(scene.scales), "o": f32(scene.opacities), "m1": f32(m1), "q1": f32(q1),
+    return {"m0": f32(m0), "q0": f32(q0), "s": f32(scene.scales), "o": f32(scene.opacities),
+            "m1": f32(m1), "q1": f32(q1),
             "vm0": f32(vm[0]), "vm1": f32(vm[1]), "K": f32(scene.K), "flow": jnp.asarray(flow),
             "object_flow": gt["object_flow"][0], "door": (gt["object_flow"][0] != 0).any(-1),
             "labels": scene.labels}
@@ -83,7 +84,8 @@ def test_gradient_at_rest_points_along_the_true_motion(door_pair):
     true = np.asarray(p["m1"] - p["m0"])
     moved = door & (np.linalg.norm(true, axis=-1) > 1e-4) & (np.linalg.norm(g, axis=-1) > 0)
     assert moved.sum() > 20
-    cos = np.sum(-g[moved] * true[moved], -1) / (np.linalg.norm(g[moved], axis=-1) * np.linalg.norm(true[moved], axis=-1))
+    cos = np.sum(-g[moved] * true[moved], -1) / (np.linalg.norm(g[moved], axis=-1)
+                                                 * np.linalg.norm(true[moved], axis=-1))
     assert np.median(cos) > 0.5, np.median(cos)
     assert np.all(np.isfinite(g))
     # static Gaussians get (almost) nothing: their pixels' target is zero and so is their flow at rest

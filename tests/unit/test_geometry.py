@@ -19,7 +19,8 @@ from fgjax import geometry as g
 
 # Angles crossing every branch: 0, the float64 small-angle threshold (theta^2 = eps^(1/4) -> theta ~ 0.011),
 # generic, and the near-pi branch (cos theta < -0.8 -> theta > 2.498) up to pi.
-ANGLES = jnp.array([0.0, 1e-12, 1e-7, 1e-4, 1e-2, 0.0109, 0.0111, 0.105, 0.5, 2.0, 2.6, 3.0, np.pi - 1e-3, np.pi - 1e-7])
+ANGLES = jnp.array([0.0, 1e-12, 1e-7, 1e-4, 1e-2, 0.0109, 0.0111, 0.105, 0.5, 2.0, 2.6, 3.0, np.pi - 1e-3,
+                    np.pi - 1e-7])
 NEAR_PI = ANGLES > 3.1
 
 exp_j = jax.jit(g.so3_exp)

@@ -138,7 +138,8 @@ def test_depth_point_cloud_back_projects_onto_the_measured_depth_and_drops_moved
     assert len(np.unique(f)) == 8 and np.all(np.isfinite(p)) and pc["colors"].shape == p.shape
     vm, K = scene.viewmats[f], scene.Ks[f]
     cam = np.einsum("mij,mj->mi", vm[:, :3, :3], p) + vm[:, :3, 3]
-    uv = np.stack([K[:, 0, 0] * cam[:, 0] / cam[:, 2] + K[:, 0, 2], K[:, 1, 1] * cam[:, 1] / cam[:, 2] + K[:, 1, 2]], -1)
+    uv = np.stack([K[:, 0, 0] * cam[:, 0] / cam[:, 2] + K[:, 0, 2],
+                   K[:, 1, 1] * cam[:, 1] / cam[:, 2] + K[:, 1, 2]], -1)
     np.testing.assert_allclose(uv, px, atol=1e-6)
     i, j = np.floor(px[:, 1]).astype(int), np.floor(px[:, 0]).astype(int)
     np.testing.assert_allclose(cam[:, 2], depth[f, i, j], rtol=1e-5)

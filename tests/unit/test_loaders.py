@@ -255,7 +255,8 @@ def _write_nerfies(root, rng, *, n=3, distortion=False, scales=(1, 2)):
         json.dumps({"count": n, "ids": ids, "train_ids": ids[:-1], "val_ids": ids[-1:]})
     )
     (root / "metadata.json").write_text(
-        json.dumps({cid: {"warp_id": i, "appearance_id": i, "camera_id": 0, "time_id": 2 * i} for i, cid in enumerate(ids)})
+        json.dumps({cid: {"warp_id": i, "appearance_id": i, "camera_id": 0, "time_id": 2 * i}
+                    for i, cid in enumerate(ids)})
     )
     cams = {}
     for i, cid in enumerate(ids):
@@ -515,7 +516,8 @@ def _bad_viewmat(args, value):
         (lambda a: _bad_viewmat(a, np.nan), {}, ValueError, r"viewmats\[1\] has non-finite"),
         (lambda a: _bad_viewmat(a, 3.0), {}, ValueError, r"viewmats\[1\] rotation block is not orthonormal"),
         (lambda a: a[:3] + [np.array([0.0, 1.2, 1.0])], {}, ValueError, r"times\[1\] = 1.2"),
-        (lambda a: [a[0], a[1] + np.array([[0, 1.0, 0], [0, 0, 0], [0, 0, 0]]), a[2], a[3]], {}, ValueError, r"Ks\[0\]"),
+        (lambda a: [a[0], a[1] + np.array([[0, 1.0, 0], [0, 0, 0], [0, 0, 0]]), a[2], a[3]], {},
+         ValueError, r"Ks\[0\]"),
         (lambda a: [a[0].astype(np.float32) * 2, *a[1:]], {}, ValueError, r"images\[0\] float values"),
         (lambda a: a, {"extra": {"scene": object()}}, ValueError, "not JSON-serialisable"),
         (lambda a: a, {"extra": {"frames": []}}, ValueError, "reserved"),
@@ -523,7 +525,8 @@ def _bad_viewmat(args, value):
         (lambda a: a, {"frame_names": ["a", "a", "b"]}, ValueError, "distinct"),
         (lambda a: a, {"frame_names": ["a", "../b", "c"]}, ValueError, r"frame_names\[1\]"),
     ],
-    ids=["nan-pose", "non-rigid", "time", "skew", "image-range", "extra-json", "extra-reserved", "depth", "dup", "name"],
+    ids=["nan-pose", "non-rigid", "time", "skew", "image-range", "extra-json", "extra-reserved", "depth", "dup",
+         "name"],
 )
 def test_writer_rejects_bad_input_and_writes_nothing(tmp_path, mutate, kwargs, error, message):
     out = tmp_path / "out"

@@ -57,7 +57,8 @@ def _middlebury_pairs():
     out = []
     for seq in ("Dimetrodon", "Hydrangea", "RubberWhale"):
         d = root / seq
-        out.append((fio.read_image(d / "frame10.png"), fio.read_image(d / "frame11.png"), fio.read_flo(d / "flow10.flo")))
+        out.append((fio.read_image(d / "frame10.png"), fio.read_image(d / "frame11.png"),
+                    fio.read_flo(d / "flow10.flo")))
     return out
 
 
@@ -463,7 +464,8 @@ def test_cli_mismatched_sizes_and_bad_param_exit_2(tmp_path, capsys):
     assert flow_app.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o")]) == 2
     assert "frame_9.png: image is 64x40 but" in capsys.readouterr().err
     (tmp_path / "imgs" / "frame_9.png").unlink()
-    assert flow_app.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o"), "--param", "levels=-1"]) == 2
+    assert flow_app.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o"),
+                          "--param", "levels=-1"]) == 2
     assert "DISDeepFlowParams.levels must be >= 0" in capsys.readouterr().err
     assert flow_app.main(["--images", str(tmp_path / "imgs"), "--out", str(tmp_path / "o"), "--param", "levels"]) == 2
     assert "expected key=value" in capsys.readouterr().err

@@ -58,7 +58,8 @@ def test_pose_delta_turns_about_the_centre_and_is_finite_on_extreme_updates():
     d = np.asarray(pose_delta(x, cen, scale))
     np.testing.assert_allclose(d[0, :3, :3] @ np.asarray(cen[0]) + d[0, :3, 3], cen[0], atol=1e-12)  # centre fixed
     np.testing.assert_allclose(d[1, :3, 3], [2.0, -4.0, 1.0], atol=1e-12)  # shift in units of `scale`
-    np.testing.assert_allclose(d[:, :3, :3] @ np.swapaxes(d[:, :3, :3], 1, 2), np.tile(np.eye(3), (2, 1, 1)), atol=1e-12)
+    np.testing.assert_allclose(d[:, :3, :3] @ np.swapaxes(d[:, :3, :3], 1, 2), np.tile(np.eye(3), (2, 1, 1)),
+                               atol=1e-12)
     huge = jnp.asarray([[1e6, -1e6, 3e5, 1e8, 0.0, 0.0], [0.0] * 6])
     assert np.all(np.isfinite(np.asarray(pose_delta(huge, cen, scale))))
     g = jax.grad(lambda v: jnp.sum(pose_delta(v, cen, scale)))(jnp.zeros((2, 6)))
@@ -284,8 +285,8 @@ def test_track_photometric_soft_membership_tolerates_mislabelled_gaussians():
 def test_mixed_copies_splits_each_candidates_opacity_between_its_two_copies():
     rng = np.random.default_rng(0)
     n = 7
-    g = Gaussians(jnp.asarray(rng.normal(size=(n, 3))), jnp.zeros((n, 3)), jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (n, 1)),
-                  jnp.asarray(rng.normal(size=n)), jnp.zeros((n, 1, 3)))
+    g = Gaussians(jnp.asarray(rng.normal(size=(n, 3))), jnp.zeros((n, 3)),
+                  jnp.tile(jnp.asarray([1.0, 0, 0, 0]), (n, 1)), jnp.asarray(rng.normal(size=n)), jnp.zeros((n, 1, 3)))
     cand = jnp.asarray([1, 4])
     moved = g.means + 1.0
     both = mixed_copies(g, moved, g.quats, cand, jnp.asarray([0.3, -1.0]))
@@ -412,7 +413,8 @@ def test_track_photometric_drawing_only_the_gaussians_near_the_moving_parts_give
     side = rng.uniform([2.2, 0.9, -0.9], [3.0, 0.9, 0.9], (600, 3))
     side[::2, 0] *= -1  # half on the left
     n = len(side)
-    g = Gaussians(jnp.concatenate([g.means, jnp.asarray(side)]), jnp.concatenate([g.log_scales, jnp.full((n, 3), np.log(0.05))]),
+    g = Gaussians(jnp.concatenate([g.means, jnp.asarray(side)]),
+                  jnp.concatenate([g.log_scales, jnp.full((n, 3), np.log(0.05))]),
                   jnp.concatenate([g.quats, jnp.tile(jnp.asarray([[1.0, 0, 0, 0]]), (n, 1))]),
                   jnp.concatenate([g.opacity_logits, jnp.full(n, 2.0)]),
                   jnp.concatenate([g.sh, jnp.asarray(rng.random((n, 1, 3)) - 0.5)]))

@@ -174,5 +174,6 @@ def test_stage1_step_at_full_precision_but_the_fields_mlps():
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     i = np.array([1])
     args = (params, make_optimizer(ospec, 4).init(params), state.densify, jnp.ones(4, jnp.float32),
-            f32(scene.images[i]), f32(scene.viewmats[i]), f32(scene.Ks[i]), f32(scene.times[i]), jnp.asarray(i, jnp.int32))
+            f32(scene.images[i]), f32(scene.viewmats[i]), f32(scene.Ks[i]), f32(scene.times[i]),
+            jnp.asarray(i, jnp.int32))
     assert _check(step, *args, allow="/fgjax/models/") >= 10

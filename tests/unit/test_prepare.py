@@ -112,12 +112,14 @@ def test_a_still_clip_falls_back_to_identity_poses(tmp_path):
 
 def test_a_panning_clip_falls_back_to_rotations(tmp_path):
     """A camera turning about its centre (pan 8 degrees, tilt 3) over 12 frames: no parallax, so SfM registers too
-    few frames, or builds a degenerate model (measured: 9-10 frames on 0-2 points), and the clip falls back to rotations fitted to its optical flow; with the true focal length (--fov)
-    they agree with the true rotations within 0.3 degrees (measured: 0.004 on the rendered frames, 0.01 through H.264)."""
+    few frames, or builds a degenerate model (measured: 9-10 frames on 0-2 points), and the clip falls back to rotations
+    fitted to its optical flow; with the true focal length (--fov) they agree with the true rotations within 0.3 degrees
+    (measured: 0.004 on the rendered frames, 0.01 through H.264)."""
     import pycolmap  # noqa: F401  (the test extra installs it; a broken install fails here, not skips)
     K = pinhole(W, H, 0.8 * W)
     c = np.array([0.3, -1.6, 1.0])
-    truth = np.stack([look_at_c2w(c, c + [math.sin(math.radians(-4 + 8 * i / 11)), math.cos(math.radians(-4 + 8 * i / 11)),
+    truth = np.stack([look_at_c2w(c, c + [math.sin(math.radians(-4 + 8 * i / 11)),
+                                          math.cos(math.radians(-4 + 8 * i / 11)),
                                           -0.3 + 0.05 * i / 11]) for i in range(12)])
     clip = _clip(tmp_path / "pan.mp4", truth, K, supersample=1)
     lines: list[str] = []

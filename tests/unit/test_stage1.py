@@ -484,8 +484,8 @@ def test_isometry_regulariser_enters_the_deformation_steps():
     scene = _tiny_scene(True)
     common = ["train.steps=10", "train.warmup_steps=4", "densify.enabled=false", "static.force=dynamic"]
     a = stage1.train_stage1(_cfg(*common), scene, None, progress=False, log=lambda *_: None)
-    b = stage1.train_stage1(_cfg(*common, "train.rigid_weight=10", "train.rigid_scale_weight=1"), scene, None, progress=False,
-                            log=lambda *_: None)
+    b = stage1.train_stage1(_cfg(*common, "train.rigid_weight=10", "train.rigid_scale_weight=1"), scene, None,
+                            progress=False, log=lambda *_: None)
     la, lb = np.asarray(a["losses"]), np.asarray(b["losses"])
     assert np.all(np.isfinite(lb))
     np.testing.assert_array_equal(la[:4], lb[:4])  # warm-up: identical

@@ -1,4 +1,5 @@
-"""Rigid object tracking from flow (`fgjax.articulate.track`; the rigid camera increment of `fgjax.method.camera`) against known motions."""
+"""Rigid object tracking from flow (`fgjax.articulate.track`; the rigid camera increment of `fgjax.method.camera`)
+against known motions."""
 
 from __future__ import annotations
 
@@ -74,7 +75,8 @@ def _rendered_flow(means, quats, scales, opac, labels, pose_a, pose_b, vm_a, vm_
     """Exact flow a -> b of the rendered scene: each pixel's expected-depth point moves with its object."""
     from fgjax.render.api import rasterization
 
-    m_a, q_a = transform_gaussians(jnp.asarray(means), jnp.asarray(quats), jnp.asarray(labels), jnp.asarray(pose_a[None]))
+    m_a, q_a = transform_gaussians(jnp.asarray(means), jnp.asarray(quats), jnp.asarray(labels),
+                                   jnp.asarray(pose_a[None]))
     onehot = np.stack([labels < 0, labels >= 0], -1).astype(np.float64)
     feat, alpha, info = rasterization(m_a, q_a, scales, opac, onehot, jnp.asarray(vm_a), jnp.asarray(K), W, H,
                                       render_depth=True)

@@ -129,7 +129,8 @@ def test_track_loss_gradient_at_rest_points_along_the_motion(door_track):
     moved = door & (np.linalg.norm(true, axis=-1) > 1e-3) & (np.linalg.norm(g, axis=-1) > 0)
     assert moved.sum() > 20
     # the loss sees the motion across the view: compare the image-plane components (the ray's is free)
-    cos = np.sum(-g[moved] * true[moved], -1) / (np.linalg.norm(g[moved], axis=-1) * np.linalg.norm(true[moved], axis=-1))
+    cos = np.sum(-g[moved] * true[moved], -1) / (np.linalg.norm(g[moved], axis=-1)
+                                                 * np.linalg.norm(true[moved], axis=-1))
     assert np.median(cos) > 0.5, np.median(cos)
     assert np.abs(g[~door]).sum() < 0.75 * np.abs(g[door]).sum()  # measured 0.58: the door's edge pixels
     # without the dead zone, L1's sign gradient from the static pixels' sub-pixel residuals outweighs the door

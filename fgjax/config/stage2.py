@@ -39,6 +39,11 @@ class Stage2Config:
     static pixel whose depth stage 1 got wrong is not marked moving. 0: the rendered depth as it is (the paper)."""
     min_alpha: float = 0.5
     """Pixels whose rendered alpha is below this have no trusted depth and are left out of the masks."""
+    fb_px: float = 0.0
+    """> 0: a pair's pixels whose optical flow misses the round trip through the backward flow by this many pixels
+    or more, or leaves the second frame (`fgjax.data.opticalflow.forward_backward_mask` with alpha 0 and beta
+    ``fb_px``^2: occlusions, flow errors at the image's border), are left out of the masks, as unmeasured. 0: off
+    (the paper: every pixel's flow is taken as it is)."""
     agree_sigma: float = 0.0
     """Weight each pixel's back-projection by the agreement of the stage-1 rendering with the image there,
     exp(-e^2 / (2 agree_sigma^2)) for an RMS colour error e (`fgjax.method.discover.agreement`): a moving pixel the
@@ -265,7 +270,7 @@ def validate_stage2(cfg: Stage2Config) -> None:
     for name in ("min_px", "min_alpha", "min_score", "eps", "min_fraction", "flow_weight", "flow_threshold"):
         if not float(getattr(cfg, name)) >= 0:
             raise bad(name, "a number >= 0")
-    for name in ("threshold_sigmas", "depth_tolerance", "agree_sigma"):
+    for name in ("threshold_sigmas", "depth_tolerance", "agree_sigma", "fb_px"):
         v = getattr(cfg, name)
         if not (finite(v) and v >= 0):
             raise bad(name, "a finite number >= 0 (0: off)")

@@ -30,7 +30,7 @@ from jaxtyping import Bool, Float, Int
 from fgjax import cluster
 from fgjax.config import Stage2Config, validate_stage2
 from fgjax.data.loaders import load_scene
-from fgjax.data.opticalflow import estimate_flow
+from fgjax.data.opticalflow import estimate_flow, forward_backward_mask
 from fgjax.data.scene import Normalization, Scene
 from fgjax.gaussians import activate
 from fgjax.geometry import viewmat_to_c2w
@@ -106,7 +106,8 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
     that depth (with ``cfg.camera_correction``, camera t's pose first corrected from the static flow,
     `fgjax.method.camera.camera_correction`; with ``cfg.depth_tolerance`` delta > 0, the camera flow of the depth
     in Z / (1 + delta) .. Z (1 + delta) nearest the optical flow, `fgjax.method.discover.nearest_on_segment`); the
-    optical flow t-1 -> t comes from `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``). With
+    optical flow t-1 -> t comes from `fgjax.data.opticalflow.estimate_flow` (cached in ``cache_dir``; with
+    ``cfg.fb_px`` > 0 the pixels whose flow fails the round trip through the flow t -> t-1 are left out). With
     ``cfg.backproject = "track"`` the moving pixels that the first frame's tracks reach (`fgjax.method.flows.
     training_tracks`, on the same cached flows) are back-projected onto the Gaussians at the first time, from the
     first camera (`fgjax.method.discover.Reference`).
@@ -152,6 +153,9 @@ def discover_run(run: LoadedRun, scene: Scene, cfg: Stage2Config, cache_dir: Pat
         flows.append(estimate_flow(to_u8(scene.images[a]), to_u8(scene.images[b]), cfg.flow_method,
                                    cache_dir=cache_dir))
         trusted = alphas[j] >= cfg.min_alpha  # pixels with a rendered depth to trust
+        if cfg.fb_px > 0:  # and a flow that the backward flow confirms
+            back = estimate_flow(to_u8(scene.images[b]), to_u8(scene.images[a]), cfg.flow_method, cache_dir=cache_dir)
+            trusted = trusted & forward_backward_mask(flows[-1], back, alpha=0.0, beta=cfg.fb_px ** 2)
         c2w_b = c2w[j + 1]
         if correct:
             vm_b, rms, _ = camera_correction(depths[j], trusted, flows[-1], scene.viewmats[a], scene.viewmats[b],

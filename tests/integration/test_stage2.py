@@ -387,6 +387,35 @@ def test_depth_tolerance_reaches_the_camera_flow(tiny, tmp_path):
     assert np.all(r5 <= r0 + 1e-4) and np.all(np.isfinite(cam5))
 
 
+def test_fb_px_leaves_out_the_pixels_whose_flow_fails_the_round_trip(tiny, tmp_path):
+    """``stage2.fb_px`` reaches discovery: with a fixed cut and no pose correction, each pair's mask is the mask
+    without the check, less the pixels whose flow t-1 -> t the flow t -> t-1 does not bring back within fb_px
+    (`fgjax.data.opticalflow.forward_backward_mask` with alpha 0, computed here from the images); a cut of a
+    thousandth of a pixel leaves out nearly every pixel, and the optical and camera flows are those without it."""
+    from fgjax.data.loaders import load_scene
+    from fgjax.data.opticalflow import estimate_flow, forward_backward_mask
+    from fgjax.data.scene import Normalization
+    from fgjax.viz import to_u8
+
+    run = result.load_stage2(tiny[0], require_stage2=False)
+    scene = load_scene(tiny[1], "train", normalize=Normalization.from_dict(run.meta["normalization"]))
+    base = dict(threshold_px=0.5, camera_correction="off")
+    out = {fb: discover_run(run, scene, Stage2Config(fb_px=fb, **base), tmp_path, log=lambda m: None)
+           for fb in (0.0, 1.0, 1e-3)}
+    m0, m1, m3 = (out[fb][0].masks for fb in (0.0, 1.0, 1e-3))
+    order, flows, cams = out[0.0][3]
+    ok = np.stack([forward_backward_mask(flows[j], estimate_flow(to_u8(scene.images[order[j + 1]]),
+                                                                 to_u8(scene.images[order[j]]), "dis_deepflow",
+                                                                 cache_dir=tmp_path), alpha=0.0, beta=1.0)
+                   for j in range(len(flows))])
+    assert 0 < ok.sum() < ok.size
+    np.testing.assert_array_equal(m1, m0 & ok)
+    assert m1.sum() < m0.sum() and m3.sum() < 0.05 * m0.sum()
+    for fb in (1.0, 1e-3):
+        np.testing.assert_array_equal(out[fb][3][1], flows)
+        np.testing.assert_array_equal(out[fb][3][2], cams)
+
+
 def _moved_scene(run, sc, labels, poses):
     """The training scene with its images replaced by renders of the stage-1 model at t0 whose labelled
     Gaussians move by `poses` [1, T, 4, 4] (frames in time order)."""

@@ -54,7 +54,7 @@ def test_a_bool_is_not_a_number(section, cls, validate):
     ("stage2", "threshold_sigmas", float("nan")), ("stage2", "agree_sigma", -0.1),
     ("stage2", "agree_sigma", float("inf")),
     ("stage2", "agree_sigma", float("nan")), ("stage2", "depth_tolerance", -0.1),
-    ("stage2", "depth_tolerance", float("inf")),
+    ("stage2", "depth_tolerance", float("inf")), ("stage2", "fb_px", -1.0), ("stage2", "fb_px", float("nan")),
     ("articulate", "track_rounds", 0), ("articulate", "hinge_up_deg", 90.0), ("articulate", "ghost_opacity", 1.0),
     ("articulate", "link_min_corr", 1.5), ("articulate", "link_min_corr", float("nan")),
     ("articulate", "hinge_trial_race", 0.0), ("articulate", "hinge_trial_race", 1.5),

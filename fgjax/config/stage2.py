@@ -42,8 +42,8 @@ class Stage2Config:
     fb_px: float = 0.0
     """> 0: a pair's pixels whose optical flow misses the round trip through the backward flow by this many pixels
     or more, or leaves the second frame (`fgjax.data.opticalflow.forward_backward_mask` with alpha 0 and beta
-    ``fb_px``^2: occlusions, flow errors at the image's border), are left out of the masks, as unmeasured. 0: off
-    (the paper: every pixel's flow is taken as it is)."""
+    ``fb_px``^2: occlusions, flow errors at the image's border), are left out of the masks and of the static flow
+    that ``camera_correction`` fits, as unmeasured. 0: off (the paper: every pixel's flow is taken as it is)."""
     agree_sigma: float = 0.0
     """Weight each pixel's back-projection by the agreement of the stage-1 rendering with the image there,
     exp(-e^2 / (2 agree_sigma^2)) for an RMS colour error e (`fgjax.method.discover.agreement`): a moving pixel the
